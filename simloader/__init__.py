@@ -1,0 +1,25 @@
+"""simloader: freshly simulated MuJoCo trajectories, streamed into PyTorch.
+
+    ds = simloader.SimDataset("cartpole", nbatch=4096, nstep=200,
+                              control=simloader.controls.Uniform())
+    for batch in torch.utils.data.DataLoader(ds, batch_size=None):
+        batch["state"]  # (4096, 200, nstate)
+"""
+
+from simloader import controls, initial, layout
+from simloader.dataset import SimDataset
+from simloader.layout import describe
+from simloader.models import builtin_models, builtin_path, load_model
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "SimDataset",
+    "builtin_models",
+    "builtin_path",
+    "controls",
+    "describe",
+    "initial",
+    "layout",
+    "load_model",
+]

@@ -1,0 +1,126 @@
+"""CPU backend: MuJoCo's native batched simulation (`mujoco.batch.Batch`) on a thread pool.
+
+Each trajectory is an `mjSTATE_INTEGRATION` row of the batch (solver warmstart included), so a
+batch that continues the previous one starts exactly where it ended. `Batch.rollout` records the
+`mjSTATE_FULLPHYSICS` state and the sensors straight into NumPy views of new torch tensors: the
+delivered tensors are the buffers MuJoCo wrote, and every batch equals `mujoco.rollout` on the
+same inputs bit for bit, at any thread count.
+
+Rows are initialized as `mujoco.rollout` initializes its MjData: user inputs outside
+`control_spec` as `mj_resetData` leaves them (zero controls and forces, mocap bodies at their
+model poses, `eq_active0`), the FULLPHYSICS part from the initial state, zero warmstart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Optional
+
+import mujoco
+import numpy as np
+import torch
+from mujoco import batch as mj_batch
+
+from simloader import handoff, layout, sharding
+from simloader.backends.base import Backend
+
+
+@dataclasses.dataclass
+class _Produced:
+    state: torch.Tensor
+    sensordata: torch.Tensor
+    control: torch.Tensor
+    initial_state: torch.Tensor
+    warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning in this batch
+
+
+class RolloutBackend(Backend):
+    """`backend="rollout"`."""
+
+    def __init__(self, config, shard, stats):
+        super().__init__(config, shard, stats)
+        c = config
+        self.nthread = sharding.threads_per_worker(shard, c.nthread)
+        self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
+        if c.models is not None:
+            self.batch.set_models(c.models)
+        models = c.models or [c.model]
+        # each row as mj_resetData leaves it (user inputs, zero warmstart), per model
+        self.template_rows = np.ascontiguousarray(np.broadcast_to(
+            np.stack([_reset_row(m) for m in models]), self.batch.state.shape))
+        self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
+                                                     layout.FULLPHYSICS)
+        self.pin = c.device is not None and c.device.type == "cuda"
+        self.fresh = np.ones(c.nbatch, dtype=bool)  # rows to (re)start from initial states
+        self.warnings = self.batch.warning[:, :, 1]  # live counters, (nbatch, mjNWARNING)
+        if c.control.fixed is not None:
+            self.fixed_control = torch.from_numpy(c.control.fixed)
+        elif not c.control.random:
+            # control=None: the inputs stay as mj_resetData left them, for every step
+            self.fixed_control = torch.from_numpy(c.control.default_rows).unsqueeze(1).expand(
+                c.nbatch, c.nstep, c.ncontrol)
+        else:
+            self.fixed_control = None
+
+    def produce(self, index: int) -> _Produced:
+        c = self.config
+        rows = self.batch.state
+        initial_t, initial = handoff.host_buffer((c.nbatch, c.nstate), pin=self.pin)
+        if self.fresh.any():
+            x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
+            fresh = np.flatnonzero(self.fresh)
+            rows[fresh] = self.template_rows[fresh]
+            rows[np.ix_(fresh, self.physics_cols)] = x0[fresh]
+        initial[...] = rows[:, self.physics_cols]
+
+        if self.fixed_control is None:
+            control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
+            c.control.sample_numpy(self.seed(index, sharding.CONTROL), control)
+        else:
+            control_t, control = self.fixed_control, None
+            if c.control.fixed is not None:
+                control = c.control.fixed
+
+        state_t, state = handoff.host_buffer((c.nbatch, c.nstep, c.nstate), pin=self.pin)
+        sensor_t, sensor = handoff.host_buffer((c.nbatch, c.nstep, c.nsensordata), pin=self.pin)
+        before = self.warnings.sum(axis=1)
+        start = time.perf_counter()
+        self.batch.rollout(c.nstep, control, control_spec=c.control_spec,
+                           record=(layout.FULLPHYSICS, "sensordata"),
+                           out={layout.FULLPHYSICS: state, "sensordata": sensor})
+        self.stats.add(simulate_s=time.perf_counter() - start)
+        warned = self.warnings.sum(axis=1) > before
+        # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
+        self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
+        return _Produced(state_t, sensor_t, control_t, initial_t, warned)
+
+    def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
+        c = self.config
+        # MuJoCo's checks catch NaN/Inf/huge in qpos, qvel and qacc; this also covers
+        # sensors and runs here, overlapped with the next batch's simulation
+        finite = np.isfinite(p.state.numpy()).all(axis=(1, 2))
+        if c.nsensordata:
+            finite &= np.isfinite(p.sensordata.numpy()).all(axis=(1, 2))
+        diverged = p.warned | ~finite
+        self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
+        out = {
+            "state": p.state,
+            "sensordata": p.sensordata,
+            "control": p.control,
+            "initial_state": p.initial_state,
+        }
+        out = {k: handoff.to_target(v, c.device, c.dtype) for k, v in out.items()}
+        out["diverged"] = handoff.to_target(torch.from_numpy(diverged), c.device, None)
+        return out
+
+    def close(self) -> None:
+        # drops the batch's thread pool now rather than at garbage collection
+        self.batch = None
+
+
+def _reset_row(model: mujoco.MjModel) -> np.ndarray:
+    data = mujoco.MjData(model)
+    row = np.empty(mujoco.mj_stateSize(model, layout.INTEGRATION))
+    mujoco.mj_getState(model, data, row, layout.INTEGRATION)
+    return row

@@ -1,0 +1,180 @@
+"""Validating `SimDataset`'s arguments, once, on the host, into one frozen configuration.
+
+Checks run in a fixed order (types, sizes, models, control, initial state) and raise
+`TypeError`/`ValueError` naming the argument, the expectation and what was given, before any
+thread, worker or compilation starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+import torch
+
+from simloader import controls, initial, layout, models
+
+BACKENDS = ("auto", "rollout", "mjx")
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Everything a backend needs to simulate one batch, validated.
+
+    Attributes:
+      model: the model (the first of `models` when a list was given).
+      models: one MjModel per trajectory (`randomize` as a list), or None.
+      backend: "rollout" or "mjx" ("auto" is resolved).
+      nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
+      control_spec: the mjtState bits of the control vector.
+      control: how each batch's controls are made.
+      initial: how each batch's initial states are made.
+      continue_episodes: batches continue the previous batch's trajectories.
+      num_batches: batches per rank in total, or None for endless.
+      seed: root of all randomness.
+      device, dtype: where and in what the tensors are delivered (None: backend native).
+      nthread: CPU threads of the rollout backend (None: the cores split among workers).
+      prefetch: batches simulated ahead of the consumer.
+    """
+
+    model: mujoco.MjModel
+    models: Optional[tuple[mujoco.MjModel, ...]]
+    backend: str
+    nbatch: int
+    nstep: int
+    nstate: int
+    ncontrol: int
+    nsensordata: int
+    control_spec: int
+    control: controls.ControlPlan
+    initial: initial.InitialPlan
+    continue_episodes: bool
+    num_batches: Optional[int]
+    seed: int
+    device: Optional[torch.device]
+    dtype: Optional[torch.dtype]
+    nthread: Optional[int]
+    prefetch: int
+
+
+def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[int]:
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        kind = "an integer or None" if allow_none else "an integer"
+        raise TypeError(f"{name}: expected {kind}, got {type(value).__name__} {value!r}")
+    if value < low:
+        raise ValueError(f"{name}: expected an integer >= {low}, got {value}")
+    return int(value)
+
+
+def resolve_backend(backend: str) -> str:
+    """"auto" is "mjx" when JAX is installed and sees a GPU, else "rollout"."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+    if backend != "auto":
+        return backend
+    try:
+        import jax
+        return "mjx" if any(d.platform == "gpu" for d in jax.devices()) else "rollout"
+    except Exception:  # JAX missing or without a usable platform
+        return "rollout"
+
+
+def _model_list(model: mujoco.MjModel, randomize: Any, nbatch: int,
+                control_spec: int) -> Optional[tuple[mujoco.MjModel, ...]]:
+    if randomize is None:
+        return None
+    if isinstance(randomize, mujoco.MjModel) or not isinstance(randomize, Sequence):
+        raise TypeError(f"randomize: expected None or a sequence of MjModel (one per trajectory), "
+                        f"got {type(randomize).__name__}")
+    models_ = tuple(randomize)
+    for i, m in enumerate(models_):
+        if not isinstance(m, mujoco.MjModel):
+            raise TypeError(f"randomize[{i}]: expected an MjModel, got {type(m).__name__}")
+    if len(models_) != nbatch:
+        raise ValueError(f"randomize: expected nbatch={nbatch} models (one per trajectory), got "
+                         f"{len(models_)}")
+    sizes = ("nq", "nv", "nu", "na", "nbody", "njnt", "ngeom", "nsensordata", "nmocap", "neq",
+             "nuserdata", "nhistory", "nplugin")
+    ref = {s: getattr(model, s, None) for s in sizes}
+    for i, m in enumerate(models_):
+        for s in sizes:
+            if getattr(m, s, None) != ref[s]:
+                raise ValueError(f"randomize[{i}]: models must have identical sizes; {s} is "
+                                 f"{getattr(m, s)}, expected {ref[s]} (as the base model)")
+        for spec in (layout.FULLPHYSICS, layout.INTEGRATION, control_spec):
+            if mujoco.mj_stateSize(m, spec) != mujoco.mj_stateSize(model, spec):
+                raise ValueError(f"randomize[{i}]: state size for spec {spec} differs from the "
+                                 f"base model")
+    return models_
+
+
+def _torch_device(device: Any) -> Optional[torch.device]:
+    if device is None:
+        return None
+    try:
+        dev = torch.device(device)
+    except (TypeError, RuntimeError) as e:
+        raise ValueError(f"device: expected None, 'cpu', 'cuda' or 'cuda:N', got {device!r}") from e
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: {device!r} requested but torch sees no CUDA device")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected a cpu or cuda device, got {device!r}")
+    return dev
+
+
+def _torch_dtype(dtype: Any) -> Optional[torch.dtype]:
+    if dtype is None:
+        return None
+    allowed = {torch.float64: torch.float64, torch.float32: torch.float32,
+               torch.float16: torch.float16, torch.bfloat16: torch.bfloat16,
+               np.float64: torch.float64, np.float32: torch.float32,
+               "float64": torch.float64, "float32": torch.float32}
+    try:
+        return allowed[dtype]
+    except (KeyError, TypeError):
+        raise ValueError(f"dtype: expected None or a floating torch dtype (torch.float32, "
+                         f"torch.float64, ...), got {dtype!r}") from None
+
+
+def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
+                 control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
+                 num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
+                 prefetch: Any) -> SimConfig:
+    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`."""
+    nbatch = _int("nbatch", nbatch, 1)
+    nstep = _int("nstep", nstep, 1)
+    num_batches = _int("num_batches", num_batches, 0, allow_none=True)
+    seed = _int("seed", seed, 0)
+    nthread = _int("nthread", nthread, 1, allow_none=True)
+    prefetch = _int("prefetch", prefetch, 1)
+    if not isinstance(continue_episodes, bool):
+        raise TypeError(f"continue_episodes: expected a bool, got {type(continue_episodes).__name__}")
+    if isinstance(control_spec, bool) or not isinstance(control_spec, (int, np.integer,
+                                                                        mujoco.mjtState)):
+        raise TypeError(f"control_spec: expected an mjtState bitmask (int), got "
+                        f"{type(control_spec).__name__}")
+    control_spec = int(control_spec)
+    if control_spec & ~layout.USER or control_spec < 0:
+        raise ValueError(f"control_spec: expected bits within mjSTATE_USER ({layout.USER}), got "
+                         f"{control_spec} (bits {control_spec & ~layout.USER} are outside)")
+    backend_ = resolve_backend(backend) if isinstance(backend, str) else None
+    if backend_ is None:
+        raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__}")
+    base = models.load_model(model)
+    models_ = _model_list(base, randomize, nbatch, control_spec)
+    if models_ is not None:
+        base = models_[0]
+    plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
+    init = initial.InitialPlan(base, initial_state, nbatch, models_)
+    return SimConfig(
+        model=base, models=models_, backend=backend_, nbatch=nbatch, nstep=nstep,
+        nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
+        nsensordata=base.nsensordata, control_spec=control_spec, control=plan, initial=init,
+        continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
+        device=_torch_device(device), dtype=_torch_dtype(dtype), nthread=nthread,
+        prefetch=prefetch)

@@ -1,0 +1,308 @@
+"""Control generators: fresh open-loop control sequences for every batch, on either backend.
+
+A generator drives one `control_spec` component (`ctrl`, `qfrc_applied`, `xfrc_applied`,
+`eq_active`, `mocap_pos`, `mocap_quat`, `userdata`), optionally only some of its objects,
+addressed by name with `on=`:
+
+    control = simloader.controls.Uniform()                       # actuator controls
+    control = {"ctrl": controls.Uniform(),
+               "xfrc_applied": controls.Normal(std=20.0, on="torso")}  # + a force on one body
+
+Columns no generator drives hold what `mj_resetData` leaves (zero forces and controls, mocap
+bodies at their model poses, equalities at `eq_active0`). Each generator draws with NumPy on
+the CPU backend and with `jax.random` inside the jitted step on the MJX backend: the numbers
+differ between backends, the distributions do not.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any, Optional, Union
+
+import mujoco
+import numpy as np
+
+from simloader import layout
+
+Names = Optional[Union[str, Sequence[str]]]
+
+
+class Generator(abc.ABC):
+    """Base class of control generators.
+
+    Subclasses are frozen dataclasses with an `on` field and implement `params` (per-column
+    parameters, computed once on the host), `sample_numpy` and `sample_jax` (one draw of shape
+    `(nbatch, nstep, ncolumns)` for the columns they drive).
+    """
+
+    on: Names
+
+    @abc.abstractmethod
+    def params(self, model: mujoco.MjModel, component: layout.Component,
+               columns: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-column parameters for the driven `columns` (indices within `component`)."""
+
+    @abc.abstractmethod
+    def sample_numpy(self, rng: np.random.Generator, params: dict[str, np.ndarray],
+                     shape: tuple[int, int, int]) -> np.ndarray:
+        """A float64 draw of `shape` = (nbatch, nstep, ncolumns)."""
+
+    @abc.abstractmethod
+    def sample_jax(self, key: Any, params: dict[str, Any], shape: tuple[int, int, int]) -> Any:
+        """The same distribution with `jax.random`, in the given float dtype of `params`."""
+
+
+def _per_column(value: Any, component: layout.Component, columns: np.ndarray,
+                what: str) -> np.ndarray:
+    """Broadcasts a scalar, a per-object-width vector, or a per-column vector to the columns."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        return np.full(len(columns), float(arr))
+    if arr.shape == (len(columns),):
+        return arr.copy()
+    if arr.shape == (component.width,) and len(columns) % component.width == 0:
+        return np.tile(arr, len(columns) // component.width)
+    raise ValueError(
+        f"{what}: expected a scalar, {component.width} values (one object of "
+        f"{component.name}) or {len(columns)} values (one per driven column), got shape "
+        f"{arr.shape}")
+
+
+def _ctrl_range(model: mujoco.MjModel, component: layout.Component,
+                columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each driven column's natural range: `ctrlrange` for limited actuators, else [-1, 1]."""
+    low, high = -np.ones(len(columns)), np.ones(len(columns))
+    if component.name == "ctrl":
+        limited = model.actuator_ctrllimited[columns].astype(bool)
+        low[limited] = model.actuator_ctrlrange[columns[limited], 0]
+        high[limited] = model.actuator_ctrlrange[columns[limited], 1]
+    return low, high
+
+
+@dataclasses.dataclass(frozen=True)
+class Uniform(Generator):
+    """Independent uniform draws in `[low, high)` at every step.
+
+    Args:
+      low, high: bounds, a scalar or one value per column; `None` gives each actuator's
+        `ctrlrange` for `ctrl` (`[-1, 1]` for unlimited actuators) and -1 / 1 elsewhere.
+      on: the objects to drive (actuator, body, joint dof, mocap body or equality names);
+        `None` drives the whole component.
+    """
+
+    low: Any = None
+    high: Any = None
+    on: Names = None
+
+    def params(self, model, component, columns):
+        low, high = _ctrl_range(model, component, columns)
+        if self.low is not None:
+            low = _per_column(self.low, component, columns, "Uniform.low")
+        if self.high is not None:
+            high = _per_column(self.high, component, columns, "Uniform.high")
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low <= high)):
+            raise ValueError(f"Uniform: expected finite low <= high, got low={low}, high={high}")
+        return {"low": low, "high": high}
+
+    def sample_numpy(self, rng, params, shape):
+        return rng.uniform(params["low"], params["high"], size=shape)
+
+    def sample_jax(self, key, params, shape):
+        import jax
+        low, high = params["low"], params["high"]
+        return jax.random.uniform(key, shape, dtype=low.dtype, minval=low, maxval=high)
+
+
+@dataclasses.dataclass(frozen=True)
+class Normal(Generator):
+    """Independent Gaussian draws `mean + std * N(0, 1)` at every step.
+
+    Args:
+      std, mean: a scalar or one value per column.
+      clip: clip `ctrl` columns of limited actuators to their `ctrlrange` (MuJoCo clamps
+        them anyway; clipping makes the recorded `control` the value that acted).
+      on: the objects to drive; `None` drives the whole component.
+    """
+
+    std: Any = 1.0
+    mean: Any = 0.0
+    clip: bool = True
+    on: Names = None
+
+    def params(self, model, component, columns):
+        std = _per_column(self.std, component, columns, "Normal.std")
+        mean = _per_column(self.mean, component, columns, "Normal.mean")
+        if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
+            raise ValueError(f"Normal: expected finite std >= 0 and finite mean, got "
+                             f"std={std}, mean={mean}")
+        low, high = np.full(len(columns), -np.inf), np.full(len(columns), np.inf)
+        if self.clip and component.name == "ctrl":
+            limited = model.actuator_ctrllimited[columns].astype(bool)
+            low[limited] = model.actuator_ctrlrange[columns[limited], 0]
+            high[limited] = model.actuator_ctrlrange[columns[limited], 1]
+        return {"std": std, "mean": mean, "low": low, "high": high}
+
+    def sample_numpy(self, rng, params, shape):
+        out = rng.standard_normal(size=shape)
+        out *= params["std"]
+        out += params["mean"]
+        return np.clip(out, params["low"], params["high"], out=out)
+
+    def sample_jax(self, key, params, shape):
+        import jax
+        import jax.numpy as jnp
+        out = params["mean"] + params["std"] * jax.random.normal(key, shape, params["std"].dtype)
+        return jnp.clip(out, params["low"], params["high"])
+
+
+@dataclasses.dataclass(frozen=True)
+class Constant(Generator):
+    """The same value at every step of every trajectory.
+
+    Args:
+      value: a scalar, one object's columns, or one value per driven column.
+      on: the objects to drive; `None` drives the whole component.
+    """
+
+    value: Any = 0.0
+    on: Names = None
+
+    def params(self, model, component, columns):
+        value = _per_column(self.value, component, columns, "Constant.value")
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"Constant.value: expected finite values, got {value}")
+        return {"value": value}
+
+    def sample_numpy(self, rng, params, shape):
+        return np.broadcast_to(params["value"], shape)
+
+    def sample_jax(self, key, params, shape):
+        import jax.numpy as jnp
+        return jnp.broadcast_to(params["value"], shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class Driver:
+    """A generator bound to its columns of the control vector, with its parameters."""
+
+    generator: Generator
+    columns: np.ndarray  # indices in the full control vector
+    params: dict[str, np.ndarray]
+
+
+class ControlPlan:
+    """How each batch's `(nbatch, nstep, ncontrol)` control array is made.
+
+    Built once, on the host, from the dataset's `control` argument; both backends call it.
+    `fixed` is set for an explicit array, `drivers` for generators; with neither the inputs are
+    left as `mj_resetData` sets them (`control=None`, as `mujoco.rollout`).
+    """
+
+    def __init__(self, model: mujoco.MjModel, control_spec: int, control: Any,
+                 nbatch: int, nstep: int, models: Optional[Sequence[mujoco.MjModel]] = None):
+        self.components = layout.control_layout(model, control_spec)
+        self.ncontrol = mujoco.mj_stateSize(model, control_spec)
+        # (nbatch or 1, ncontrol): per model, since mocap poses come from each model's body_pos
+        self.default_rows = np.stack([layout.default_user_inputs(m, control_spec)
+                                      for m in (models or [model])])
+        self.fixed: Optional[np.ndarray] = None
+        self.drivers: tuple[Driver, ...] = ()
+        if control is None:
+            return
+        if isinstance(control, Generator):
+            if len(self.components) != 1:
+                names = [c.name for c in self.components]
+                raise TypeError(
+                    f"control: a single generator drives one control_spec component, but "
+                    f"control_spec has {len(names)} ({', '.join(names)}): pass a dict "
+                    f"{{component: generator}}")
+            control = {self.components[0].name: control}
+        if isinstance(control, Mapping):
+            self.drivers = self._bind(model, control)
+            return
+        self.fixed = _fixed_control(control, nbatch, nstep, model, control_spec)
+
+    @property
+    def random(self) -> bool:
+        return bool(self.drivers)
+
+    def _bind(self, model, control: Mapping) -> tuple[Driver, ...]:
+        by_name = {c.name: c for c in self.components}
+        drivers, taken = [], {}
+        for name, gens in control.items():
+            if name not in by_name:
+                raise ValueError(
+                    f"control: {name!r} is not a component of control_spec; its components "
+                    f"are {list(by_name)} (add the bit to control_spec to drive {name!r})")
+            comp = by_name[name]
+            for gen in gens if isinstance(gens, (list, tuple)) else [gens]:
+                if not isinstance(gen, Generator):
+                    raise TypeError(f"control[{name!r}]: expected a simloader.controls "
+                                    f"generator, got {type(gen).__name__}")
+                cols = (np.arange(comp.size) if gen.on is None
+                        else comp.object_columns(gen.on))
+                for c in cols:
+                    if c in taken.setdefault(name, set()):
+                        raise ValueError(f"control[{name!r}]: column {c} of {name} "
+                                         f"({comp.objects[c // comp.width]}) is driven twice")
+                    taken[name].add(c)
+                if len(cols):
+                    drivers.append(Driver(gen, comp.start + cols,
+                                          gen.params(model, comp, cols)))
+        return tuple(drivers)
+
+    def sample_numpy(self, seed: np.random.SeedSequence, out: np.ndarray) -> None:
+        """Fills `out` (nbatch, nstep, ncontrol) with one draw (each driver its own stream)."""
+        shape = out.shape[:2]
+        driven = sum(len(d.columns) for d in self.drivers)
+        if driven < self.ncontrol:
+            out[...] = self.default_rows[:, None, :]
+        for driver, child in zip(self.drivers, seed.spawn(len(self.drivers))):
+            rng = np.random.default_rng(child)
+            draw = driver.generator.sample_numpy(rng, driver.params, (*shape, len(driver.columns)))
+            if len(self.drivers) == 1 and driven == self.ncontrol:
+                out[...] = draw
+            else:
+                out[..., driver.columns] = draw
+
+
+def _fixed_control(control: Any, nbatch: int, nstep: int, model: mujoco.MjModel,
+                   control_spec: int) -> np.ndarray:
+    """Validates an explicit control array and tiles it to (nbatch, nstep, ncontrol), once."""
+    ncontrol = mujoco.mj_stateSize(model, control_spec)
+    if isinstance(control, (str, bytes)) or not hasattr(control, "__len__") and not hasattr(
+            control, "__array__"):
+        raise TypeError(
+            "control: expected None, an array [nbatch or 1] x [nstep or 1] x ncontrol, a "
+            f"simloader.controls generator or a dict of them, got {type(control).__name__}")
+    try:
+        arr = np.asarray(control.numpy() if hasattr(control, "numpy") and not isinstance(
+            control, np.ndarray) else control, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"control: expected a numeric array, got {type(control).__name__} "
+                        f"({e})") from e
+    if arr.ndim != 3:
+        raise ValueError(f"control: expected 3 dimensions [nbatch or 1] x [nstep or 1] x "
+                         f"ncontrol, got shape {arr.shape}")
+    if arr.shape[-1] != ncontrol:
+        raise ValueError(f"control: trailing dimension must be {ncontrol} "
+                         f"({ncontrol_breakdown(model, control_spec)}), got {arr.shape[-1]}")
+    if arr.shape[0] not in (1, nbatch):
+        raise ValueError(f"control: leading dimension must be nbatch={nbatch} or 1, got "
+                         f"{arr.shape[0]}")
+    if arr.shape[1] not in (1, nstep):
+        raise ValueError(f"control: second dimension must be nstep={nstep} or 1, got "
+                         f"{arr.shape[1]}")
+    return np.ascontiguousarray(np.broadcast_to(arr, (nbatch, nstep, ncontrol)))
+
+
+def ncontrol_breakdown(model: mujoco.MjModel, control_spec: int) -> str:
+    """`nu=21 + 6*nbody=84` style breakdown of ncontrol, for error messages."""
+    words = {"ctrl": f"nu={model.nu}", "qfrc_applied": f"nv={model.nv}",
+             "xfrc_applied": f"6*nbody={6 * model.nbody}",
+             "eq_active": f"neq={model.neq}", "mocap_pos": f"3*nmocap={3 * model.nmocap}",
+             "mocap_quat": f"4*nmocap={4 * model.nmocap}",
+             "userdata": f"nuserdata={model.nuserdata}"}
+    return " + ".join(words[c.name] for c in layout.control_layout(model, control_spec))

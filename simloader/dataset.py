@@ -1,0 +1,108 @@
+"""`SimDataset`: a torch `IterableDataset` of freshly simulated MuJoCo batches."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any, Optional
+
+import mujoco
+import torch
+
+from simloader import layout, sharding
+from simloader.backends.base import Backend, Stats
+from simloader.config import SimConfig, build_config
+from simloader.prefetch import Prefetcher
+
+
+class SimDataset(torch.utils.data.IterableDataset):
+    """Streams batches of `nbatch` trajectories of `nstep` steps, simulated on the fly.
+
+    Use it with `torch.utils.data.DataLoader(ds, batch_size=None)` (each item is already a
+    batch) or iterate it directly. Each item is a dict of tensors:
+
+      state          (nbatch, nstep, nstate)       mjSTATE_FULLPHYSICS state after each step
+      sensordata     (nbatch, nstep, nsensordata)  sensor values after each step
+      control        (nbatch, nstep, ncontrol)     control rows applied before each step
+      initial_state  (nbatch, nstate)              state each trajectory started from
+      diverged       (nbatch,) bool                MuJoCo warning or NaN/Inf in this batch
+
+    Args:
+      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a built-in model name.
+      backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (JAX) or "auto" (mjx when JAX
+        sees a GPU, else rollout).
+      nbatch: trajectories per batch.
+      nstep: steps per trajectory per batch.
+      control: None (inputs as `mj_resetData` leaves them, as `mujoco.rollout`), an array
+        `([nbatch or 1] x [nstep or 1] x ncontrol)` used for every batch, a
+        `simloader.controls` generator, or a dict `{component: generator(s)}`.
+      control_spec: `mjtState` bits within `mjSTATE_USER`: the components of a control row.
+      initial_state: None (model defaults), an array `([nbatch or 1] x nstate)`, a keyframe
+        name, or a `simloader.initial` generator.
+      randomize: None, or a sequence of nbatch `MjModel` of identical sizes (trajectory i runs
+        on model i).
+      continue_episodes: each batch continues every trajectory where the previous one ended
+        (solver warmstart included), so consecutive batches concatenate to one long rollout.
+        A trajectory that diverged restarts from a fresh initial state in the next batch.
+      num_batches: batches in total per rank (split across DataLoader workers), None: endless.
+      seed: all randomness derives from it, the worker's batch indices and the rank.
+      device: torch device of the delivered tensors (None: the backend's own).
+      dtype: torch dtype of the floating tensors (None: float64 for rollout, float32 for mjx).
+      nthread: CPU threads of the rollout backend per worker (None: the cores split among
+        workers and local ranks).
+      prefetch: batches simulated ahead of the consumer.
+
+    Raises:
+      TypeError, ValueError: bad arguments, naming the argument, the expectation and the value.
+    """
+
+    def __init__(self, model: Any, *, backend: str = "auto", nbatch: int, nstep: int,
+                 control: Any = None, control_spec: int = int(mujoco.mjtState.mjSTATE_CTRL),
+                 initial_state: Any = None, randomize: Any = None,
+                 continue_episodes: bool = False, num_batches: Optional[int] = None,
+                 seed: int = 0, device: Any = None, dtype: Any = None,
+                 nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
+        super().__init__()
+        self.config: SimConfig = build_config(
+            model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
+            control_spec=control_spec, initial_state=initial_state, randomize=randomize,
+            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
+            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
+        from simloader import backends
+        self.backend_options = backends.check_options(self.config, backend_options)
+        self._stats = Stats()
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self.config.model
+
+    @property
+    def stats(self) -> dict[str, float]:
+        """Counters of the iterators run in this process (workers keep their own)."""
+        return self._stats.as_dict()
+
+    def describe(self) -> str:
+        """Which columns of state and control mean what, by object name."""
+        return layout.describe(self.config.model, self.config.control_spec)
+
+    def __len__(self) -> int:
+        if self.config.num_batches is None:
+            raise TypeError("SimDataset with num_batches=None is endless and has no len()")
+        return self.config.num_batches
+
+    def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
+        """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
+        from simloader import backends
+        return backends.create(self.config, shard or sharding.current_shard(), self._stats,
+                               self.backend_options)
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        shard = sharding.current_shard()
+        backend = self.make_backend(shard)
+        prefetcher = Prefetcher(backend.produce, shard.indices(self.config.num_batches),
+                                self.config.prefetch)
+        try:
+            for produced in prefetcher:
+                yield backend.deliver(produced)
+        finally:
+            prefetcher.close()
+            backend.close()

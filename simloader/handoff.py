@@ -1,0 +1,39 @@
+"""Handing simulator buffers to torch without copies.
+
+CPU backend: MuJoCo writes into NumPy views of freshly allocated torch tensors (pinned when the
+target is a CUDA device, so that the host-to-device copy is asynchronous). MJX backend: JAX
+arrays reach torch through DLPack, sharing device memory.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+
+def host_buffer(shape: tuple[int, ...], dtype: torch.dtype = torch.float64,
+                pin: bool = False) -> tuple[torch.Tensor, np.ndarray]:
+    """A new torch tensor and a NumPy view of the same memory, for MuJoCo to write into.
+
+    A new tensor per batch keeps a tensor the user holds from ever changing; torch's pinned
+    host allocator recycles pinned blocks only once the copies that read them have finished.
+    """
+    tensor = torch.empty(shape, dtype=dtype, pin_memory=pin)
+    return tensor, tensor.numpy()
+
+
+def to_target(tensor: torch.Tensor, device: Optional[torch.device],
+              dtype: Optional[torch.dtype]) -> torch.Tensor:
+    """The tensor on the requested device and dtype: itself when nothing changes (no copy)."""
+    if device is None or device.type == "cpu":
+        return tensor if dtype is None or tensor.dtype == dtype else tensor.to(dtype)
+    # to the device first (asynchronous from pinned memory), converting there
+    moved = tensor.to(device, non_blocking=True)
+    return moved if dtype is None or moved.dtype == dtype else moved.to(dtype)
+
+
+def from_jax(array: Any) -> torch.Tensor:
+    """A torch tensor over a JAX array's memory, through DLPack (no copy, same device)."""
+    return torch.from_dlpack(array)

@@ -1,0 +1,70 @@
+"""Splitting one seeded stream across DataLoader workers and torch.distributed ranks.
+
+Every batch has a global index within its rank. Worker `w` of `W` produces the indices
+`w, w + W, w + 2W, ...`, which the DataLoader interleaves back into index order, so the stream
+a rank sees does not depend on the number of workers (fresh episodes). All randomness of batch
+`i` on rank `r` comes from `SeedSequence(seed, spawn_key=(r, i, purpose))`: streams of different
+batches, workers and ranks never coincide, and the same seed repeats the whole stream.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Optional
+
+import numpy as np
+import torch
+
+# independent streams within one batch
+INITIAL, CONTROL, RANDOMIZE = 0, 1, 2
+
+
+@dataclasses.dataclass(frozen=True)
+class Shard:
+    """Where this iterator runs: distributed rank and DataLoader worker."""
+
+    rank: int = 0
+    world_size: int = 1
+    worker: int = 0
+    num_workers: int = 1
+
+    def indices(self, num_batches: Optional[int]):
+        """This worker's global batch indices (endless when num_batches is None)."""
+        i = self.worker
+        while num_batches is None or i < num_batches:
+            yield i
+            i += self.num_workers
+
+
+def current_shard() -> Shard:
+    """The shard of the calling process: torch.distributed first, torchrun's variables second."""
+    rank, world = 0, 1
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        rank, world = torch.distributed.get_rank(), torch.distributed.get_world_size()
+    elif "RANK" in os.environ and "WORLD_SIZE" in os.environ:
+        rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    info = torch.utils.data.get_worker_info()
+    worker, nworkers = (info.id, info.num_workers) if info is not None else (0, 1)
+    return Shard(rank, world, worker, nworkers)
+
+
+def batch_seed(seed: int, shard: Shard, index: int, purpose: int) -> np.random.SeedSequence:
+    """The seed of one purpose (INITIAL, CONTROL, RANDOMIZE) of global batch `index`."""
+    return np.random.SeedSequence(seed, spawn_key=(shard.rank, index, purpose))
+
+
+def available_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def threads_per_worker(shard: Shard, nthread: Optional[int]) -> int:
+    """CPU threads for one worker's simulation: the user's choice, or the cores split evenly
+    among this process's workers and the ranks torchrun started on this machine."""
+    if nthread is not None:
+        return nthread
+    local_ranks = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    return max(1, available_cpus() // (shard.num_workers * local_ranks))
