@@ -295,7 +295,8 @@ def _fixed_control(control: Any, nbatch: int, nstep: int, model: mujoco.MjModel,
     if arr.shape[1] not in (1, nstep):
         raise ValueError(f"control: second dimension must be nstep={nstep} or 1, got "
                          f"{arr.shape[1]}")
-    return np.ascontiguousarray(np.broadcast_to(arr, (nbatch, nstep, ncontrol)))
+    # a private copy: later edits of the caller's array must not change the stream
+    return np.broadcast_to(arr, (nbatch, nstep, ncontrol)).copy()
 
 
 def ncontrol_breakdown(model: mujoco.MjModel, control_spec: int) -> str:

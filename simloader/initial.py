@@ -105,7 +105,7 @@ class InitialPlan:
         if initial_state is None or isinstance(initial_state, str):
             # per model: each trajectory starts from its own model's defaults or keyframe
             rows = np.stack([keyframe_state(m, initial_state) for m in (models or [model])])
-            self.fixed = np.ascontiguousarray(np.broadcast_to(rows, (nbatch, self.nstate)))
+            self.fixed = np.broadcast_to(rows, (nbatch, self.nstate)).copy()
         elif isinstance(initial_state, InitialStateGenerator):
             initial_state.check(model)
             self.generator = initial_state
@@ -149,4 +149,4 @@ def _fixed_initial(value: Any, nbatch: int, nstate: int) -> np.ndarray:
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise ValueError(f"initial_state: expected finite values, got {arr[tuple(bad)]} at "
                          f"index {tuple(int(i) for i in bad)}")
-    return np.ascontiguousarray(np.broadcast_to(arr, (nbatch, nstate)))
+    return np.broadcast_to(arr, (nbatch, nstate)).copy()

@@ -45,6 +45,13 @@ class Stats:
             for k, v in values.items():
                 setattr(self, k, getattr(self, k) + v)
 
+    def __getstate__(self) -> dict:
+        # a worker process gets its own counters (and lock)
+        return {k: v for k, v in self.__dict__.items() if k != "lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, lock=threading.Lock())
+
     def as_dict(self) -> dict[str, float]:
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "lock"}
         out["steps_per_s"] = self.steps / self.simulate_s if self.simulate_s else 0.0

@@ -1,0 +1,61 @@
+"""Shared test models: small inline MJCF with every kind of user input a control_spec drives."""
+
+import pathlib
+
+import mujoco
+import pytest
+
+# A free ball that lands on a plane (contacts), a two-link arm with a motor and a position
+# actuator, a mocap body welded to the hand by an equality that starts inactive, sensors.
+RICH_XML = """
+<mujoco model="rich">
+  <option timestep="0.005"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="2 2 .1"/>
+    <body name="target" mocap="true" pos="0.5 0.5 1.2">
+      <geom type="sphere" size="0.05" contype="0" conaffinity="0"/>
+    </body>
+    <body name="ball" pos="0 0 0.3">
+      <freejoint name="ball"/>
+      <geom type="sphere" size="0.1" mass="1"/>
+    </body>
+    <body name="arm" pos="0 0.5 1">
+      <joint name="shoulder" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+      <body name="hand" pos="0.3 0 0">
+        <joint name="elbow" type="hinge" axis="0 1 0" damping="0.1"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+      </body>
+    </body>
+  </worldbody>
+  <equality>
+    <weld name="grab" body1="target" body2="hand" active="false"/>
+  </equality>
+  <actuator>
+    <motor name="shoulder" joint="shoulder" ctrllimited="true" ctrlrange="-2 2"/>
+    <position name="elbow" joint="elbow" kp="5" ctrllimited="true" ctrlrange="-1 1"/>
+  </actuator>
+  <sensor>
+    <jointpos name="shoulder" joint="shoulder"/>
+    <framepos name="ball" objtype="body" objname="ball"/>
+  </sensor>
+  <keyframe>
+    <key name="raised" qpos="0 0 1 1 0 0 0 0.5 -0.5"/>
+  </keyframe>
+</mujoco>
+"""
+
+SHARED_MODELS = pathlib.Path(__file__).resolve().parents[2] / "shared" / "models" / "dm_control"
+
+
+@pytest.fixture(scope="session")
+def rich_model():
+    return mujoco.MjModel.from_xml_string(RICH_XML)
+
+
+@pytest.fixture(scope="session")
+def humanoid_path():
+    path = SHARED_MODELS / "humanoid.xml"
+    if not path.is_file():
+        pytest.skip(f"standard models not found at {SHARED_MODELS}")
+    return path

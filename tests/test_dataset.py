@@ -1,0 +1,218 @@
+"""SimDataset behaviour on the rollout backend: schema, workers, zero copy, divergence, shutdown."""
+
+import gc
+import os
+import threading
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+import simloader
+from simloader import controls
+
+S = mujoco.mjtState
+
+
+def cartpole(**kwargs):
+    args = dict(backend="rollout", nbatch=4, nstep=8, control=controls.Uniform(), nthread=1,
+                initial_state=simloader.initial.Perturbed())
+    args.update(kwargs)
+    return simloader.SimDataset("cartpole", **args)
+
+
+def test_schema_shapes_never_squeezed():
+    batch = next(iter(cartpole(nbatch=1, nstep=1)))
+    m = simloader.load_model("cartpole")
+    nstate = mujoco.mj_stateSize(m, S.mjSTATE_FULLPHYSICS)
+    assert set(batch) == {"state", "sensordata", "control", "initial_state", "diverged"}
+    assert batch["state"].shape == (1, 1, nstate)
+    assert batch["sensordata"].shape == (1, 1, m.nsensordata)
+    assert batch["control"].shape == (1, 1, m.nu)
+    assert batch["initial_state"].shape == (1, nstate)
+    assert batch["diverged"].shape == (1,) and batch["diverged"].dtype == torch.bool
+    assert batch["state"].dtype == torch.float64
+
+
+def test_dtype_conversion():
+    batch = next(iter(cartpole(dtype=torch.float32)))
+    assert all(batch[k].dtype == torch.float32 for k in ("state", "sensordata", "control"))
+    ref = next(iter(cartpole()))
+    torch.testing.assert_close(batch["state"], ref["state"].float())
+
+
+def test_num_batches_and_len():
+    ds = cartpole(num_batches=3)
+    assert len(ds) == 3 and len(list(DataLoader(ds, batch_size=None))) == 3
+    with pytest.raises(TypeError, match="endless"):
+        len(cartpole())
+
+
+def _stream(ds, **loader_args):
+    return [{k: v.clone() for k, v in b.items()}
+            for b in DataLoader(ds, batch_size=None, **loader_args)]
+
+
+def test_workers_shard_the_stream_without_repeats():
+    ds = cartpole(num_batches=6, seed=5)
+    single = _stream(ds)
+    two = _stream(ds, num_workers=2)
+    assert len(two) == 6
+    # workers draw the batches of the single-process stream, interleaved back in order
+    for a, b in zip(single, two):
+        for key in a:
+            assert torch.equal(a[key], b[key])
+    # no trajectory repeats across batches
+    controls_seen = torch.cat([b["control"].flatten(1) for b in two])
+    assert len(torch.unique(controls_seen, dim=0)) == 6 * 4
+    # the same seed repeats the whole stream; another seed does not
+    again = _stream(ds, num_workers=2)
+    assert all(torch.equal(a["state"], b["state"]) for a, b in zip(two, again))
+    other = _stream(cartpole(num_batches=6, seed=6), num_workers=2)
+    assert not torch.equal(other[0]["state"], two[0]["state"])
+
+
+def test_workers_with_spawn_and_split_threads():
+    ds = cartpole(num_batches=2, nthread=None)
+    batches = _stream(ds, num_workers=2, multiprocessing_context="spawn")
+    assert len(batches) == 2
+    from simloader import sharding
+    shard = sharding.Shard(worker=0, num_workers=2)
+    assert sharding.threads_per_worker(shard, None) == max(1, sharding.available_cpus() // 2)
+
+
+def test_ranks_draw_distinct_streams(monkeypatch):
+    ds = cartpole(num_batches=2)
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    rank0 = _stream(ds)
+    monkeypatch.setenv("RANK", "1")
+    rank1 = _stream(ds)
+    for a in rank0:
+        for b in rank1:
+            assert not torch.equal(a["control"], b["control"])
+
+
+def test_zero_copy_delivered_tensors_are_the_buffers_mujoco_wrote():
+    ds = cartpole()
+    backend = ds.make_backend()
+    try:
+        produced = backend.produce(0)
+        batch = backend.deliver(produced)
+        for key in ("state", "sensordata", "control", "initial_state"):
+            assert batch[key].data_ptr() == getattr(produced, key).data_ptr(), key
+        # MuJoCo recorded into exactly that memory: its Batch writes the out= arrays we pass
+        assert batch["state"].numpy().base is not None or batch["state"].is_contiguous()
+    finally:
+        backend.close()
+
+
+def test_kept_tensor_never_changes():
+    ds = cartpole(nbatch=8, nstep=4)
+    it = iter(ds)
+    kept = next(it)
+    checksum = {k: v.clone() for k, v in kept.items()}
+    for _ in range(1000):
+        next(it)
+    for k in checksum:
+        assert torch.equal(kept[k], checksum[k]), k
+    it.close()
+
+
+def test_fixed_control_is_not_aliased_to_the_callers_array():
+    u = np.full((1, 8, 1), 0.5)
+    ds = cartpole(control=u)
+    u[...] = -0.5
+    assert torch.all(next(iter(ds))["control"] == 0.5)
+
+
+def test_diverged_flags_exactly_the_unstable_trajectory():
+    spec = int(S.mjSTATE_QFRC_APPLIED)
+    u = np.zeros((6, 20, 2))
+    clean = next(iter(cartpole(nbatch=6, nstep=20, control=u.copy(), control_spec=spec,
+                               initial_state=None)))
+    u[3, 5, 0] = np.nan
+    faulty = next(iter(cartpole(nbatch=6, nstep=20, control=u, control_spec=spec,
+                                initial_state=None)))
+    assert faulty["diverged"].tolist() == [False, False, False, True, False, False]
+    assert not clean["diverged"].any()
+    keep = [0, 1, 2, 4, 5]
+    assert torch.equal(faulty["state"][keep], clean["state"][keep])
+    assert torch.equal(faulty["sensordata"][keep], clean["sensordata"][keep])
+
+
+def test_nonfinite_outputs_without_a_mujoco_warning_are_flagged():
+    # MuJoCo checks qpos/qvel/qacc; a sensor (a user sensor, say) can still produce NaN
+    # without a warning: the delivery check must catch it
+    backend = cartpole(nbatch=3).make_backend()
+    try:
+        produced = backend.produce(0)
+        produced.sensordata[1, 2, 0] = float("nan")
+        produced.state[2, 5, 1] = float("inf")
+        assert backend.deliver(produced)["diverged"].tolist() == [False, True, True]
+    finally:
+        backend.close()
+
+
+def test_continuing_trajectory_restarts_after_divergence():
+    spec = int(S.mjSTATE_QFRC_APPLIED)
+    u = np.zeros((2, 5, 2))
+    u[1, 2, 0] = np.nan
+    ds = cartpole(nbatch=2, nstep=5, control=u, control_spec=spec, continue_episodes=True,
+                  initial_state=None, num_batches=2)
+    first, second = list(ds)
+    assert first["diverged"].tolist() == [False, True]
+    # the healthy trajectory continues; the diverged one starts again from the initial state
+    assert torch.equal(second["initial_state"][0], first["state"][0, -1])
+    assert torch.equal(second["initial_state"][1], first["initial_state"][1])
+
+
+def test_stats_count_batches_and_divergence():
+    ds = cartpole(num_batches=3)
+    list(ds)
+    stats = ds.stats
+    assert stats["batches"] == 3 and stats["steps"] == 3 * 4 * 8
+    assert stats["simulate_s"] > 0 and stats["steps_per_s"] > 0
+
+
+def _native_threads() -> int:
+    return len(os.listdir("/proc/self/task"))
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
+def test_break_and_delete_leaves_no_threads():
+    gc.collect()
+    before = _native_threads()
+    for _ in range(20):
+        ds = cartpole(nthread=2)
+        for i, _batch in enumerate(ds):
+            if i == 2:
+                break
+        del ds
+    gc.collect()
+    assert not [t for t in threading.enumerate() if t.name == "simloader-prefetch"]
+    assert _native_threads() == before
+
+
+def test_exception_in_producer_reaches_consumer_with_its_type():
+    class Boom(simloader.initial.InitialStateGenerator):
+        def sample(self, model, rng, nbatch):
+            raise KeyError("boom in the producer")
+
+    ds = cartpole(initial_state=Boom())
+    with pytest.raises(KeyError, match="boom in the producer"):
+        next(iter(ds))
+    assert not [t for t in threading.enumerate() if t.name == "simloader-prefetch"]
+
+
+def test_exception_in_worker_reaches_main_process():
+    ds = cartpole(initial_state=_FailingInitial(), num_batches=2)
+    with pytest.raises(KeyError, match="boom in a worker"):
+        list(DataLoader(ds, batch_size=None, num_workers=1))
+
+
+class _FailingInitial(simloader.initial.InitialStateGenerator):
+    def sample(self, model, rng, nbatch):
+        raise KeyError("boom in a worker")
