@@ -88,7 +88,7 @@ def _model_list(model: mujoco.MjModel, randomize: Any, nbatch: int,
                 control_spec: int) -> Optional[tuple[mujoco.MjModel, ...]]:
     if randomize is None:
         return None
-    if isinstance(randomize, mujoco.MjModel) or not isinstance(randomize, Sequence):
+    if isinstance(randomize, (mujoco.MjModel, str, bytes)) or not isinstance(randomize, Sequence):
         raise TypeError(f"randomize: expected None or a sequence of MjModel (one per trajectory), "
                         f"got {type(randomize).__name__}")
     models_ = tuple(randomize)
