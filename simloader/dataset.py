@@ -8,7 +8,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import layout, sharding
+from simloader import layout, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
@@ -70,6 +70,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         from simloader import backends
         self.backend_options = backends.check_options(self.config, backend_options)
         self._stats = Stats()
+        self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
+        self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
 
     @property
     def model(self) -> mujoco.MjModel:
@@ -95,14 +97,51 @@ class SimDataset(torch.utils.data.IterableDataset):
         return backends.create(self.config, shard or sharding.current_shard(), self._stats,
                                self.backend_options)
 
+    def state_dict(self) -> dict[str, Any]:
+        """Where this iterator (this DataLoader worker, or this process) is in the stream.
+
+        Small and JSON-serializable; usable by torchdata's `StatefulDataLoader`. Loading it into
+        a dataset of the same configuration resumes exactly after the last delivered batch.
+        """
+        if self._progress is None:
+            return self._loaded or {"version": resume.VERSION,
+                                    "config": resume.fingerprint(self.config),
+                                    "shard": None, "next_index": None, "trajectories": None}
+        shard, next_index, backend, produced = self._progress
+        return {"version": resume.VERSION, "config": resume.fingerprint(self.config),
+                "shard": [shard.worker, shard.num_workers, shard.rank],
+                "next_index": next_index, "trajectories": backend.checkpoint(produced)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Resumes the stream saved by `state_dict()` at the next iteration.
+
+        Raises:
+          ValueError: the state belongs to a stream of another configuration.
+        """
+        resume.check(self.config, state)
+        self._loaded, self._progress = state, None
+
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
         shard = sharding.current_shard()
+        loaded, self._loaded = self._loaded, None
+        start = None
         backend = self.make_backend(shard)
-        prefetcher = Prefetcher(backend.produce, shard.indices(self.config.num_batches),
+        if loaded is not None and loaded["next_index"] is not None:
+            saved = [shard.worker, shard.num_workers, shard.rank]
+            if loaded["shard"] != saved:
+                raise ValueError(f"state_dict: saved by worker/num_workers/rank "
+                                 f"{loaded['shard']}, resumed as {saved}")
+            start = loaded["next_index"]
+            if loaded["trajectories"] is not None:
+                backend.restore(loaded["trajectories"])
+        prefetcher = Prefetcher(lambda i: (i, backend.produce(i)),
+                                shard.indices(self.config.num_batches, start),
                                 self.config.prefetch)
         try:
-            for produced in prefetcher:
-                yield backend.deliver(produced)
+            for index, produced in prefetcher:
+                batch = backend.deliver(produced)
+                self._progress = (shard, index + shard.num_workers, backend, produced)
+                yield batch
         finally:
             prefetcher.close()
             backend.close()

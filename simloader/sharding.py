@@ -29,9 +29,9 @@ class Shard:
     worker: int = 0
     num_workers: int = 1
 
-    def indices(self, num_batches: Optional[int]):
-        """This worker's global batch indices (endless when num_batches is None)."""
-        i = self.worker
+    def indices(self, num_batches: Optional[int], start: Optional[int] = None):
+        """This worker's global batch indices from `start` (endless when num_batches is None)."""
+        i = self.worker if start is None else start
         while num_batches is None or i < num_batches:
             yield i
             i += self.num_workers

@@ -12,7 +12,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import threading
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import torch
@@ -76,6 +76,17 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def deliver(self, produced: Any) -> dict[str, torch.Tensor]:
         """Turns a produced batch into the delivered dict of tensors (consumer thread)."""
+
+    def checkpoint(self, produced: Any) -> Optional[dict[str, Any]]:
+        """JSON-serializable trajectory state after `produced` (continue_episodes), or None."""
+        if self.config.continue_episodes:
+            raise NotImplementedError(
+                f"{type(self).__name__} cannot checkpoint continuing episodes yet")
+        return None
+
+    def restore(self, trajectories: dict[str, Any]) -> None:
+        """Continues from trajectory state saved by `checkpoint` (before the first produce)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot restore continuing episodes")
 
     def close(self) -> None:
         """Releases threads and device buffers; the backend is not used afterwards."""

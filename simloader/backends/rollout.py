@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import handoff, layout, sharding
+from simloader import handoff, layout, resume, sharding
 from simloader.backends.base import Backend
 
 
@@ -33,6 +33,7 @@ class _Produced:
     control: torch.Tensor
     initial_state: torch.Tensor
     warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning in this batch
+    rows_after: Optional[np.ndarray]  # continue_episodes: the state rows after this batch
 
 
 class RolloutBackend(Backend):
@@ -93,7 +94,8 @@ class RolloutBackend(Backend):
         warned = self.warnings.sum(axis=1) > before
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
-        return _Produced(state_t, sensor_t, control_t, initial_t, warned)
+        rows_after = rows.copy() if c.continue_episodes else None
+        return _Produced(state_t, sensor_t, control_t, initial_t, warned, rows_after)
 
     def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -113,6 +115,16 @@ class RolloutBackend(Backend):
         out = {k: handoff.to_target(v, c.device, c.dtype) for k, v in out.items()}
         out["diverged"] = handoff.to_target(torch.from_numpy(diverged), c.device, None)
         return out
+
+    def checkpoint(self, produced: _Produced) -> Optional[dict]:
+        if not self.config.continue_episodes:
+            return None
+        return {"rows": resume.encode_array(produced.rows_after),
+                "fresh": resume.encode_array(produced.warned)}
+
+    def restore(self, trajectories: dict) -> None:
+        self.batch.state[...] = resume.decode_array(trajectories["rows"])
+        self.fresh = resume.decode_array(trajectories["fresh"])
 
     def close(self) -> None:
         # drops the batch's thread pool now rather than at garbage collection

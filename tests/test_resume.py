@@ -1,0 +1,92 @@
+"""Resume: interrupting after k batches and resuming yields the uninterrupted stream, bit for bit."""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+import simloader
+from simloader import controls
+
+StatefulDataLoader = pytest.importorskip("torchdata.stateful_dataloader").StatefulDataLoader
+
+
+def make(num_batches, continue_episodes=False, seed=0):
+    return simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=4,
+                                control=controls.Uniform(), nthread=1, seed=seed,
+                                initial_state=simloader.initial.Perturbed(),
+                                continue_episodes=continue_episodes, num_batches=num_batches)
+
+
+def states(loader, n=None):
+    out = []
+    for batch in loader:
+        out.append(batch["state"].clone())
+        if n is not None and len(out) == n:
+            break
+    return out
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+@pytest.mark.parametrize("k", [0, 1, 10, 257])
+@pytest.mark.parametrize("continue_episodes", [False, True])
+def test_resume_after_k_batches(k, workers, continue_episodes):
+    total = k + 3
+    full = states(StatefulDataLoader(make(total, continue_episodes), batch_size=None,
+                                     num_workers=workers))
+    loader = StatefulDataLoader(make(total, continue_episodes), batch_size=None,
+                                num_workers=workers)
+    first = states(loader, k) if k else []
+    saved = json.loads(json.dumps(loader.state_dict()))  # JSON round trip
+    del loader
+    resumed_loader = StatefulDataLoader(make(total, continue_episodes), batch_size=None,
+                                        num_workers=workers)
+    resumed_loader.load_state_dict(saved)
+    rest = states(resumed_loader)
+    assert len(first) + len(rest) == total
+    for a, b in zip(first + rest, full):
+        assert torch.equal(a, b)
+
+
+def test_dataset_state_is_small_json():
+    ds = make(None, continue_episodes=True)
+    it = iter(ds)
+    next(it)
+    text = json.dumps(ds.state_dict())
+    assert len(text) < 4096
+    it.close()
+
+
+def test_resume_in_a_new_process(tmp_path):
+    script = textwrap.dedent("""
+        import json, sys, numpy as np, simloader
+        sys.path.insert(0, %r)
+        from test_resume import make, states, StatefulDataLoader
+        loader = StatefulDataLoader(make(8, True), batch_size=None, num_workers=2)
+        if sys.argv[1] == "save":
+            states(loader, 5)
+            json.dump(loader.state_dict(), open(sys.argv[2], "w"))
+        else:
+            loader.load_state_dict(json.load(open(sys.argv[2])))
+            np.save(sys.argv[3], np.stack([s.numpy() for s in states(loader)]))
+    """ % str(__import__("pathlib").Path(__file__).parent))
+    path = tmp_path / "run.py"
+    path.write_text(script)
+    state, out = tmp_path / "state.json", tmp_path / "rest.npy"
+    subprocess.run([sys.executable, str(path), "save", str(state)], check=True)
+    subprocess.run([sys.executable, str(path), "load", str(state), str(out)], check=True)
+    full = states(StatefulDataLoader(make(8, True), batch_size=None, num_workers=2))
+    np.testing.assert_array_equal(np.load(out), np.stack([s.numpy() for s in full[5:]]))
+
+
+def test_mismatched_configuration_is_a_clear_error():
+    saved = make(5).state_dict()
+    with pytest.raises(ValueError, match="state_dict: the saved stream has another "
+                                         "configuration: seed is 1 here but 0 in the state"):
+        make(5, seed=1).load_state_dict(saved)
+    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 1"):
+        make(5).load_state_dict({"version": 99})
