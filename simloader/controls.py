@@ -44,6 +44,9 @@ class Generator(abc.ABC):
                columns: np.ndarray) -> dict[str, np.ndarray]:
         """Per-column parameters for the driven `columns` (indices within `component`)."""
 
+    def check_shape(self, shape: tuple[int, int, int]) -> None:
+        """Validates the draw shape (nbatch, nstep, ncolumns) at construction (ValueError)."""
+
     @abc.abstractmethod
     def sample_numpy(self, rng: np.random.Generator, params: dict[str, np.ndarray],
                      shape: tuple[int, int, int]) -> np.ndarray:
@@ -137,11 +140,7 @@ class Normal(Generator):
         if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
             raise ValueError(f"Normal: expected finite std >= 0 and finite mean, got "
                              f"std={std}, mean={mean}")
-        low, high = np.full(len(columns), -np.inf), np.full(len(columns), np.inf)
-        if self.clip and component.name == "ctrl":
-            limited = model.actuator_ctrllimited[columns].astype(bool)
-            low[limited] = model.actuator_ctrlrange[columns[limited], 0]
-            high[limited] = model.actuator_ctrlrange[columns[limited], 1]
+        low, high = _clip_range(model, component, columns, self.clip)
         return {"std": std, "mean": mean, "low": low, "high": high}
 
     def sample_numpy(self, rng, params, shape):
@@ -183,6 +182,211 @@ class Constant(Generator):
         return jnp.broadcast_to(params["value"], shape)
 
 
+def _clip_range(model: mujoco.MjModel, component: layout.Component, columns: np.ndarray,
+                clip: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds for clipping: `ctrlrange` of limited actuators when `clip`, else unbounded."""
+    low, high = np.full(len(columns), -np.inf), np.full(len(columns), np.inf)
+    if clip and component.name == "ctrl":
+        limited = model.actuator_ctrllimited[columns].astype(bool)
+        low[limited] = model.actuator_ctrlrange[columns[limited], 0]
+        high[limited] = model.actuator_ctrlrange[columns[limited], 1]
+    return low, high
+
+
+def _positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            np.isfinite(value) and value > 0):
+        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    return float(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class OrnsteinUhlenbeck(Generator):
+    """Smooth noise: a stationary Ornstein-Uhlenbeck process with correlation time `tau`.
+
+    `x[t] = mean + a (x[t-1] - mean) + std sqrt(1 - a^2) eps[t]`, `a = exp(-timestep / tau)`,
+    started from the stationary distribution, so every step has standard deviation `std` and
+    steps `tau` seconds apart correlate by 1/e. World models need such excitation: white noise
+    at a small timestep barely moves a system. Each batch starts a fresh process.
+
+    Args:
+      std: stationary standard deviation, a scalar or one value per column.
+      tau: correlation time in seconds (simulated time, the model's timestep per step).
+      mean: the level the process reverts to.
+      clip: clip `ctrl` columns of limited actuators to their `ctrlrange`.
+      on: the objects to drive; `None` drives the whole component.
+    """
+
+    std: Any = 1.0
+    tau: float = 0.1
+    mean: Any = 0.0
+    clip: bool = True
+    on: Names = None
+
+    def params(self, model, component, columns):
+        std = _per_column(self.std, component, columns, "OrnsteinUhlenbeck.std")
+        mean = _per_column(self.mean, component, columns, "OrnsteinUhlenbeck.mean")
+        if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
+            raise ValueError(f"OrnsteinUhlenbeck: expected finite std >= 0 and finite mean, got "
+                             f"std={std}, mean={mean}")
+        a = np.exp(-model.opt.timestep / _positive("OrnsteinUhlenbeck.tau", self.tau))
+        low, high = _clip_range(model, component, columns, self.clip)
+        return {"std": std, "mean": mean, "a": np.asarray(a), "low": low, "high": high}
+
+    def sample_numpy(self, rng, params, shape):
+        a, std = float(params["a"]), params["std"]
+        out = rng.standard_normal(size=shape)
+        out[:, 1:] *= std * np.sqrt(1.0 - a * a)
+        out[:, 0] *= std
+        for t in range(1, shape[1]):  # a linear recurrence in time, vectorized over the batch
+            out[:, t] += a * out[:, t - 1]
+        out += params["mean"]
+        return np.clip(out, params["low"], params["high"], out=out)
+
+    def sample_jax(self, key, params, shape):
+        import jax
+        import jax.numpy as jnp
+        a, std = params["a"], params["std"]
+        eps = jax.random.normal(key, shape, std.dtype)
+        x0 = eps[:, 0] * std
+
+        def step(x, e):
+            x = a * x + std * jnp.sqrt(1.0 - a * a) * e
+            return x, x
+
+        _, rest = jax.lax.scan(step, x0, jnp.swapaxes(eps[:, 1:], 0, 1))
+        out = jnp.concatenate([x0[:, None], jnp.swapaxes(rest, 0, 1)], axis=1)
+        return jnp.clip(out + params["mean"], params["low"], params["high"])
+
+
+@dataclasses.dataclass(frozen=True)
+class PiecewiseConstant(Generator):
+    """Uniform values in `[low, high)` held for `hold` steps, then redrawn.
+
+    Args:
+      hold: steps each value is held.
+      low, high: as `Uniform` (default: `ctrlrange` for `ctrl`, else [-1, 1]).
+      on: the objects to drive; `None` drives the whole component.
+    """
+
+    hold: int = 10
+    low: Any = None
+    high: Any = None
+    on: Names = None
+
+    def params(self, model, component, columns):
+        if isinstance(self.hold, bool) or not isinstance(self.hold, int) or self.hold < 1:
+            raise ValueError(f"PiecewiseConstant.hold: expected an integer >= 1 (steps), got "
+                             f"{self.hold!r}")
+        return Uniform(self.low, self.high, self.on).params(model, component, columns)
+
+    def sample_numpy(self, rng, params, shape):
+        n, t, k = shape
+        held = rng.uniform(params["low"], params["high"], size=(n, -(-t // self.hold), k))
+        return np.repeat(held, self.hold, axis=1)[:, :t]
+
+    def sample_jax(self, key, params, shape):
+        import jax
+        import jax.numpy as jnp
+        n, t, k = shape
+        held = jax.random.uniform(key, (n, -(-t // self.hold), k), params["low"].dtype,
+                                  params["low"], params["high"])
+        return jnp.repeat(held, self.hold, axis=1)[:, :t]
+
+
+@dataclasses.dataclass(frozen=True)
+class Sinusoid(Generator):
+    """`offset + amplitude * sin(2 pi f t + phase)`, with a frequency drawn per trajectory and
+    column uniformly in `frequency` (Hz) and a uniform random phase. With `chirp_to`, the
+    frequency sweeps linearly from the drawn one to `chirp_to` (Hz) over the batch (a chirp).
+
+    Args:
+      amplitude, offset: a scalar or one value per column.
+      frequency: a frequency in Hz, or a `(low, high)` range to draw from.
+      chirp_to: final frequency of a linear chirp over the batch, or `None`.
+      on: the objects to drive; `None` drives the whole component.
+    """
+
+    amplitude: Any = 1.0
+    frequency: Any = (0.5, 2.0)
+    offset: Any = 0.0
+    chirp_to: Optional[float] = None
+    on: Names = None
+
+    def params(self, model, component, columns):
+        low_f, high_f = (self.frequency if isinstance(self.frequency, (tuple, list))
+                         else (self.frequency, self.frequency))
+        for name, f in (("low", low_f), ("high", high_f)):
+            _positive(f"Sinusoid.frequency ({name})", f)
+        if low_f > high_f:
+            raise ValueError(f"Sinusoid.frequency: expected low <= high, got {self.frequency}")
+        chirp = np.nan if self.chirp_to is None else _positive("Sinusoid.chirp_to", self.chirp_to)
+        return {"amplitude": _per_column(self.amplitude, component, columns, "Sinusoid.amplitude"),
+                "offset": _per_column(self.offset, component, columns, "Sinusoid.offset"),
+                "f_low": np.asarray(float(low_f)), "f_high": np.asarray(float(high_f)),
+                "chirp_to": np.asarray(chirp), "dt": np.asarray(model.opt.timestep)}
+
+    def _wave(self, xp, params, f0, phase, nstep):
+        t = xp.arange(nstep, dtype=f0.dtype)[None, :, None] * params["dt"]
+        if self.chirp_to is None:
+            angle = 2 * np.pi * f0 * t
+        else:  # instantaneous frequency f0 + (f1 - f0) t / T
+            duration = nstep * params["dt"]
+            angle = 2 * np.pi * (f0 * t + (params["chirp_to"] - f0) * t * t / (2 * duration))
+        return params["offset"] + params["amplitude"] * xp.sin(angle + phase)
+
+    def sample_numpy(self, rng, params, shape):
+        n, t, k = shape
+        f0 = rng.uniform(params["f_low"], params["f_high"], size=(n, 1, k))
+        phase = rng.uniform(0, 2 * np.pi, size=(n, 1, k))
+        return self._wave(np, params, f0, phase, t)
+
+    def sample_jax(self, key, params, shape):
+        import jax
+        import jax.numpy as jnp
+        n, t, k = shape
+        kf, kp = jax.random.split(key)
+        dtype = params["amplitude"].dtype
+        f0 = jax.random.uniform(kf, (n, 1, k), dtype, params["f_low"], params["f_high"])
+        phase = jax.random.uniform(kp, (n, 1, k), dtype, 0, 2 * np.pi)
+        return self._wave(jnp, params, f0, phase, t)
+
+
+@dataclasses.dataclass(frozen=True)
+class FromArray(Generator):
+    """A user array `([nbatch or 1] x [nstep or 1] x ncolumns)` for the driven columns.
+
+    Args:
+      values: the array; its last dimension is the number of driven columns.
+      on: the objects to drive; `None` drives the whole component.
+    """
+
+    values: Any = None
+    on: Names = None
+
+    def params(self, model, component, columns):
+        arr = np.asarray(self.values, dtype=np.float64)
+        if arr.ndim != 3 or arr.shape[-1] != len(columns):
+            raise ValueError(f"FromArray.values: expected [nbatch or 1] x [nstep or 1] x "
+                             f"{len(columns)} (the driven columns of {component.name}), got "
+                             f"shape {arr.shape}")
+        return {"values": arr}
+
+    def check_shape(self, shape):
+        try:
+            np.broadcast_shapes(np.shape(self.values), shape)
+        except ValueError:
+            raise ValueError(f"FromArray.values: shape {np.shape(self.values)} does not "
+                             f"broadcast to (nbatch, nstep, ncolumns) = {shape}") from None
+
+    def sample_numpy(self, rng, params, shape):
+        return np.broadcast_to(params["values"], shape)
+
+    def sample_jax(self, key, params, shape):
+        import jax.numpy as jnp
+        return jnp.broadcast_to(params["values"], shape)
+
+
 @dataclasses.dataclass(frozen=True)
 class Driver:
     """A generator bound to its columns of the control vector, with its parameters."""
@@ -202,6 +406,7 @@ class ControlPlan:
 
     def __init__(self, model: mujoco.MjModel, control_spec: int, control: Any,
                  nbatch: int, nstep: int, models: Optional[Sequence[mujoco.MjModel]] = None):
+        self.nbatch, self.nstep = nbatch, nstep
         self.components = layout.control_layout(model, control_spec)
         self.ncontrol = mujoco.mj_stateSize(model, control_spec)
         # (nbatch or 1, ncontrol): per model, since mocap poses come from each model's body_pos
@@ -249,6 +454,7 @@ class ControlPlan:
                                          f"({comp.objects[c // comp.width]}) is driven twice")
                     taken[name].add(c)
                 if len(cols):
+                    gen.check_shape((self.nbatch, self.nstep, len(cols)))
                     drivers.append(Driver(gen, comp.start + cols,
                                           gen.params(model, comp, cols)))
         return tuple(drivers)

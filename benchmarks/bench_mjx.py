@@ -1,0 +1,300 @@
+"""simloader's MJX backend next to a raw jitted `scan` over `vmap(mjx.step)` doing the same work.
+
+Both simulate `nbatch` trajectories of `nstep` steps from the model's default state in float32,
+draw the controls uniformly within `ctrlrange` with `jax.random` inside the jitted function for
+every batch, and record the state (time, qpos, qvel, act) and the sensors after every step,
+batch-major. simloader is timed as delivered: torch tensors in hand on the device, over
+`--batches` batches after a warm-up batch, `torch.cuda.synchronize()` after each; raw as as
+many back-to-back calls, each blocked with `jax.block_until_ready`. They run alternately in
+one process; medians of `--repeats` repetitions. A single-environment Python `mj_step` loop
+gives the speed-up column; `--cpu` adds raw `mujoco.rollout` and simloader's rollout backend on
+all cores (the code of bench_rollout.py).
+
+Compilation is reported apart: in this process (persistent cache off), and as the time to the
+first batch of a fresh process with an empty persistent compilation cache (cold) and of a second
+process reusing that cache (cached).
+
+    python benchmarks/bench_mjx.py --quick
+    python benchmarks/bench_mjx.py --save --results-dir $OUT          # on the GPU machine
+    python benchmarks/bench_mjx.py --workloads humanoid:4096x200 humanoid:16384x200 --cpu
+"""
+
+from __future__ import annotations
+
+import os
+
+# torch shares the GPU (DLPack views, training); JAX must not take 75% of it up front
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+import traceback  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from typing import Any, Optional  # noqa: E402
+
+import mujoco  # noqa: E402
+
+import bench_rollout  # noqa: E402
+import common  # noqa: E402
+import simloader  # noqa: E402
+
+DEFAULT = [common.Workload("cartpole", n, 1000) for n in (1024, 8192, 65536)] + \
+    [common.Workload("humanoid", n, 200) for n in (4096, 16384)]
+QUICK = [common.Workload("cartpole", 64, 20)]
+TARGET = 0.97  # simloader / raw MJX throughput (performance.md)
+
+RAW, SIMLOADER = "raw MJX vmap+scan", "simloader mjx"
+
+
+def jax_device() -> str:
+    import jax
+    return jax.devices()[0].device_kind
+
+
+def output_gb(model: mujoco.MjModel, w: common.Workload) -> float:
+    """Size of one batch's float32 state, sensordata and control."""
+    nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    return w.steps * (nstate + model.nsensordata + model.nu) * 4 / 1e9
+
+
+class RawMjx:
+    """The raw baseline: one jitted function per workload, `f(key, index) -> dict of arrays`."""
+
+    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int):
+        import jax
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        self.w = w
+        self.mx = mjx.put_model(model)
+        self.d0 = mjx.make_data(self.mx)  # the state mj_resetData gives
+        self.key = jax.random.key(seed)
+        low, high = (jnp.asarray(b, jnp.float32) for b in common.ctrl_bounds(model))
+        step = jax.vmap(mjx.step, in_axes=(None, 0))
+        nbatch, nstep, nu = w.nbatch, w.nstep, model.nu
+
+        def batch(mx, d0, key, index):
+            ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
+                                      minval=low, maxval=high)
+            d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
+
+            def body(d, u):
+                d = step(mx, d.replace(ctrl=u))
+                state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
+                return d, (state, d.sensordata)
+
+            _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
+            # batch-major, as simloader delivers
+            return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
+                    "control": ctrl.swapaxes(0, 1)}
+
+        start = time.perf_counter()
+        self.fn = jax.jit(batch).lower(self.mx, self.d0, self.key, 0).compile()
+        self.compile_s = time.perf_counter() - start
+        self.index = 0
+        start = time.perf_counter()
+        out = self()
+        self.shapes = {k: tuple(v.shape) for k, v in out.items()}
+        del out
+        self.first_s = self.compile_s + time.perf_counter() - start
+
+    def __call__(self) -> dict[str, Any]:
+        import jax
+        out = self.fn(self.mx, self.d0, self.key, self.index)
+        self.index += 1
+        return jax.block_until_ready(out)
+
+    def measure(self, nbatches: int) -> float:
+        """Seconds per step of `nbatches` back-to-back blocked calls."""
+        start = time.perf_counter()
+        for _ in range(nbatches):
+            out = self()
+            del out
+        return (time.perf_counter() - start) / (nbatches * self.w.steps)
+
+
+def simloader_dataset(model: mujoco.MjModel, w: common.Workload,
+                      seed: int) -> simloader.SimDataset:
+    return simloader.SimDataset(model, backend="mjx", nbatch=w.nbatch, nstep=w.nstep,
+                                control=simloader.controls.Uniform(), seed=seed)
+
+
+class SimloaderMjx:
+    """simloader's MJX backend, warmed up by one pass (which compiles), then measured."""
+
+    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int):
+        import torch
+        self.w = w
+        self.ds = simloader_dataset(model, w, seed)
+        first = common.time_stream(self.ds, 0, keep_last=True)
+        batch = first.last
+        self.first_s = first.first_s
+        self.compile_s = self.ds.stats.get("compile_s", 0.0)
+        self.shapes = {k: tuple(v.shape) for k, v in batch.items()}
+        self.device = str(batch["state"].device)
+        self.dtype = batch["state"].dtype
+        if torch.cuda.is_available() and batch["state"].device.type != "cuda":
+            raise RuntimeError(f"simloader mjx delivered on {self.device}, not on the GPU")
+        del batch, first
+
+    def measure(self, nbatches: int) -> float:
+        return common.time_stream(self.ds, nbatches).steady_s / (nbatches * self.w.steps)
+
+    def recompiled(self) -> bool:
+        """Whether later iterators compiled again (each pass should reuse the first's)."""
+        return self.ds.stats.get("compile_s", 0.0) > 1.5 * self.compile_s + 0.5
+
+
+def first_batch_child(args: argparse.Namespace) -> None:
+    """In a fresh process: seconds from `SimDataset(...)` to the first batch, as JSON."""
+    import jax
+    w = args.workloads[0]
+    model = common.load_model(w.name, args.model_dir)
+    start = time.perf_counter()
+    ds = simloader_dataset(model, w, args.seed)
+    common.time_stream(ds, 0)
+    print(json.dumps({"first_batch_s": time.perf_counter() - start,
+                      "compile_s": ds.stats.get("compile_s", 0.0),
+                      "cache_dir": jax.config.jax_compilation_cache_dir}))
+
+
+def cold_and_cached(w: common.Workload, args: argparse.Namespace) -> list[str]:
+    """Time to first batch of two fresh processes sharing a new persistent cache."""
+    with tempfile.TemporaryDirectory(prefix="simloader-jax-cache-") as cache:
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache,
+                   JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
+        command = [sys.executable, __file__, "--first-batch", "--workloads", str(w),
+                   "--model-dir", str(common.model_dir(args.model_dir)), "--seed", str(args.seed)]
+        row = [w.name, f"{w.nbatch} x {w.nstep}"]
+        for run in ("cold", "cached"):
+            start = time.perf_counter()
+            proc = subprocess.run(command, env=env, capture_output=True, text=True)
+            wall = time.perf_counter() - start
+            if proc.returncode != 0:
+                print(f"{run} first batch of {w} failed:\n{proc.stderr[-3000:]}", file=sys.stderr)
+                return row + ["failed"] * 6
+            result = json.loads(proc.stdout.strip().splitlines()[-1])
+            if result["cache_dir"] != cache:
+                print(f"warning: the child used the compilation cache {result['cache_dir']!r}, "
+                      f"not {cache!r}", file=sys.stderr)
+            row += [f"{result['first_batch_s']:.2f}", f"{result['compile_s']:.2f}",
+                    f"{wall:.2f}"]
+        return row
+
+
+COMPILE_HEADERS = ["workload", "nbatch x nstep", "cold: first batch s", "cold: compile_s",
+                   "cold: process s", "cached: first batch s", "cached: compile_s",
+                   "cached: process s"]
+
+
+def try_simloader(model, w, seed) -> tuple[Optional[SimloaderMjx], str]:
+    """simloader's MJX measure, or None and why (the backend may be missing or failing)."""
+    try:
+        return SimloaderMjx(model, w, seed), ""
+    except Exception as e:  # report and go on with the raw numbers
+        traceback.print_exc()
+        return None, f"{type(e).__name__}: {e}".splitlines()[0][:200]
+
+
+def main() -> None:
+    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
+    p.add_argument("--batches", type=int, default=None,
+                   help="timed batches per repetition (default 4, --quick 3)")
+    p.add_argument("--python-steps", type=int, default=None,
+                   help="steps of the Python loop per repetition (default 10000, --quick 1000)")
+    p.add_argument("--cpu", action="store_true",
+                   help="also raw mujoco.rollout and simloader's rollout backend on all cores")
+    p.add_argument("--no-compile", action="store_true",
+                   help="skip the cold/cached time to first batch (two fresh processes each)")
+    p.add_argument("--compile-workloads", nargs="+", type=common.parse_workload,
+                   help="workloads of the cold/cached measurement (default: the smallest "
+                        "workload of each model)")
+    p.add_argument("--first-batch", action="store_true", help=argparse.SUPPRESS)  # child mode
+    args = p.parse_args()
+    if args.first_batch:
+        return first_batch_child(args)
+    args.batches = args.batches or (3 if args.quick else 4)
+    python_steps = args.python_steps or (1000 if args.quick else 10000)
+    import jax
+    jax.config.update("jax_enable_compilation_cache", False)  # in-process compiles are cold
+    run = common.workloads(args, DEFAULT, QUICK)
+
+    compile_table = []
+    if not args.no_compile:
+        smallest = {}
+        for w in run:
+            if w.name not in smallest or w.steps < smallest[w.name].steps:
+                smallest[w.name] = w
+        for w in common.progress(args.compile_workloads or list(smallest.values()),
+                                 desc="cold/cached first batch"):
+            compile_table.append(cold_and_cached(w, args))
+
+    table, notes, plot = [], [], {}
+    gpu = jax_device()
+    for w in run:
+        model = common.load_model(w.name, args.model_dir)
+        raw = RawMjx(model, w, args.seed)
+        sim, why = try_simloader(model, w, args.seed)
+        measures: dict[str, Callable[[], float]] = {RAW: lambda: raw.measure(args.batches)}
+        runs_on = {RAW: gpu, SIMLOADER: gpu, bench_rollout.PYTHON: "1 core"}
+        if sim is not None:
+            measures[SIMLOADER] = lambda: sim.measure(args.batches)
+            if sim.shapes != raw.shapes:
+                notes.append(f"{w}: shapes differ, simloader {sim.shapes}, raw {raw.shapes}")
+        else:
+            notes.append(f"{w}: simloader mjx unavailable ({why})")
+        measures[bench_rollout.PYTHON] = bench_rollout.python_loop(model, w.nstep, python_steps,
+                                                                   args.seed)
+        if args.cpu:
+            cpu, cpu_runs_on = bench_rollout.cpu_measures(model, w, args.batches, args.seed,
+                                                          python_steps)
+            del cpu[bench_rollout.PYTHON]
+            measures.update(cpu)
+            runs_on.update(cpu_runs_on)
+        results = common.interleave(measures, args.repeats, desc=str(w))
+        if sim is not None and sim.recompiled():
+            notes.append(f"{w}: simloader compiled again for later iterators "
+                         f"(compile_s {sim.ds.stats['compile_s']:.1f} s in total)")
+        compiled = {RAW: raw, SIMLOADER: sim}
+        for row in common.method_rows(w, results, runs_on,
+                                      {SIMLOADER: RAW, bench_rollout.SIMLOADER: bench_rollout.RAW},
+                                      bench_rollout.PYTHON):
+            c = compiled.get(row[2])
+            table.append(row + ([f"{c.compile_s:.1f}", f"{c.first_s:.1f}"] if c else ["-", "-"])
+                         + [f"{output_gb(model, w):.2f}"])
+        for method in (RAW, SIMLOADER):
+            if method in results:
+                xs, ys = plot.setdefault(f"{method}, {w.name}", ([], []))
+                xs.append(w.nbatch)
+                ys.append(results[method] * 1e9)
+        del raw, sim, measures
+
+    headers = common.HEADERS + ["compile s", "first batch s", "GB/batch"]
+    text = common.markdown_table(headers, table)
+    summary = (f"Medians of {args.repeats} alternating repetitions of {args.batches} batches "
+               f"after a warm-up; float32 on {gpu}. Target: simloader throughput / raw >= "
+               f"{TARGET}. compile s / first batch s: in this process, persistent cache off.")
+    sections = [summary]
+    if compile_table:
+        sections.append("Time to first batch of a fresh process (simloader mjx), with an empty "
+                        "persistent compilation cache (cold) and reusing it (cached); targets: "
+                        "cartpole cold < 10 s, cached < 2 s, humanoid cached < 5 s.\n\n"
+                        + common.markdown_table(COMPILE_HEADERS, compile_table))
+    sections += notes
+    sections.append(text)
+    if args.save:
+        figure = common.save_plot(args, "bench_mjx", plot, "nbatch (trajectories per batch)",
+                                  "ns per step", f"simloader mjx vs raw MJX on {gpu}")
+        if figure is not None:
+            sections.insert(-1, f"![ns/step vs nbatch]({figure.name})")
+        common.save(args, "bench_mjx", "simloader MJX backend vs raw MJX", sections)
+    print("\n\n".join(sections))
+
+
+if __name__ == "__main__":
+    main()
