@@ -1,0 +1,207 @@
+"""Does training wait for simloader? The share of a training loop's wall time spent on data.
+
+A torch MLP learns the state change of a step from (state, control) on every batch of a
+`SimDataset`, on the device the batches are delivered to. First simulation alone and one
+optimizer step alone are timed; then the optimizer steps per batch are chosen so that training
+on a batch takes `--slack` times as long as simulating one. The loop then trains on `--batches`
+batches after a warm-up batch, and the time blocked in `next(iterator)` (plus the wait for the
+batch's device work) is the waiting time; the fraction of wall time it takes should stay under
+5% (performance.md, target 3), as simloader simulates the next batch while one is trained on.
+
+Backend rollout simulates on the CPU (trains on `--device`: the GPU when there is one, with
+the cores split between simulation and torch otherwise); mjx simulates and trains on JAX's
+device.
+
+    python benchmarks/train_overlap.py --quick
+    python benchmarks/train_overlap.py --backends rollout mjx --save --results-dir $OUT
+"""
+
+from __future__ import annotations
+
+import os
+
+# torch trains on the GPU JAX simulates on: JAX must not take 75% of it up front
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+from typing import Optional  # noqa: E402
+
+import torch  # noqa: E402
+
+import common  # noqa: E402
+import simloader  # noqa: E402
+
+DEFAULT = [common.Workload("cartpole", 8192, 1000)]
+QUICK = [common.Workload("cartpole", 256, 100)]
+TARGET = 0.05  # fraction of wall time waiting for data
+
+
+class Trainer:
+    """An MLP predicting `state[t] - state[t-1]` from `(state[t-1], control[t])`."""
+
+    def __init__(self, nstate: int, ncontrol: int, hidden: int, layers: int, minibatch: int,
+                 device: torch.device, seed: int):
+        torch.manual_seed(seed)
+        sizes = [nstate + ncontrol] + [hidden] * layers
+        blocks = []
+        for a, b in zip(sizes[:-1], sizes[1:]):
+            blocks += [torch.nn.Linear(a, b), torch.nn.ReLU()]
+        self.net = torch.nn.Sequential(*blocks, torch.nn.Linear(sizes[-1], nstate)).to(device)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=1e-3)
+        self.minibatch = minibatch
+        self.device = device
+
+    def train(self, batch: dict[str, torch.Tensor], nsteps: int) -> float:
+        """`nsteps` optimizer steps on random minibatches of the batch's transitions."""
+        state = batch["state"]
+        prev = torch.cat([batch["initial_state"][:, None], state[:, :-1]], dim=1)
+        x = torch.cat([prev, batch["control"]], dim=-1).flatten(0, 1)
+        y = (state - prev).flatten(0, 1)
+        for _ in range(nsteps):
+            idx = torch.randint(x.shape[0], (self.minibatch,), device=self.device)
+            loss = torch.nn.functional.mse_loss(self.net(x[idx]), y[idx])
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            self.opt.step()
+        return loss.item()
+
+
+def timed(fn, *args) -> float:
+    common.sync()
+    start = time.perf_counter()
+    fn(*args)
+    common.sync()
+    return time.perf_counter() - start
+
+
+def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[str]:
+    """Calibrates, then runs the training loop `--repeats` times; one table row."""
+    on_gpu = torch.cuda.is_available()
+    options: dict = {"dtype": torch.float32}
+    if backend == "rollout":
+        options["device"] = args.device
+        if args.device == "cpu":  # simulation and training share the cores
+            cores = common.cpu_count()
+            options["nthread"] = args.sim_threads or max(1, cores // 2)
+            torch.set_num_threads(max(1, cores - options["nthread"]))
+    model = common.load_model(w.name, args.model_dir)
+    ds = simloader.SimDataset(model, backend=backend, nbatch=w.nbatch, nstep=w.nstep,
+                              control=simloader.controls.Uniform(), seed=args.seed, **options)
+
+    calib = common.time_stream(ds, args.calibration_batches, keep_last=True)
+    sim_s = calib.steady_s / args.calibration_batches
+    batch = calib.last
+    device = batch["state"].device
+    trainer = Trainer(ds.config.nstate, ds.config.ncontrol, args.hidden or (1024 if on_gpu else 128),
+                      args.layers, args.minibatch or (32768 if on_gpu else 1024), device, args.seed)
+    trainer.train(batch, 5)  # warm-up
+    opt_s = timed(trainer.train, batch, 20) / 20
+    nsteps = max(1, math.ceil(args.slack * sim_s / opt_s))
+    train_s = timed(trainer.train, batch, nsteps)
+    first_loss = trainer.train(batch, 1)
+    del batch, calib
+    print(f"{backend} {w}: simulate {sim_s:.3f} s/batch alone, train {train_s:.3f} s/batch "
+          f"alone ({nsteps} optimizer steps of {opt_s * 1e3:.2f} ms)")
+
+    fractions, during = [], []
+    for _ in common.progress(range(args.repeats), desc=f"{backend} {w}"):
+        before = ds.stats
+        waited, total, loss = overlap(ds, trainer, nsteps, args.batches)
+        after = ds.stats
+        fractions.append(waited / total)
+        if after["simulate_s"] > before["simulate_s"]:
+            during.append((after["simulate_s"] - before["simulate_s"])
+                          / (after["batches"] - before["batches"]))
+    fraction = statistics.median(fractions)
+    return [backend, f"{w.name} {w.nbatch} x {w.nstep}", str(device), f"{sim_s:.3f}",
+            f"{train_s:.3f}", f"{train_s / sim_s:.2f}", nsteps,
+            f"{statistics.median(during):.3f}" if during else "-",
+            f"{100 * fraction:.2f}%", f"{100 * max(fractions):.2f}%",
+            "yes" if fraction < TARGET else "NO", f"{first_loss:.3g} -> {loss:.3g}"]
+
+
+def overlap(ds: simloader.SimDataset, trainer: Trainer, nsteps: int,
+            nbatches: int) -> tuple[float, float, float]:
+    """Seconds waiting for data, seconds in all, and the last loss, over `nbatches` batches.
+
+    The clock starts when the first batch (threads, compilation) is in hand. Before each
+    `next` the device is synchronized, so the training's queued work counts as training, and
+    after it again, so data still being produced or copied counts as waiting.
+    """
+    it = iter(ds)
+    try:
+        batch = next(it)
+        common.sync()
+        start, waited = time.perf_counter(), 0.0
+        loss = trainer.train(batch, nsteps)
+        for _ in range(nbatches):
+            common.sync()
+            t = time.perf_counter()
+            del batch
+            batch = next(it)
+            common.sync()
+            waited += time.perf_counter() - t
+            loss = trainer.train(batch, nsteps)
+        common.sync()
+        return waited, time.perf_counter() - start, loss
+    finally:
+        it.close()
+
+
+HEADERS = ["backend", "workload", "trains on", "simulate s/batch (alone)",
+           "train s/batch (alone)", "train / simulate", "optimizer steps per batch",
+           "simulate s/batch (while training)", "waiting (median)", "waiting (max)",
+           "< 5%", "loss"]
+
+
+def default_backends() -> list[str]:
+    try:
+        import jax
+        gpu = any(d.platform == "gpu" for d in jax.devices())
+    except Exception:  # JAX missing or without a platform
+        gpu = False
+    return ["rollout", "mjx"] if gpu else ["rollout"]
+
+
+def main() -> None:
+    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
+    p.add_argument("--backends", nargs="+", choices=("rollout", "mjx"),
+                   help="default: rollout, and mjx when JAX sees a GPU")
+    p.add_argument("--batches", type=int, default=None,
+                   help="batches trained on after the warm-up batch (default 10, --quick 5)")
+    p.add_argument("--calibration-batches", type=int, default=3,
+                   help="batches timed to measure simulation alone")
+    p.add_argument("--slack", type=float, default=1.5,
+                   help="training time per batch / simulation time per batch")
+    p.add_argument("--hidden", type=int, help="MLP width (default 1024 on GPU, 128 on CPU)")
+    p.add_argument("--layers", type=int, default=3, help="hidden layers")
+    p.add_argument("--minibatch", type=int,
+                   help="transitions per optimizer step (default 32768 on GPU, 1024 on CPU)")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                   help="where backend rollout delivers and the MLP trains")
+    p.add_argument("--sim-threads", type=int,
+                   help="rollout threads when training on the CPU (default: half the cores)")
+    args = p.parse_args()
+    args.batches = args.batches or (5 if args.quick else 10)
+
+    table = []
+    for backend in args.backends or default_backends():
+        for w in common.workloads(args, DEFAULT, QUICK):
+            table.append(run(backend, w, args))
+
+    text = common.markdown_table(HEADERS, table)
+    notes = (f"Waiting: time in next(iterator) and the device sync after it, as a share of the "
+             f"wall time of {args.batches} batches of training after a warm-up batch; median and "
+             f"max of {args.repeats} runs. Training is set to take {args.slack}x the simulation "
+             f"time of a batch (both measured alone first). Target: waiting < 5%.")
+    if args.save:
+        common.save(args, "train_overlap", "Training while simloader simulates", [notes, text])
+    print(notes)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

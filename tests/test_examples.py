@@ -1,0 +1,23 @@
+"""Every example runs in its --quick mode (as a user would run it, in a fresh process)."""
+
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+EXAMPLES = sorted((pathlib.Path(__file__).parents[1] / "examples").glob("*.py"))
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
+def test_example_quick(path, tmp_path):
+    args = [sys.executable, str(path), "--quick"]
+    if "--out" in path.read_text():
+        args += ["--out", str(tmp_path / "plot.png")]
+    if "--backend" in path.read_text():
+        args += ["--backend", "rollout"]
+    result = subprocess.run(args, capture_output=True, text=True, timeout=300,
+                            cwd=pathlib.Path(__file__).parents[1])
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-4000:]
+    if "--out" in args:
+        assert (tmp_path / "plot.png").stat().st_size > 10_000
