@@ -216,3 +216,27 @@ def test_exception_in_worker_reaches_main_process():
 class _FailingInitial(simloader.initial.InitialStateGenerator):
     def sample(self, model, rng, nbatch):
         raise KeyError("boom in a worker")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
+def test_hundred_create_iterate_destroy_cycles_leak_nothing():
+    def counts():
+        gc.collect()
+        rss = int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        return _native_threads(), len(os.listdir("/proc/self/fd")), rss
+
+    def cycle():
+        loader = DataLoader(cartpole(nthread=2, num_batches=3), batch_size=None)
+        for i, _batch in enumerate(loader):
+            if i == 1:
+                break
+        del loader
+
+    for _ in range(5):  # warm-up: allocator pools, lazily created module state
+        cycle()
+    threads, fds, rss = counts()
+    for _ in range(100):
+        cycle()
+    threads_after, fds_after, rss_after = counts()
+    assert threads_after == threads and fds_after == fds
+    assert rss_after - rss < 20 * 2 ** 20, f"RSS grew by {(rss_after - rss) / 2**20:.1f} MiB"

@@ -1,0 +1,449 @@
+"""MJX backend: MuJoCo XLA (JAX) on the GPU, one compiled function per configuration.
+
+A batch is one call of a jitted function: `lax.scan` over `nstep` of `vmap(mjx.step)` over
+`nbatch` trajectories. The function takes the model, the initial states, the controls and a
+seed as arguments, so it is traced and compiled once per configuration (and device) and reused
+by every batch and every iterator of the dataset. Random controls are drawn inside it with
+`jax.random`; initial states are drawn on the host (they are small) and transferred.
+
+Each trajectory starts as `mujoco.rollout` starts it: `mj_resetData` defaults (zero inputs,
+mocap bodies at their model poses, `eq_active0`, zero warmstart) with the `mjSTATE_FULLPHYSICS`
+part from the initial state. Before every step the `control_spec` components are set from the
+control row, as `mj_setState` does. MJX never checks for instability, so every step is checked
+here as MuJoCo checks it (|qpos|, |qvel|, |qacc| within mjMAXVAL, all finite) plus the sensors;
+a trajectory that fails is flagged in `diverged`, and its NaNs are never delivered unflagged.
+
+`produce` only dispatches (JAX runs asynchronously); `deliver` waits for the results and hands
+every output to torch through DLPack: the delivered tensors are the JAX buffers, on the torch
+device of the JAX device (`cuda:k` for JAX GPU k). They are fresh buffers for every batch, but
+shared with JAX: treat them as read-only (clone before editing in place).
+
+Process-wide JAX settings: unless told otherwise, JAX does not preallocate GPU memory (so that
+a torch model can train on the same GPU) and compilations are kept in a persistent cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing
+import os
+import threading
+import time
+import warnings
+import weakref
+from collections.abc import Callable
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import torch
+from jax._src import xla_bridge
+from mujoco import mjx
+
+from simloader import handoff, layout, sharding
+from simloader.backends.base import Backend, Stats
+from simloader.config import SimConfig
+
+S = mujoco.mjtState
+# The mjSTATE_FULLPHYSICS components MJX simulates. The others must be empty (checked at
+# construction), so this spec's layout is FULLPHYSICS's, column for column.
+PHYSICS = int(S.mjSTATE_TIME | S.mjSTATE_QPOS | S.mjSTATE_QVEL | S.mjSTATE_ACT)
+_UNSIMULATED = (
+    (S.mjSTATE_HISTORY, "actuator and sensor delays", "nhistory"),
+    (S.mjSTATE_PLUGIN, "plugins with state", "npluginstate"),
+    (S.mjSTATE_PLASTIC, "plasticity", "nplastic"),
+)
+# The user inputs mj_resetData takes from the model (all others it zeroes).
+_MODEL_INPUTS = int(S.mjSTATE_EQ_ACTIVE | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT)
+# mjMAXVAL: beyond it MuJoCo's own checks call qpos, qvel and qacc unstable.
+_MAXVAL = 1e10
+
+OPTIONS = ("compilation_cache", "memory_fraction")
+_PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
+_FRACTION = "XLA_CLIENT_MEM_FRACTION"
+_FRACTION_DEPRECATED = "XLA_PYTHON_CLIENT_MEM_FRACTION"  # jaxlib rejects both being set
+
+
+def check_options(config: SimConfig, options: dict[str, Any]) -> dict[str, Any]:
+    """Validates the mjx options and the model(s), in the constructing process.
+
+    Args:
+      config: the validated dataset configuration.
+      options: keyword options of `SimDataset` beyond its own:
+        compilation_cache: directory of JAX's persistent compilation cache; None (default):
+          JAX's configured one, else `~/.cache/simloader/jax`; False: leave JAX's setting.
+        memory_fraction: fraction of GPU memory JAX preallocates; None (default): none, JAX
+          allocates as it goes (effective only if JAX has not started yet).
+
+    Returns:
+      The options for `MjxBackend`, defaults resolved.
+
+    Raises:
+      TypeError: an unknown option or a value of the wrong type.
+      ValueError: a bad option value, or a model MJX cannot simulate.
+    """
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
+                        f"backend='mjx' (its options are {list(OPTIONS)})")
+    cache = _cache_dir(options.get("compilation_cache"))
+    fraction = configure_memory(options.get("memory_fraction"))
+    _configure_cache(cache)
+    _put_models(config, _jax_device(config.device))
+    return {"compilation_cache": cache, "memory_fraction": fraction}
+
+
+def configure_memory(memory_fraction: Any) -> Optional[float]:
+    """Sets how JAX takes GPU memory; effective only before JAX starts its backends.
+
+    Args:
+      memory_fraction: None: no preallocation; a number in (0, 1]: preallocate that fraction.
+
+    Returns:
+      The validated fraction.
+
+    Raises:
+      TypeError, ValueError: `memory_fraction` is not None or a number in (0, 1].
+    """
+    if memory_fraction is not None and (isinstance(memory_fraction, bool) or not isinstance(
+            memory_fraction, (int, float, np.floating, np.integer))):
+        raise TypeError(f"memory_fraction: expected None or a number in (0, 1], got "
+                        f"{type(memory_fraction).__name__} {memory_fraction!r}")
+    if memory_fraction is not None and not 0 < memory_fraction <= 1:
+        raise ValueError(f"memory_fraction: expected None or a number in (0, 1], got "
+                         f"{memory_fraction}")
+    fraction = None if memory_fraction is None else float(memory_fraction)
+    if not xla_bridge.backends_are_initialized():  # JAX has no public "started" query
+        if fraction is None:
+            os.environ.setdefault(_PREALLOCATE, "false")  # a user's explicit choice stands
+        else:
+            os.environ[_PREALLOCATE] = "true"
+            os.environ.pop(_FRACTION_DEPRECATED, None)
+            os.environ[_FRACTION] = str(fraction)
+        return fraction
+    if not any(d.platform == "gpu" for d in jax.devices()):
+        return fraction
+    # the same test jaxlib applies when it creates the GPU client
+    preallocating = os.environ.get(_PREALLOCATE, "true") not in ("false", "False", "0")
+    current = os.environ.get(_FRACTION) or os.environ.get(_FRACTION_DEPRECATED)
+    if fraction is None and preallocating:
+        warnings.warn(
+            "simloader: JAX was started before simloader could turn off its GPU memory "
+            "preallocation, so JAX may hold 75% of the GPU and leave little to torch. Set "
+            f"{_PREALLOCATE}=false before JAX starts (or create the SimDataset first).",
+            RuntimeWarning, stacklevel=3)
+    elif fraction is not None and current != str(fraction):
+        warnings.warn(
+            f"simloader: memory_fraction={fraction} has no effect: JAX was already started "
+            f"(with {_FRACTION}={current}). Create the SimDataset before anything starts JAX, "
+            f"or set {_FRACTION} yourself.", RuntimeWarning, stacklevel=3)
+    return fraction
+
+
+def _cache_dir(value: Any) -> Any:
+    if value is False:
+        return False
+    if value is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+        return jax.config.jax_compilation_cache_dir or os.path.join(base, "simloader", "jax")
+    if isinstance(value, (str, os.PathLike)):
+        return os.fspath(value)
+    raise TypeError(f"compilation_cache: expected a directory path, None (default cache) or "
+                    f"False (leave JAX's setting), got {type(value).__name__} {value!r}")
+
+
+def _configure_cache(path: Any) -> None:
+    # JAX reads these at its first compilation in the process; later changes are ignored
+    if path is not False:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def _refuse_forked_worker() -> None:
+    """JAX is multithreaded and deadlocks in a forked child (its parent already ran JAX)."""
+    if torch.utils.data.get_worker_info() is None:
+        return
+    # a DataLoader started with a context uses its Process class, which names its start
+    # method; a plain Process uses the global one, which a forked child inherits
+    method = (getattr(multiprocessing.current_process(), "_start_method", None)
+              or multiprocessing.get_start_method())
+    if method == "fork":
+        raise RuntimeError(
+            "backend='mjx' cannot run in a forked DataLoader worker: JAX is multithreaded and "
+            "deadlocks after fork. Use num_workers=0 (an MJX batch already runs in parallel on "
+            "the device) or DataLoader(..., multiprocessing_context='spawn').")
+
+
+def _jax_device(target: Optional[torch.device]) -> jax.Device:
+    """Where to simulate: JAX GPU k for a `cuda:k` target (no copy at delivery), else JAX's
+    GPU of this local rank (torchrun's LOCAL_RANK), else JAX's default device."""
+    gpus = [d for d in jax.local_devices() if d.platform == "gpu"]
+    if not gpus:
+        return jax.local_devices()[0]
+    if target is not None and target.type == "cuda":
+        index = target.index if target.index is not None else torch.cuda.current_device()
+        if index >= len(gpus):
+            raise ValueError(f"device: {target} requested but JAX sees {len(gpus)} GPU(s)")
+        return gpus[index]
+    return gpus[int(os.environ.get("LOCAL_RANK", "0")) % len(gpus)]
+
+
+def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
+    """The model, or the model list as one mjx.Model batched only where the models differ.
+
+    Returns:
+      (model, in_axes): `in_axes` is the model's `vmap` axes, 0 on the fields that differ
+      across the list and None elsewhere (None altogether for a single model).
+
+    Raises:
+      ValueError: MJX cannot simulate a model, or the models differ in a field MJX compiles in.
+    """
+    names = ["model"] if config.models is None else [
+        f"randomize[{i}]" for i in range(len(config.models))]
+    models = config.models or (config.model,)
+    # a list is compared and stacked on the host, then moved at once
+    host = device if len(models) == 1 else jax.local_devices(backend="cpu")[0]
+    puts = []
+    for name, model in zip(names, models):
+        for bit, what, size in _UNSIMULATED:
+            if mujoco.mj_stateSize(model, int(bit)):
+                raise ValueError(f"{name}: MJX does not support {what} ({size}="
+                                 f"{mujoco.mj_stateSize(model, int(bit))}); use "
+                                 f"backend='rollout'")
+        try:
+            puts.append(mjx.put_model(model, device=host, impl="jax"))
+        except NotImplementedError as e:
+            raise ValueError(f"{name}: MJX does not support a feature of this model: {e}; use "
+                             f"backend='rollout'") from None
+    if len(puts) == 1:
+        return puts[0], None
+    leaves, treedef = jax.tree_util.tree_flatten(puts[0])
+    columns = [leaves]
+    for name, put in zip(names[1:], puts[1:]):
+        other, other_def = jax.tree_util.tree_flatten(put)
+        if other_def != treedef:
+            raise ValueError(
+                f"{name}: {_static_difference(puts[0], put, 'model')} differs from "
+                f"randomize[0], but MJX compiles it into the simulation; only numeric "
+                f"parameters may differ across the models")
+        columns.append(other)
+    batched, axes = [], []
+    for column in zip(*columns):
+        same = all(np.array_equal(column[0], leaf) for leaf in column[1:])
+        batched.append(column[0] if same else jnp.stack(column))
+        axes.append(None if same else 0)
+    return jax.device_put(treedef.unflatten(batched), device), treedef.unflatten(axes)
+
+
+def _static_difference(a: Any, b: Any, path: str) -> str:
+    """The first non-array field (compiled in) where two mjx.Models differ, as a path."""
+    if dataclasses.is_dataclass(a):
+        for field in dataclasses.fields(a):
+            found = _static_difference(getattr(a, field.name), getattr(b, field.name),
+                                       f"{path}.{field.name}")
+            if found:
+                return found
+        return ""
+    if isinstance(a, jax.Array):
+        return ""
+    if isinstance(a, (tuple, list)):
+        if len(a) != len(b):
+            return path
+        return next((d for d in (_static_difference(x, y, f"{path}[{i}]")
+                                 for i, (x, y) in enumerate(zip(a, b))) if d), "")
+    return "" if np.array_equal(a, b) else path
+
+
+def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
+    """The pure function that simulates one batch of configuration `c`.
+
+    The returned `simulate(model, data0, inputs0, x0, control, seed, carry, restart)` takes:
+      model: the mjx.Model, batched along `model_axes`.
+      data0: one trajectory's mjx.Data as `make_data` leaves it.
+      inputs0: `_MODEL_INPUTS` rows as mj_resetData leaves them, (ninputs,) or per model
+        (nbatch, ninputs).
+      x0: (nbatch, nstate) initial states.
+      control: the fixed controls (nbatch, nstep, ncontrol), or the default rows
+        ([nbatch or 1], ncontrol) of undriven columns.
+      seed: (2,) uint32, this batch's control seed.
+      carry, restart: with `continue_episodes`, the previous batch's final batched mjx.Data
+        and the (nbatch,) bool rows to restart from `x0` instead; None otherwise.
+
+    It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
+    the final batched mjx.Data for the next batch.
+    """
+    plan = c.control
+    given = plan.fixed is not None or plan.random  # control=None leaves the inputs alone
+    shape = (c.nbatch, c.nstep, c.ncontrol)
+    per_model = c.models is not None
+
+    def reset(m, d0, inputs0, x0):
+        d = mjx.set_state(m, d0, inputs0, _MODEL_INPUTS)
+        return mjx.set_state(m, d, x0, PHYSICS)
+
+    def step(m, d, u):
+        if given:
+            d = mjx.set_state(m, d, u, c.control_spec)
+        return mjx.step(m, d)
+
+    def physics(m, d):
+        return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (model_axes, 0))(m, d)
+
+    def draw(defaults, seed):
+        key = jax.random.fold_in(jax.random.key(seed[0]), seed[1])
+        control = jnp.broadcast_to(defaults[:, None, :], shape)
+        for driver, k in zip(plan.drivers, jax.random.split(key, len(plan.drivers))):
+            params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
+            sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
+            control = control.at[..., driver.columns].set(sample.astype(dtype))
+        return control
+
+    def simulate(m, d0, inputs0, x0, control, seed, carry, restart):
+        data = jax.vmap(reset, (model_axes, None, 0 if per_model else None, 0))(
+            m, d0, inputs0, x0)
+        if c.continue_episodes:
+            data = jax.tree.map(
+                lambda new, old: jnp.where(restart.reshape((-1,) + (1,) * (new.ndim - 1)),
+                                           new, old), data, carry)
+        initial = physics(m, data)
+        if plan.random:
+            control = draw(control, seed)
+        elif not given:
+            control = jnp.broadcast_to(control[:, None, :], shape)
+
+        def body(loop, u):
+            d, unstable = loop
+            d = jax.vmap(step, (model_axes, 0, 0 if given else None))(m, d, u)
+            state = physics(m, d)
+            # NaN compares False, so `<=` catches NaN, Inf and huge values at once
+            stable = (jnp.all(jnp.abs(state) <= _MAXVAL, axis=-1)
+                      & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
+                      & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
+            return (d, unstable | ~stable), (state, d.sensordata)
+
+        xs = jnp.swapaxes(control, 0, 1) if given else None
+        (data, diverged), (state, sensordata) = jax.lax.scan(
+            body, (data, jnp.zeros(c.nbatch, bool)), xs, length=c.nstep)
+        outputs = {
+            "state": jnp.swapaxes(state, 0, 1),
+            "sensordata": jnp.swapaxes(sensordata, 0, 1),
+            "control": control,
+            "initial_state": initial,
+            "diverged": diverged,
+        }
+        return outputs, data if c.continue_episodes else None
+
+    return simulate
+
+
+class _Program:
+    """A configuration's simulation on one device: the model and constant inputs on the
+    device and the compiled batch function, shared by every iterator of the dataset."""
+
+    def __init__(self, config: SimConfig, device: jax.Device):
+        c = config
+        self.device = device
+        self.model, model_axes = _put_models(c, device)
+        self.data0 = mjx.make_data(c.model, device=device, impl="jax")
+        self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64
+        inputs0 = np.stack([layout.default_user_inputs(m, _MODEL_INPUTS)
+                            for m in c.models or (c.model,)]).astype(self.dtype)
+        self.inputs0 = jax.device_put(inputs0 if c.models is not None else inputs0[0], device)
+        constant = c.control.fixed if c.control.fixed is not None else c.control.default_rows
+        self.control = jax.device_put(constant.astype(self.dtype), device)
+        # fixed initial states go to the device once; generated ones with every batch
+        self.x0 = (None if c.initial.generator is not None else
+                   jax.device_put(c.initial.fixed.astype(self.dtype), device))
+        self.jitted = jax.jit(_simulator(c, model_axes, self.dtype),
+                              donate_argnames=("carry",) if c.continue_episodes else ())
+        self.compiled: Optional[Callable] = None
+        self.lock = threading.Lock()
+
+    def compile(self, args: tuple, stats: Stats) -> Callable:
+        """The compiled batch function, compiled (or loaded from JAX's cache) on first use."""
+        with self.lock:
+            if self.compiled is None:
+                start = time.perf_counter()
+                self.compiled = self.jitted.lower(*args).compile()
+                stats.add(compile_s=time.perf_counter() - start)
+            return self.compiled
+
+
+# programs by configuration and device; each epoch's iterator reuses its dataset's program,
+# which goes away with the dataset's configuration
+_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+@dataclasses.dataclass
+class _Produced:
+    outputs: dict[str, jax.Array]  # dispatched, maybe not computed yet
+    dispatched: float  # time.perf_counter() at dispatch
+
+
+class MjxBackend(Backend):
+    """`backend="mjx"`.
+
+    Args:
+      config, shard, stats: as every backend.
+      compilation_cache, memory_fraction: as resolved by `check_options`.
+
+    Raises:
+      RuntimeError: in a forked DataLoader worker, where JAX would deadlock.
+    """
+
+    def __init__(self, config: SimConfig, shard: sharding.Shard, stats: Stats, *,
+                 compilation_cache: Any, memory_fraction: Optional[float]):
+        _refuse_forked_worker()
+        super().__init__(config, shard, stats)
+        # again here: a spawned worker inherits the environment but not JAX's configuration
+        configure_memory(memory_fraction)
+        _configure_cache(compilation_cache)
+        device = _jax_device(config.device)
+        self.program = _PROGRAMS.setdefault(config, {}).get(device)
+        if self.program is None:
+            self.program = _PROGRAMS[config][device] = _Program(config, device)
+        self.carry: Any = None
+        self.restart: Any = None
+        if config.continue_episodes:
+            # the first batch starts every row from x0, so any carry of the right shapes will do
+            self.carry = jax.device_put(jax.tree.map(
+                lambda x: np.zeros((config.nbatch, *x.shape), x.dtype), self.program.data0),
+                device)
+            self.restart = np.ones(config.nbatch, dtype=bool)
+        self.last_ready = 0.0
+
+    def produce(self, index: int) -> _Produced:
+        c, p = self.config, self.program
+        x0 = p.x0 if p.x0 is not None else c.initial.sample(
+            self.seed(index, sharding.INITIAL), c.nbatch).astype(p.dtype)
+        seed = self.seed(index, sharding.CONTROL).generate_state(2, np.uint32)
+        args = (p.model, p.data0, p.inputs0, x0, p.control, seed, self.carry, self.restart)
+        simulate = p.compile(args, self.stats)
+        dispatched = time.perf_counter()
+        outputs, carry = simulate(*args)
+        if c.continue_episodes:
+            # diverged rows restart in the next batch, decided on the device without waiting
+            self.carry, self.restart = carry, outputs["diverged"]
+        return _Produced(outputs, dispatched)
+
+    def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
+        c = self.config
+        # waiting here also orders the hand-off before any torch stream reads the buffers
+        outputs = jax.block_until_ready(produced.outputs)
+        ready = time.perf_counter()
+        # the device runs batches in order: this one started at its dispatch or when the
+        # previous one was ready, whichever is later (when the consumer is slower than the
+        # simulation, results wait and this over-counts)
+        self.stats.add(simulate_s=ready - max(produced.dispatched, self.last_ready),
+                       batches=1, steps=c.nbatch * c.nstep,
+                       diverged=int(np.count_nonzero(outputs["diverged"])))
+        self.last_ready = ready
+        return {k: handoff.to_target(handoff.from_jax(v), c.device,
+                                     None if k == "diverged" else c.dtype)
+                for k, v in outputs.items()}
+
+    def close(self) -> None:
+        # the carry is this iterator's; the program stays for the dataset's next iterator
+        self.carry = self.restart = None
