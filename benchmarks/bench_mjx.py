@@ -117,10 +117,12 @@ class RawMjx:
         return (time.perf_counter() - start) / (nbatches * self.w.steps)
 
 
-def simloader_dataset(model: mujoco.MjModel, w: common.Workload,
-                      seed: int) -> simloader.SimDataset:
+def simloader_dataset(model: mujoco.MjModel, w: common.Workload, seed: int,
+                      cache: Any) -> simloader.SimDataset:
+    """The dataset measured; `cache`: its `compilation_cache` option (False: JAX's setting)."""
     return simloader.SimDataset(model, backend="mjx", nbatch=w.nbatch, nstep=w.nstep,
-                                control=simloader.controls.Uniform(), seed=seed)
+                                control=simloader.controls.Uniform(), seed=seed,
+                                compilation_cache=cache)
 
 
 class SimloaderMjx:
@@ -129,7 +131,7 @@ class SimloaderMjx:
     def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int):
         import torch
         self.w = w
-        self.ds = simloader_dataset(model, w, seed)
+        self.ds = simloader_dataset(model, w, seed, cache=False)  # JAX's: off in this process
         first = common.time_stream(self.ds, 0, keep_last=True)
         batch = first.last
         self.first_s = first.first_s
@@ -155,7 +157,7 @@ def first_batch_child(args: argparse.Namespace) -> None:
     w = args.workloads[0]
     model = common.load_model(w.name, args.model_dir)
     start = time.perf_counter()
-    ds = simloader_dataset(model, w, args.seed)
+    ds = simloader_dataset(model, w, args.seed, cache=args.cache_dir)
     common.time_stream(ds, 0)
     print(json.dumps({"first_batch_s": time.perf_counter() - start,
                       "compile_s": ds.stats.get("compile_s", 0.0),
@@ -165,15 +167,13 @@ def first_batch_child(args: argparse.Namespace) -> None:
 def cold_and_cached(w: common.Workload, args: argparse.Namespace) -> list[str]:
     """Time to first batch of two fresh processes sharing a new persistent cache."""
     with tempfile.TemporaryDirectory(prefix="simloader-jax-cache-") as cache:
-        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache,
-                   JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
-        command = [sys.executable, __file__, "--first-batch", "--workloads", str(w),
-                   "--model-dir", str(common.model_dir(args.model_dir)), "--seed", str(args.seed)]
+        command = [sys.executable, __file__, "--first-batch", "--cache-dir", cache,
+                   "--workloads", str(w), "--model-dir", str(common.model_dir(args.model_dir)),
+                   "--seed", str(args.seed)]
         row = [w.name, f"{w.nbatch} x {w.nstep}"]
         for run in ("cold", "cached"):
             start = time.perf_counter()
-            proc = subprocess.run(command, env=env, capture_output=True, text=True)
+            proc = subprocess.run(command, capture_output=True, text=True)
             wall = time.perf_counter() - start
             if proc.returncode != 0:
                 print(f"{run} first batch of {w} failed:\n{proc.stderr[-3000:]}", file=sys.stderr)
@@ -214,7 +214,9 @@ def main() -> None:
     p.add_argument("--compile-workloads", nargs="+", type=common.parse_workload,
                    help="workloads of the cold/cached measurement (default: the smallest "
                         "workload of each model)")
-    p.add_argument("--first-batch", action="store_true", help=argparse.SUPPRESS)  # child mode
+    # child mode: the time to first batch of a fresh process with this compilation cache
+    p.add_argument("--first-batch", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--cache-dir", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.first_batch:
         return first_batch_child(args)
@@ -244,8 +246,9 @@ def main() -> None:
         runs_on = {RAW: gpu, SIMLOADER: gpu, bench_rollout.PYTHON: "1 core"}
         if sim is not None:
             measures[SIMLOADER] = lambda: sim.measure(args.batches)
-            if sim.shapes != raw.shapes:
-                notes.append(f"{w}: shapes differ, simloader {sim.shapes}, raw {raw.shapes}")
+            differ = {k: (sim.shapes[k], v) for k, v in raw.shapes.items() if sim.shapes[k] != v}
+            if differ:
+                notes.append(f"{w}: not the same work, (simloader, raw) shapes {differ}")
         else:
             notes.append(f"{w}: simloader mjx unavailable ({why})")
         measures[bench_rollout.PYTHON] = bench_rollout.python_loop(model, w.nstep, python_steps,

@@ -140,6 +140,20 @@ def sync() -> None:
         torch.cuda.synchronize()
 
 
+def drain() -> None:
+    """Waits until the work already dispatched to the devices has run.
+
+    simloader's MJX producer dispatches batches ahead; those an iterator was closed on still
+    run on the device and would slow whatever is timed next. Devices run their work in order,
+    so a tiny computation on each, waited for, waits for them.
+    """
+    sync()
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        for device in jax.local_devices():
+            jax.block_until_ready(jax.device_put(0, device) + 1)
+
+
 def interleave(measures: dict[str, Callable[[], float]], repeats: int,
                desc: str = "") -> dict[str, float]:
     """The median of each measure's result, the measures run alternately `repeats` times.
@@ -171,7 +185,7 @@ def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
     """Delivered throughput of a dataset: `nbatches` batches after the first, tensors in hand.
 
     A fresh iterator per call (simloader's producer thread starts with it and stops at
-    `close`, so nothing simulates while another measure runs). The first batch, which pays
+    `close`, and the device is drained, so nothing simulates while another measure runs). The first batch, which pays
     for threads, compilation and the empty prefetch queue, is timed apart; the steady part runs
     from holding the first batch to holding the last, blocked on the device after each.
     """
@@ -188,6 +202,7 @@ def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
         return Stream(first - start, time.perf_counter() - first, batch if keep_last else None)
     finally:
         it.close()
+        drain()
 
 
 # -- output -----------------------------------------------------------------------------------

@@ -62,14 +62,17 @@ class SimDataset(torch.utils.data.IterableDataset):
                  seed: int = 0, device: Any = None, dtype: Any = None,
                  nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
         super().__init__()
+        from simloader import backends
+        backends.prepare(backend, backend_options)
         self.config: SimConfig = build_config(
             model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
             control_spec=control_spec, initial_state=initial_state, randomize=randomize,
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
             device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
-        from simloader import backends
         self.backend_options = backends.check_options(self.config, backend_options)
         self._stats = Stats()
+        # workers do not see the process group: keep the rank of the constructing process
+        self._rank = sharding.distributed_rank()
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
         self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
 
@@ -94,8 +97,8 @@ class SimDataset(torch.utils.data.IterableDataset):
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
         from simloader import backends
-        return backends.create(self.config, shard or sharding.current_shard(), self._stats,
-                               self.backend_options)
+        shard = shard or sharding.current_shard(self._rank)
+        return backends.create(self.config, shard, self._stats, self.backend_options)
 
     def state_dict(self) -> dict[str, Any]:
         """Where this iterator (this DataLoader worker, or this process) is in the stream.
@@ -122,7 +125,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         self._loaded, self._progress = state, None
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
-        shard = sharding.current_shard()
+        shard = sharding.current_shard(self._rank)
         loaded, self._loaded = self._loaded, None
         start = None
         backend = self.make_backend(shard)

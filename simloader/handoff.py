@@ -27,11 +27,11 @@ def host_buffer(shape: tuple[int, ...], dtype: torch.dtype = torch.float64,
 def to_target(tensor: torch.Tensor, device: Optional[torch.device],
               dtype: Optional[torch.dtype]) -> torch.Tensor:
     """The tensor on the requested device and dtype: itself when nothing changes (no copy)."""
-    if device is None or device.type == "cpu":
-        return tensor if dtype is None or tensor.dtype == dtype else tensor.to(dtype)
-    # to the device first (asynchronous from pinned memory), converting there
-    moved = tensor.to(device, non_blocking=True)
-    return moved if dtype is None or moved.dtype == dtype else moved.to(dtype)
+    if device is not None and tensor.device != device:
+        # to the device first, converting there; asynchronous only from host (pinned) memory,
+        # since a non-blocking copy to the host could be read before it lands
+        tensor = tensor.to(device, non_blocking=tensor.device.type == "cpu")
+    return tensor if dtype is None or tensor.dtype == dtype else tensor.to(dtype)
 
 
 def from_jax(array: Any) -> torch.Tensor:

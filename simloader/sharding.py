@@ -37,13 +37,22 @@ class Shard:
             i += self.num_workers
 
 
-def current_shard() -> Shard:
-    """The shard of the calling process: torch.distributed first, torchrun's variables second."""
-    rank, world = 0, 1
+def distributed_rank() -> Optional[tuple[int, int]]:
+    """(rank, world size) from torch.distributed, else torchrun's variables, else None."""
     if torch.distributed.is_available() and torch.distributed.is_initialized():
-        rank, world = torch.distributed.get_rank(), torch.distributed.get_world_size()
-    elif "RANK" in os.environ and "WORLD_SIZE" in os.environ:
-        rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    if "RANK" in os.environ and "WORLD_SIZE" in os.environ:
+        return int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    return None
+
+
+def current_shard(constructed_rank: Optional[tuple[int, int]] = None) -> Shard:
+    """The shard of the calling process.
+
+    DataLoader workers do not inherit the process group, so the rank the dataset saw when it
+    was constructed (in the rank's main process) is the fallback there.
+    """
+    rank, world = distributed_rank() or constructed_rank or (0, 1)
     info = torch.utils.data.get_worker_info()
     worker, nworkers = (info.id, info.num_workers) if info is not None else (0, 1)
     return Shard(rank, world, worker, nworkers)
