@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from simloader import controls, initial, layout, models
+from simloader import randomize as dr
 
 BACKENDS = ("auto", "rollout", "mjx")
 
@@ -27,6 +28,8 @@ class SimConfig:
     Attributes:
       model: the model (the first of `models` when a list was given).
       models: one MjModel per trajectory (`randomize` as a list), or None.
+      randomization: per-trajectory model parameters drawn every batch, or None.
+      variants: the pool of compiled structural variants sampled per trajectory, or None.
       backend: "rollout" or "mjx" ("auto" is resolved).
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
@@ -49,6 +52,8 @@ class SimConfig:
     ncontrol: int
     nsensordata: int
     control_spec: int
+    randomization: Optional[dr.RandomizationPlan]
+    variants: Optional[tuple[mujoco.MjModel, ...]]
     control: controls.ControlPlan
     initial: initial.InitialPlan
     continue_episodes: bool
@@ -84,33 +89,42 @@ def resolve_backend(backend: str) -> str:
         return "rollout"
 
 
-def _model_list(model: mujoco.MjModel, randomize: Any, nbatch: int,
-                control_spec: int) -> Optional[tuple[mujoco.MjModel, ...]]:
-    if randomize is None:
-        return None
-    if isinstance(randomize, (mujoco.MjModel, str, bytes)) or not isinstance(randomize, Sequence):
-        raise TypeError(f"randomize: expected None or a sequence of MjModel (one per trajectory), "
-                        f"got {type(randomize).__name__}")
-    models_ = tuple(randomize)
-    for i, m in enumerate(models_):
-        if not isinstance(m, mujoco.MjModel):
-            raise TypeError(f"randomize[{i}]: expected an MjModel, got {type(m).__name__}")
-    if len(models_) != nbatch:
-        raise ValueError(f"randomize: expected nbatch={nbatch} models (one per trajectory), got "
-                         f"{len(models_)}")
+def _check_same_sizes(model: mujoco.MjModel, models: Sequence[mujoco.MjModel], what: str,
+                      control_spec: int) -> None:
     sizes = ("nq", "nv", "nu", "na", "nbody", "njnt", "ngeom", "nsensordata", "nmocap", "neq",
              "nuserdata", "nhistory", "nplugin")
-    ref = {s: getattr(model, s, None) for s in sizes}
-    for i, m in enumerate(models_):
+    for i, m in enumerate(models):
+        if not isinstance(m, mujoco.MjModel):
+            raise TypeError(f"{what}[{i}]: expected an MjModel, got {type(m).__name__}")
         for s in sizes:
-            if getattr(m, s, None) != ref[s]:
-                raise ValueError(f"randomize[{i}]: models must have identical sizes; {s} is "
-                                 f"{getattr(m, s)}, expected {ref[s]} (as the base model)")
+            if getattr(m, s, None) != getattr(model, s, None):
+                raise ValueError(f"{what}[{i}]: models must have identical sizes; {s} is "
+                                 f"{getattr(m, s)}, expected {getattr(model, s)} (as the base "
+                                 f"model)")
         for spec in (layout.FULLPHYSICS, layout.INTEGRATION, control_spec):
             if mujoco.mj_stateSize(m, spec) != mujoco.mj_stateSize(model, spec):
-                raise ValueError(f"randomize[{i}]: state size for spec {spec} differs from the "
+                raise ValueError(f"{what}[{i}]: state size for spec {spec} differs from the "
                                  f"base model")
-    return models_
+
+
+def _randomization(model_arg: Any, model: mujoco.MjModel, randomize: Any, nbatch: int,
+                   control_spec: int, seed: int):
+    """(model list, RandomizationPlan, variant pool) from the `randomize` argument."""
+    if randomize is None:
+        return None, None, None
+    models_, plan, variants = dr.parse(model, randomize, nbatch)
+    if models_ is not None:
+        if len(models_) != nbatch:
+            raise ValueError(f"randomize: expected nbatch={nbatch} models (one per trajectory), "
+                             f"got {len(models_)}")
+        _check_same_sizes(model, models_, "randomize", control_spec)
+        return tuple(models_), None, None
+    if variants is not None:
+        spec = models.load_spec(model_arg)
+        pool = dr.compile_variants(spec, variants, seed)
+        _check_same_sizes(pool[0], pool, "randomize: variant", control_spec)
+        return None, None, tuple(pool)
+    return None, plan, None
 
 
 def _torch_device(device: Any) -> Optional[torch.device]:
@@ -166,15 +180,19 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     if backend_ is None:
         raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__}")
     base = models.load_model(model)
-    models_ = _model_list(base, randomize, nbatch, control_spec)
+    models_, randomization, variants = _randomization(model, base, randomize, nbatch,
+                                                      control_spec, seed)
     if models_ is not None:
         base = models_[0]
+    elif variants is not None:
+        base = variants[0]
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     return SimConfig(
         model=base, models=models_, backend=backend_, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
-        nsensordata=base.nsensordata, control_spec=control_spec, control=plan, initial=init,
+        nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
+        variants=variants, control=plan, initial=init,
         continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
         device=_torch_device(device), dtype=_torch_dtype(dtype), nthread=nthread,
         prefetch=prefetch)

@@ -67,3 +67,25 @@ def load_model(model: ModelLike) -> mujoco.MjModel:
     raise TypeError(
         "model: expected an MJCF/MJB path, an XML string, an MjModel or an MjSpec, "
         f"got {type(model).__name__}")
+
+
+def load_spec(model: ModelLike) -> mujoco.MjSpec:
+    """An MjSpec for the forms that have one (MjSpec, XML string, MJCF path, built-in name).
+
+    Raises:
+      TypeError: an MjModel or MJB file, which carry no spec (structural variants need one).
+    """
+    if isinstance(model, mujoco.MjSpec):
+        return model
+    if isinstance(model, mujoco.MjModel):
+        raise TypeError("model: structural variants need an MjSpec, an MJCF path or an XML "
+                        "string, got an MjModel (which has no spec)")
+    text = os.fspath(model)
+    if text.lstrip().startswith("<"):
+        return mujoco.MjSpec.from_string(text)
+    path = pathlib.Path(text)
+    if not path.exists() and (_ASSETS / f"{text}.xml").is_file():
+        path = _ASSETS / f"{text}.xml"
+    if path.suffix.lower() == ".mjb":
+        raise TypeError("model: structural variants need an MJCF model, got an MJB file")
+    return mujoco.MjSpec.from_file(str(path))

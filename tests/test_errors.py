@@ -51,7 +51,7 @@ CASES = [
     (dict(dtype="int8"), ValueError, "dtype: expected None or a floating torch dtype"),
     (dict(device="tpu"), ValueError, "device: expected None, 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
     (dict(randomize=[]), ValueError, "randomize: expected nbatch=4 models (one per trajectory), got 0"),
-    (dict(randomize="models"), TypeError, "randomize: expected None or a sequence of MjModel"),
+    (dict(randomize="models"), TypeError, "randomize: expected None, a sequence of MjModel (one per trajectory)"),
     (dict(control={"xfrc_applied": controls.Uniform()}), ValueError,
      "control: 'xfrc_applied' is not a component of control_spec; its components are ['ctrl']"),
     (dict(control=controls.Uniform(on="pusher")), ValueError,

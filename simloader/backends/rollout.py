@@ -32,6 +32,7 @@ class _Produced:
     sensordata: torch.Tensor
     control: torch.Tensor
     initial_state: torch.Tensor
+    params: dict[str, torch.Tensor]  # randomized model parameters, (nbatch, nvalues) each
     warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning in this batch
     rows_after: Optional[np.ndarray]  # continue_episodes: the state rows after this batch
 
@@ -46,6 +47,12 @@ class RolloutBackend(Backend):
         self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
         if c.models is not None:
             self.batch.set_models(c.models)
+        # randomized fields: live per-simulation values, flattened per simulation
+        self.expanded = {} if c.randomization is None else {
+            r.field: self.batch.expand(r.field).reshape(c.nbatch, -1)
+            for r in c.randomization.resolved}
+        self.params: dict[str, np.ndarray] = {}
+        self.variant = np.zeros(c.nbatch, dtype=np.int64)
         models = c.models or [c.model]
         # each row as mj_resetData leaves it (user inputs, zero warmstart), per model
         self.template_rows = np.ascontiguousarray(np.broadcast_to(
@@ -71,6 +78,7 @@ class RolloutBackend(Backend):
         if self.fresh.any():
             x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
             fresh = np.flatnonzero(self.fresh)
+            self._randomize(index, fresh)
             rows[fresh] = self.template_rows[fresh]
             rows[np.ix_(fresh, self.physics_cols)] = x0[fresh]
         initial[...] = rows[:, self.physics_cols]
@@ -95,7 +103,28 @@ class RolloutBackend(Backend):
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
         rows_after = rows.copy() if c.continue_episodes else None
-        return _Produced(state_t, sensor_t, control_t, initial_t, warned, rows_after)
+        params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
+        return _Produced(state_t, sensor_t, control_t, initial_t, params, warned, rows_after)
+
+    def _randomize(self, index: int, fresh: np.ndarray) -> None:
+        """Draws model parameters (or variants) for the trajectories that start afresh."""
+        c = self.config
+        seed = self.seed(index, sharding.RANDOMIZE)
+        if c.variants is not None:
+            draw = np.random.default_rng(seed).integers(len(c.variants), size=c.nbatch)
+            self.variant[fresh] = draw[fresh]
+            self.batch.set_models([c.variants[i] for i in self.variant])
+            self.params["variant"] = self.variant
+        if c.randomization is None:
+            return
+        values = c.randomization.sample(seed, c.nbatch)
+        for r in c.randomization.resolved:
+            key = r.param.key
+            current = self.params.setdefault(key, np.empty_like(values[key]))
+            current[fresh] = values[key][fresh]
+            self.expanded[r.field][np.ix_(fresh, r.elements)] = values[key][fresh]
+        if c.randomization.setconst:  # constants MuJoCo derives from the changed fields
+            self.batch.set_const(None if len(fresh) == c.nbatch else fresh)
 
     def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -114,6 +143,9 @@ class RolloutBackend(Backend):
         }
         out = {k: handoff.to_target(v, c.device, c.dtype) for k, v in out.items()}
         out["diverged"] = handoff.to_target(torch.from_numpy(diverged), c.device, None)
+        if p.params:
+            out["params"] = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point()
+                                                  else None) for k, v in p.params.items()}
         return out
 
     def checkpoint(self, produced: _Produced) -> Optional[dict]:
