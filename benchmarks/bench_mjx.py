@@ -4,11 +4,11 @@ Both simulate `nbatch` trajectories of `nstep` steps from the model's default st
 draw the controls uniformly within `ctrlrange` with `jax.random` inside the jitted function for
 every batch, and record the state (time, qpos, qvel, act) and the sensors after every step,
 batch-major. simloader is timed as delivered: torch tensors in hand on the device, over
-`--batches` batches after a warm-up batch, `torch.cuda.synchronize()` after each; raw as as
-many back-to-back calls, each blocked with `jax.block_until_ready`. They run alternately in
-one process; medians of `--repeats` repetitions. A single-environment Python `mj_step` loop
-gives the speed-up column; `--cpu` adds raw `mujoco.rollout` and simloader's rollout backend on
-all cores (the code of bench_rollout.py).
+`--batches` batches (more if they take under `--min-seconds`) after a warm-up batch,
+`torch.cuda.synchronize()` after each; raw as as many back-to-back calls, each blocked with
+`jax.block_until_ready`. They run alternately in one process; medians of `--repeats`
+repetitions. A single-environment Python `mj_step` loop gives the speed-up column; `--cpu` adds
+raw `mujoco.rollout` and simloader's rollout backend on all cores (bench_rollout.py's code).
 
 Compilation is reported apart: in this process (persistent cache off), and as the time to the
 first batch of a fresh process with an empty persistent compilation cache (cold) and of a second
@@ -70,8 +70,8 @@ class RawMjx:
         from mujoco import mjx
 
         self.w = w
-        self.mx = mjx.put_model(model)
-        self.d0 = mjx.make_data(self.mx)  # the state mj_resetData gives
+        self.mx = mjx.put_model(model, impl="jax")
+        self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
         self.key = jax.random.key(seed)
         low, high = (jnp.asarray(b, jnp.float32) for b in common.ctrl_bounds(model))
         step = jax.vmap(mjx.step, in_axes=(None, 0))
@@ -101,6 +101,7 @@ class RawMjx:
         self.shapes = {k: tuple(v.shape) for k, v in out.items()}
         del out
         self.first_s = self.compile_s + time.perf_counter() - start
+        self.batch_s = self.measure(1) * w.steps
 
     def __call__(self) -> dict[str, Any]:
         import jax
@@ -177,7 +178,7 @@ def cold_and_cached(w: common.Workload, args: argparse.Namespace) -> list[str]:
             wall = time.perf_counter() - start
             if proc.returncode != 0:
                 print(f"{run} first batch of {w} failed:\n{proc.stderr[-3000:]}", file=sys.stderr)
-                return row + ["failed"] * 6
+                return row + ["failed"] * (len(COMPILE_HEADERS) - len(row))
             result = json.loads(proc.stdout.strip().splitlines()[-1])
             if result["cache_dir"] != cache:
                 print(f"warning: the child used the compilation cache {result['cache_dir']!r}, "
@@ -192,7 +193,8 @@ COMPILE_HEADERS = ["workload", "nbatch x nstep", "cold: first batch s", "cold: c
                    "cached: process s"]
 
 
-def try_simloader(model, w, seed) -> tuple[Optional[SimloaderMjx], str]:
+def try_simloader(model: mujoco.MjModel, w: common.Workload,
+                  seed: int) -> tuple[Optional[SimloaderMjx], str]:
     """simloader's MJX measure, or None and why (the backend may be missing or failing)."""
     try:
         return SimloaderMjx(model, w, seed), ""
@@ -202,11 +204,7 @@ def try_simloader(model, w, seed) -> tuple[Optional[SimloaderMjx], str]:
 
 
 def main() -> None:
-    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
-    p.add_argument("--batches", type=int, default=None,
-                   help="timed batches per repetition (default 4, --quick 3)")
-    p.add_argument("--python-steps", type=int, default=None,
-                   help="steps of the Python loop per repetition (default 10000, --quick 1000)")
+    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
     p.add_argument("--cpu", action="store_true",
                    help="also raw mujoco.rollout and simloader's rollout backend on all cores")
     p.add_argument("--no-compile", action="store_true",
@@ -217,11 +215,9 @@ def main() -> None:
     # child mode: the time to first batch of a fresh process with this compilation cache
     p.add_argument("--first-batch", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--cache-dir", help=argparse.SUPPRESS)
-    args = p.parse_args()
+    args = common.parse(p)
     if args.first_batch:
         return first_batch_child(args)
-    args.batches = args.batches or (3 if args.quick else 4)
-    python_steps = args.python_steps or (1000 if args.quick else 10000)
     import jax
     jax.config.update("jax_enable_compilation_cache", False)  # in-process compiles are cold
     run = common.workloads(args, DEFAULT, QUICK)
@@ -236,29 +232,31 @@ def main() -> None:
                                  desc="cold/cached first batch"):
             compile_table.append(cold_and_cached(w, args))
 
-    table, notes, plot = [], [], {}
+    table, notes, plot, counts = [], [], {}, []
     gpu = jax_device()
     for w in run:
         model = common.load_model(w.name, args.model_dir)
         raw = RawMjx(model, w, args.seed)
         sim, why = try_simloader(model, w, args.seed)
-        measures: dict[str, Callable[[], float]] = {RAW: lambda: raw.measure(args.batches)}
+        nbatches = common.batches_for(args, raw.batch_s)
+        counts.append(f"{nbatches} for {w}")
+        measures: dict[str, Callable[[], float]] = {RAW: lambda: raw.measure(nbatches)}
         runs_on = {RAW: gpu, SIMLOADER: gpu, bench_rollout.PYTHON: "1 core"}
         if sim is not None:
-            measures[SIMLOADER] = lambda: sim.measure(args.batches)
+            measures[SIMLOADER] = lambda: sim.measure(nbatches)
             differ = {k: (sim.shapes[k], v) for k, v in raw.shapes.items() if sim.shapes[k] != v}
             if differ:
                 notes.append(f"{w}: not the same work, (simloader, raw) shapes {differ}")
         else:
             notes.append(f"{w}: simloader mjx unavailable ({why})")
-        measures[bench_rollout.PYTHON] = bench_rollout.python_loop(model, w.nstep, python_steps,
-                                                                   args.seed)
+        measures[bench_rollout.PYTHON] = bench_rollout.python_loop(
+            model, w.nstep, args.python_steps, args.seed)
         if args.cpu:
-            cpu, cpu_runs_on = bench_rollout.cpu_measures(model, w, args.batches, args.seed,
-                                                          python_steps)
+            cpu, cpu_runs_on, cpu_batches = bench_rollout.cpu_measures(model, w, args)
             del cpu[bench_rollout.PYTHON]
             measures.update(cpu)
             runs_on.update(cpu_runs_on)
+            counts.append(f"{cpu_batches} for {w} on the CPU")
         results = common.interleave(measures, args.repeats, desc=str(w))
         if sim is not None and sim.recompiled():
             notes.append(f"{w}: simloader compiled again for later iterators "
@@ -269,19 +267,20 @@ def main() -> None:
                                       bench_rollout.PYTHON):
             c = compiled.get(row[2])
             table.append(row + ([f"{c.compile_s:.1f}", f"{c.first_s:.1f}"] if c else ["-", "-"])
-                         + [f"{output_gb(model, w):.2f}"])
+                         + [f"{output_gb(model, w):.3g}"])
         for method in (RAW, SIMLOADER):
             if method in results:
                 xs, ys = plot.setdefault(f"{method}, {w.name}", ([], []))
                 xs.append(w.nbatch)
                 ys.append(results[method] * 1e9)
-        del raw, sim, measures
+        del raw, sim, measures, compiled
 
     headers = common.HEADERS + ["compile s", "first batch s", "GB/batch"]
     text = common.markdown_table(headers, table)
-    summary = (f"Medians of {args.repeats} alternating repetitions of {args.batches} batches "
-               f"after a warm-up; float32 on {gpu}. Target: simloader throughput / raw >= "
-               f"{TARGET}. compile s / first batch s: in this process, persistent cache off.")
+    summary = (f"Medians of {args.repeats} alternating repetitions, each timing batches after a "
+               f"warm-up ({', '.join(counts)}); float32 on {gpu}. Target: simloader throughput "
+               f"/ raw >= {TARGET}. compile s / first batch s: in this process, persistent "
+               f"cache off.")
     sections = [summary]
     if compile_table:
         sections.append("Time to first batch of a fresh process (simloader mjx), with an empty "

@@ -4,9 +4,10 @@ All three do the same work: `nbatch` trajectories of `nstep` steps from the mode
 state, controls drawn uniformly within `ctrlrange` with NumPy for every batch, the
 `mjSTATE_FULLPHYSICS` state and the sensors recorded after every step. simloader is timed as
 delivered (tensors in hand, a producer thread simulating batch k+1 while batch k is held) over
-`--batches` batches after a warm-up batch; raw rollout as as many back-to-back calls; the
-Python loop over `--python-steps` steps of one MjData (extrapolated per step). The three run
-alternately in one process and the medians of `--repeats` repetitions are reported.
+`--batches` batches (more if they take under `--min-seconds`) after a warm-up batch; raw
+rollout as as many back-to-back calls; the Python loop over `--python-steps` steps of one
+MjData (extrapolated per step). The three run alternately in one process and the medians of
+`--repeats` repetitions are reported.
 
     python benchmarks/bench_rollout.py --quick
     python benchmarks/bench_rollout.py --save                  # 16-core anchors of performance.md
@@ -15,6 +16,7 @@ alternately in one process and the medians of `--repeats` repetitions are report
 
 from __future__ import annotations
 
+import argparse
 import time
 from collections.abc import Callable
 
@@ -72,9 +74,10 @@ def python_loop(model: mujoco.MjModel, nstep: int, total_steps: int,
     return measure
 
 
-def raw_rollout(model: mujoco.MjModel, w: common.Workload, nbatches: int, nthread: int,
-                seed: int) -> Callable[[], float]:
-    """A measure (seconds per step) of `nbatches` back-to-back `mujoco.rollout` calls.
+def raw_rollout(model: mujoco.MjModel, w: common.Workload, nthread: int,
+                seed: int) -> tuple[Callable[[int], float], float]:
+    """A measure (seconds per step) of back-to-back `mujoco.rollout` calls, and the seconds
+    of one call.
 
     One MjData per thread and a persistent thread pool, fresh uniform controls and fresh
     output arrays every call (as simloader allocates a new tensor per batch).
@@ -88,7 +91,7 @@ def raw_rollout(model: mujoco.MjModel, w: common.Workload, nbatches: int, nthrea
         control = rng.uniform(low, high, size=(w.nbatch, w.nstep, model.nu))
         return rollout.rollout(model, datas, x0, control, persistent_pool=True)
 
-    def measure() -> float:
+    def measure(nbatches: int) -> float:
         start = time.perf_counter()
         for _ in range(nbatches):
             state, sensordata = one_batch()
@@ -96,51 +99,50 @@ def raw_rollout(model: mujoco.MjModel, w: common.Workload, nbatches: int, nthrea
         return (time.perf_counter() - start) / (nbatches * w.steps)
 
     one_batch()  # warm-up: starts the pool, touches the code paths
-    return measure
+    return measure, measure(1) * w.steps
 
 
-def simloader_rollout(model: mujoco.MjModel, w: common.Workload, nbatches: int,
-                      seed: int) -> Callable[[], float]:
+def simloader_rollout(model: mujoco.MjModel, w: common.Workload,
+                      seed: int) -> Callable[[int], float]:
     """A measure (seconds per step) of simloader's delivered throughput, backend "rollout"."""
     ds = simloader.SimDataset(model, backend="rollout", nbatch=w.nbatch, nstep=w.nstep,
                               control=simloader.controls.Uniform(), seed=seed)
-    return lambda: common.time_stream(ds, nbatches).steady_s / (nbatches * w.steps)
+    return lambda nbatches: common.time_stream(ds, nbatches).steady_s / (nbatches * w.steps)
 
 
-def cpu_measures(model: mujoco.MjModel, w: common.Workload, nbatches: int, seed: int,
-                 python_steps: int) -> tuple[dict[str, Callable[[], float]], dict[str, str]]:
-    """The Python loop, raw rollout and simloader rollout measures, and where each runs."""
-    cores = f"{common.cpu_count()} cores"
+def cpu_measures(model: mujoco.MjModel, w: common.Workload, args: argparse.Namespace
+                 ) -> tuple[dict[str, Callable[[], float]], dict[str, str], int]:
+    """The Python loop, raw rollout and simloader rollout measures, where each runs, and the
+    timed batches per repetition."""
+    raw, batch_s = raw_rollout(model, w, common.cpu_count(), args.seed)
+    sim = simloader_rollout(model, w, args.seed)
+    nbatches = common.batches_for(args, batch_s)
     measures = {
-        PYTHON: python_loop(model, w.nstep, python_steps, seed),
-        RAW: raw_rollout(model, w, nbatches, common.cpu_count(), seed),
-        SIMLOADER: simloader_rollout(model, w, nbatches, seed),
+        PYTHON: python_loop(model, w.nstep, args.python_steps, args.seed),
+        RAW: lambda: raw(nbatches),
+        SIMLOADER: lambda: sim(nbatches),
     }
-    return measures, {PYTHON: "1 core", RAW: cores, SIMLOADER: cores}
+    cores = f"{common.cpu_count()} cores"
+    return measures, {PYTHON: "1 core", RAW: cores, SIMLOADER: cores}, nbatches
 
 
 def main() -> None:
-    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
-    p.add_argument("--batches", type=int, default=None,
-                   help="timed batches per repetition (default 4, --quick 3)")
-    p.add_argument("--python-steps", type=int, default=None,
-                   help="steps of the Python loop per repetition (default 10000, --quick 1000)")
-    args = p.parse_args()
-    args.batches = args.batches or (3 if args.quick else 4)
-    python_steps = args.python_steps or (1000 if args.quick else 10000)
+    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
+    args = common.parse(p)
 
-    table = []
+    table, counts = [], []
     for w in common.workloads(args, DEFAULT, QUICK):
         model = common.load_model(w.name, args.model_dir)
-        measures, runs_on = cpu_measures(model, w, args.batches, args.seed, python_steps)
+        measures, runs_on, nbatches = cpu_measures(model, w, args)
         results = common.interleave(measures, args.repeats, desc=str(w))
         table += common.method_rows(w, results, runs_on, {SIMLOADER: RAW}, PYTHON)
+        counts.append(f"{nbatches} for {w}")
 
     text = common.markdown_table(common.HEADERS, table)
-    notes = (f"Medians of {args.repeats} alternating repetitions; simloader and raw: "
-             f"{args.batches} batches each after a warm-up. Target: simloader throughput / raw "
-             f">= {TARGET}. On a machine other than the 16-core GPU host only ratios mean "
-             f"something.")
+    notes = (f"Medians of {args.repeats} alternating repetitions; simloader and raw time as many "
+             f"batches each after a warm-up ({', '.join(counts)}); the Python loop "
+             f"{args.python_steps} steps. Target: simloader throughput / raw >= {TARGET}. On a "
+             f"machine other than the 16-core GPU host only ratios mean something.")
     if args.save:
         common.save(args, "bench_rollout", "simloader rollout backend vs mujoco.rollout",
                     [notes, text])

@@ -12,6 +12,7 @@ import argparse
 import dataclasses
 import datetime
 import importlib.metadata
+import math
 import os
 import pathlib
 import platform
@@ -28,6 +29,8 @@ import numpy as np
 import torch
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
+# benchmark the checkout the scripts are in, installed or not
+sys.path.insert(0, str(REPO))
 # the lead copies the models into the ignored .models/ (only the repository travels to the GPU
 # machine); a developer checkout has them in ../shared
 MODEL_DIRS = (REPO / ".models" / "dm_control", REPO.parent / "shared" / "models" / "dm_control")
@@ -61,9 +64,10 @@ def parse_workload(text: str) -> Workload:
         ) from None
 
 
-def parser(description: str, workloads: Sequence[Workload],
-           quick: Sequence[Workload]) -> argparse.ArgumentParser:
-    """An argument parser with the options every script takes."""
+def parser(description: str, workloads: Sequence[Workload], quick: Sequence[Workload],
+           throughput: bool = False) -> argparse.ArgumentParser:
+    """An argument parser with the options every script takes (`throughput`: and those of
+    the throughput benchmarks; `parse` fills in their defaults)."""
     p = argparse.ArgumentParser(description=description,
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--quick", action="store_true",
@@ -82,7 +86,31 @@ def parser(description: str, workloads: Sequence[Workload],
     p.add_argument("--results-dir", type=pathlib.Path, default=REPO / "benchmarks" / "results",
                    help="where --save writes (on the GPU machine: $OUT)")
     p.add_argument("--tag", default="", help="suffix of the saved file names")
+    if throughput:
+        p.add_argument("--batches", type=int,
+                       help="timed batches per repetition, at least (default 4, --quick 3)")
+        p.add_argument("--min-seconds", type=float,
+                       help="more batches where a batch is quick, so that each timed run lasts "
+                            "this long at least (default 2, --quick 0)")
+        p.add_argument("--python-steps", type=int,
+                       help="steps of the Python loop per repetition (default 10000, --quick "
+                            "1000)")
     return p
+
+
+def parse(p: argparse.ArgumentParser) -> argparse.Namespace:
+    """Parses the command line; throughput options left out get their (--quick) defaults."""
+    args = p.parse_args()
+    for name, default, quick in (("batches", 4, 3), ("min_seconds", 2.0, 0.0),
+                                 ("python_steps", 10000, 1000)):
+        if getattr(args, name, 0) is None:
+            setattr(args, name, quick if args.quick else default)
+    return args
+
+
+def batches_for(args: argparse.Namespace, batch_s: float) -> int:
+    """Timed batches per repetition: `--batches`, or more to last `--min-seconds`."""
+    return max(args.batches, math.ceil(args.min_seconds / batch_s))
 
 
 def workloads(args: argparse.Namespace, default: Sequence[Workload],
@@ -184,10 +212,11 @@ def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
                 keep_last: bool = False) -> Stream:
     """Delivered throughput of a dataset: `nbatches` batches after the first, tensors in hand.
 
-    A fresh iterator per call (simloader's producer thread starts with it and stops at
-    `close`, and the device is drained, so nothing simulates while another measure runs). The first batch, which pays
-    for threads, compilation and the empty prefetch queue, is timed apart; the steady part runs
-    from holding the first batch to holding the last, blocked on the device after each.
+    A fresh iterator per call: simloader's producer thread starts with it and stops at
+    `close`, and the device is drained, so nothing simulates while another measure runs. The
+    first batch, which pays for threads, compilation and the empty prefetch queue, is timed
+    apart; the steady part runs from holding the first batch to holding the last, blocked on
+    the device after each.
     """
     it = iter(ds)
     try:
@@ -271,6 +300,11 @@ def _version(package: str) -> str:
         return "not installed"
 
 
+def _simloader_version() -> str:
+    import simloader  # the checkout's (see the sys.path line above)
+    return simloader.__version__
+
+
 def _git_commit() -> str:
     try:
         out = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"],
@@ -304,10 +338,8 @@ def environment() -> dict[str, str]:
         "jax": f"{_version('jax')} (jaxlib {_version('jaxlib')})",
         "torch": torch.__version__,
         "numpy": _version("numpy"),
-        "simloader": f"{_version('simloader')} (commit {_git_commit()})",
-        "command": shlex.join([os.path.relpath(sys.executable, os.getcwd())
-                               if sys.executable.startswith(os.getcwd()) else "python",
-                               *sys.argv]),
+        "simloader": f"{_simloader_version()} (commit {_git_commit()})",
+        "command": shlex.join(["python", *sys.argv]),
     }
 
 
@@ -330,8 +362,9 @@ def save(args: argparse.Namespace, name: str, title: str, sections: Sequence[str
 
 
 def save_plot(args: argparse.Namespace, name: str, series: dict[str, tuple[list, list]],
-              xlabel: str, ylabel: str, title: str) -> Optional[pathlib.Path]:
-    """A log-log line plot of `{label: (x, y)}`, saved as a PNG next to the results."""
+              xlabel: str, ylabel: str, title: str, log: bool = True) -> Optional[pathlib.Path]:
+    """A line plot of `{label: (x, y)}` (log-log unless `log` is False), saved as a PNG next
+    to the results; raw baselines (labels with "raw") dashed."""
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -342,8 +375,9 @@ def save_plot(args: argparse.Namespace, name: str, series: dict[str, tuple[list,
     fig, ax = plt.subplots(figsize=(6, 4.5))
     for label, (x, y) in series.items():
         ax.plot(x, y, marker="o", label=label, linestyle="--" if "raw" in label else "-")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
+    if log:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
