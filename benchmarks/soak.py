@@ -83,7 +83,7 @@ def main() -> None:
                                           f"({'ok' if rss_growth < GROWTH_LIMIT_MB else 'FAIL'})"],
         ["GPU memory after warm-up / at the end", f"{warm[3]:.0f} MB / {last[3]:.0f} MB"],
         ["GPU memory growth after warm-up", f"{gpu_growth:+.1f} MB ({'ok' if gpu_ok else 'FAIL'})"],
-        ["compilations (MJX)", str(stats.get("compiles", "n/a"))],
+        ["compilations (MJX: one per configuration)", str(stats["compiles"])],
         ["diverged trajectories", str(stats["diverged"])],
     ]
     table = common.markdown_table(["soak", f"{args.backend}, {args.model} {args.nbatch}x{args.nstep}"],
@@ -97,7 +97,7 @@ def main() -> None:
                                                 [s[3] for s in samples])
         common.save_plot(args, name, series, "batch", "MB", f"soak: {args.backend}")
         common.save(args, name, f"Soak, {args.backend} backend", [table])
-    if rss_growth >= GROWTH_LIMIT_MB or not gpu_ok:
+    if rss_growth >= GROWTH_LIMIT_MB or not gpu_ok or stats["compiles"] > 1:
         sys.exit(1)
 
 

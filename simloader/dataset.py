@@ -76,6 +76,11 @@ class SimDataset(torch.utils.data.IterableDataset):
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
         self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
 
+    def __getstate__(self) -> dict[str, Any]:
+        # a copy for a DataLoader worker starts its own iteration: the running iterator's
+        # backend (threads, device buffers) stays behind
+        return {**self.__dict__, "_progress": None}
+
     @property
     def model(self) -> mujoco.MjModel:
         return self.config.model

@@ -240,3 +240,13 @@ def test_hundred_create_iterate_destroy_cycles_leak_nothing():
     threads_after, fds_after, rss_after = counts()
     assert threads_after == threads and fds_after == fds
     assert rss_after - rss < 20 * 2 ** 20, f"RSS grew by {(rss_after - rss) / 2**20:.1f} MiB"
+
+
+def test_iterated_dataset_pickles_without_its_iterator():
+    import pickle
+    ds = cartpole(num_batches=2)
+    it = iter(ds)
+    next(it)
+    copy = pickle.loads(pickle.dumps(ds))
+    assert len(list(copy)) == 2
+    it.close()

@@ -31,6 +31,7 @@ class Stats:
       diverged: trajectories flagged as diverged.
       simulate_s: seconds spent simulating (CPU backend: in MuJoCo; MJX: until results ready).
       compile_s: seconds spent compiling (MJX backend).
+      compiles: compilations (MJX backend): one per configuration, never per batch.
     """
 
     batches: int = 0
@@ -38,6 +39,7 @@ class Stats:
     diverged: int = 0
     simulate_s: float = 0.0
     compile_s: float = 0.0
+    compiles: int = 0
     lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
 
     def add(self, **values: float) -> None:

@@ -11,12 +11,15 @@ mocap bodies at their model poses, `eq_active0`, zero warmstart) with the `mjSTA
 part from the initial state. Before every step the `control_spec` components are set from the
 control row, as `mj_setState` does. MJX never checks for instability, so every step is checked
 here as MuJoCo checks it (|qpos|, |qvel|, |qacc| within mjMAXVAL, all finite) plus the sensors;
-a trajectory that fails is flagged in `diverged`, and its NaNs are never delivered unflagged.
+a trajectory that fails is flagged in `diverged` and, as in MuJoCo, continues from the state
+`mj_resetData` leaves: no NaN is delivered, and the others are bit-identical to a run without it.
 
 `produce` only dispatches (JAX runs asynchronously); `deliver` waits for the results and hands
 every output to torch through DLPack: the delivered tensors are the JAX buffers, on the torch
 device of the JAX device (`cuda:k` for JAX GPU k). They are fresh buffers for every batch, but
-shared with JAX: treat them as read-only (clone before editing in place).
+shared with JAX: treat them as read-only (clone before editing in place). In a (spawned)
+DataLoader worker, GPU tensors are copied once into torch's memory, the only GPU memory torch
+can pass to the main process; `num_workers=0` needs no worker and no copy.
 
 Process-wide JAX settings: unless told otherwise, JAX does not preallocate GPU memory (so that
 a torch model can train on the same GPU) and compilations are kept in a persistent cache.
@@ -88,6 +91,9 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
                         f"backend='mjx' (its options are {list(OPTIONS)})")
+    if config.randomization is not None or config.variants is not None:
+        raise ValueError("randomize: backend='mjx' takes a list of MjModel (one per trajectory); "
+                         "randomization specs run on backend='rollout'")
     cache = _cache_dir(options.get("compilation_cache"))
     fraction = configure_memory(options.get("memory_fraction"))
     _configure_cache(cache)
@@ -239,21 +245,25 @@ def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
 
 def _static_difference(a: Any, b: Any, path: str) -> str:
     """The first non-array field (compiled in) where two mjx.Models differ, as a path."""
-    if dataclasses.is_dataclass(a):
-        for field in dataclasses.fields(a):
-            found = _static_difference(getattr(a, field.name), getattr(b, field.name),
-                                       f"{path}.{field.name}")
-            if found:
-                return found
-        return ""
     if isinstance(a, jax.Array):
         return ""
-    if isinstance(a, (tuple, list)):
-        if len(a) != len(b):
-            return path
-        return next((d for d in (_static_difference(x, y, f"{path}[{i}]")
-                                 for i, (x, y) in enumerate(zip(a, b))) if d), "")
-    return "" if np.array_equal(a, b) else path
+    if dataclasses.is_dataclass(a):
+        parts = [(f".{f.name}", getattr(a, f.name), getattr(b, f.name))
+                 for f in dataclasses.fields(a)]
+    elif isinstance(a, (tuple, list)) and len(a) == len(b):
+        parts = [(f"[{i}]", x, y) for i, (x, y) in enumerate(zip(a, b))]
+    else:
+        return "" if np.array_equal(a, b) else path
+    for name, x, y in parts:
+        found = _static_difference(x, y, path + name)
+        if found:
+            return found
+    return ""
+
+
+def _rows(mask: jax.Array, x: jax.Array) -> jax.Array:
+    """A (nbatch,) mask shaped to select rows of the batched array `x`."""
+    return mask.reshape((-1,) + (1,) * (x.ndim - 1))
 
 
 def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
@@ -274,10 +284,12 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
     It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
     the final batched mjx.Data for the next batch.
     """
-    plan = c.control
-    given = plan.fixed is not None or plan.random  # control=None leaves the inputs alone
-    shape = (c.nbatch, c.nstep, c.ncontrol)
-    per_model = c.models is not None
+    # only plain values are captured: the program that holds this function is cached per
+    # configuration and must not keep the configuration alive
+    nbatch, nstep, control_spec, drivers = c.nbatch, c.nstep, c.control_spec, c.control.drivers
+    given = c.control.fixed is not None or bool(drivers)  # control=None leaves inputs alone
+    shape = (nbatch, nstep, c.ncontrol)
+    per_model, continuing = c.models is not None, c.continue_episodes
 
     def reset(m, d0, inputs0, x0):
         d = mjx.set_state(m, d0, inputs0, _MODEL_INPUTS)
@@ -285,8 +297,29 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
 
     def step(m, d, u):
         if given:
-            d = mjx.set_state(m, d, u, c.control_spec)
+            d = mjx.set_state(m, d, u, control_spec)
         return mjx.step(m, d)
+
+    def restart_unstable(m, d):
+        """Flags the trajectories (of batched `d`) that went unstable, and restarts them as
+        mj_resetData leaves them, as MuJoCo does: their NaNs are never delivered, and the
+        solver loops of the whole batch, which run until every trajectory converges, do not
+        keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
+        # NaN compares False, so `<=` catches NaN, Inf and huge values at once
+        stable = (jnp.all(jnp.abs(physics(m, d)) <= _MAXVAL, axis=-1)
+                  & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
+                  & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
+
+        def keep(x, reset):
+            return jnp.where(_rows(stable, x), x, reset)
+
+        # a step reads only these of the previous one (besides the inputs, which are not
+        # simulated); mj_resetData zeroes all but qpos
+        d = d.replace(time=keep(d.time, 0.0), qpos=keep(d.qpos, m.qpos0),
+                      qvel=keep(d.qvel, 0.0), act=keep(d.act, 0.0),
+                      qacc_warmstart=keep(d.qacc_warmstart, 0.0),
+                      sensordata=keep(d.sensordata, 0.0))
+        return d, ~stable
 
     def physics(m, d):
         return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (model_axes, 0))(m, d)
@@ -294,7 +327,7 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
     def draw(defaults, seed):
         key = jax.random.fold_in(jax.random.key(seed[0]), seed[1])
         control = jnp.broadcast_to(defaults[:, None, :], shape)
-        for driver, k in zip(plan.drivers, jax.random.split(key, len(plan.drivers))):
+        for driver, k in zip(drivers, jax.random.split(key, len(drivers))):
             params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
             sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
             control = control.at[..., driver.columns].set(sample.astype(dtype))
@@ -303,29 +336,24 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
     def simulate(m, d0, inputs0, x0, control, seed, carry, restart):
         data = jax.vmap(reset, (model_axes, None, 0 if per_model else None, 0))(
             m, d0, inputs0, x0)
-        if c.continue_episodes:
-            data = jax.tree.map(
-                lambda new, old: jnp.where(restart.reshape((-1,) + (1,) * (new.ndim - 1)),
-                                           new, old), data, carry)
+        if continuing:
+            data = jax.tree.map(lambda new, old: jnp.where(_rows(restart, new), new, old),
+                                data, carry)
         initial = physics(m, data)
-        if plan.random:
+        if drivers:
             control = draw(control, seed)
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
 
         def body(loop, u):
-            d, unstable = loop
+            d, diverged = loop
             d = jax.vmap(step, (model_axes, 0, 0 if given else None))(m, d, u)
-            state = physics(m, d)
-            # NaN compares False, so `<=` catches NaN, Inf and huge values at once
-            stable = (jnp.all(jnp.abs(state) <= _MAXVAL, axis=-1)
-                      & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
-                      & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
-            return (d, unstable | ~stable), (state, d.sensordata)
+            d, unstable = restart_unstable(m, d)
+            return (d, diverged | unstable), (physics(m, d), d.sensordata)
 
         xs = jnp.swapaxes(control, 0, 1) if given else None
         (data, diverged), (state, sensordata) = jax.lax.scan(
-            body, (data, jnp.zeros(c.nbatch, bool)), xs, length=c.nstep)
+            body, (data, jnp.zeros(nbatch, bool)), xs, length=nstep)
         outputs = {
             "state": jnp.swapaxes(state, 0, 1),
             "sensordata": jnp.swapaxes(sensordata, 0, 1),
@@ -333,7 +361,7 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
             "initial_state": initial,
             "diverged": diverged,
         }
-        return outputs, data if c.continue_episodes else None
+        return outputs, data if continuing else None
 
     return simulate
 
@@ -344,7 +372,6 @@ class _Program:
 
     def __init__(self, config: SimConfig, device: jax.Device):
         c = config
-        self.device = device
         self.model, model_axes = _put_models(c, device)
         self.data0 = mjx.make_data(c.model, device=device, impl="jax")
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64
@@ -366,8 +393,12 @@ class _Program:
         with self.lock:
             if self.compiled is None:
                 start = time.perf_counter()
-                self.compiled = self.jitted.lower(*args).compile()
-                stats.add(compile_s=time.perf_counter() - start)
+                # true float32 dot products: on GPUs JAX defaults to TF32, whose 10-bit
+                # mantissa puts 4e-4 errors into one step of the humanoid's velocities
+                with jax.default_matmul_precision("float32"):
+                    lowered = self.jitted.lower(*args)
+                self.compiled = lowered.compile()
+                stats.add(compile_s=time.perf_counter() - start, compiles=1)
             return self.compiled
 
 
@@ -413,6 +444,7 @@ class MjxBackend(Backend):
                 device)
             self.restart = np.ones(config.nbatch, dtype=bool)
         self.last_ready = 0.0
+        self.in_worker = torch.utils.data.get_worker_info() is not None
 
     def produce(self, index: int) -> _Produced:
         c, p = self.config, self.program
@@ -440,9 +472,17 @@ class MjxBackend(Backend):
                        batches=1, steps=c.nbatch * c.nstep,
                        diverged=int(np.count_nonzero(outputs["diverged"])))
         self.last_ready = ready
-        return {k: handoff.to_target(handoff.from_jax(v), c.device,
-                                     None if k == "diverged" else c.dtype)
-                for k, v in outputs.items()}
+        batch = {}
+        for key, array in outputs.items():
+            tensor = handoff.to_target(handoff.from_jax(array), c.device,
+                                       None if key == "diverged" else c.dtype)
+            if (self.in_worker and tensor.is_cuda
+                    and tensor.data_ptr() == array.unsafe_buffer_pointer()):
+                # CUDA IPC, which carries a worker's tensors to the main process, shares only
+                # torch's own allocations, not JAX's: a worker hands over a copy
+                tensor = tensor.clone()
+            batch[key] = tensor
+        return batch
 
     def close(self) -> None:
         # the carry is this iterator's; the program stays for the dataset's next iterator
