@@ -135,13 +135,7 @@ class Normal(Generator):
     on: Names = None
 
     def params(self, model, component, columns):
-        std = _per_column(self.std, component, columns, "Normal.std")
-        mean = _per_column(self.mean, component, columns, "Normal.mean")
-        if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
-            raise ValueError(f"Normal: expected finite std >= 0 and finite mean, got "
-                             f"std={std}, mean={mean}")
-        low, high = _clip_range(model, component, columns, self.clip)
-        return {"std": std, "mean": mean, "low": low, "high": high}
+        return _gaussian_params(self, model, component, columns)
 
     def sample_numpy(self, rng, params, shape):
         out = rng.standard_normal(size=shape)
@@ -193,6 +187,19 @@ def _clip_range(model: mujoco.MjModel, component: layout.Component, columns: np.
     return low, high
 
 
+def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Component,
+                     columns: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-column std, mean and clip bounds of a generator with `std`, `mean`, `clip` fields."""
+    name = type(gen).__name__
+    std = _per_column(gen.std, component, columns, f"{name}.std")
+    mean = _per_column(gen.mean, component, columns, f"{name}.mean")
+    if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
+        raise ValueError(f"{name}: expected finite std >= 0 and finite mean, got std={std}, "
+                         f"mean={mean}")
+    low, high = _clip_range(model, component, columns, gen.clip)
+    return {"std": std, "mean": mean, "low": low, "high": high}
+
+
 def _positive(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
             np.isfinite(value) and value > 0):
@@ -224,14 +231,8 @@ class OrnsteinUhlenbeck(Generator):
     on: Names = None
 
     def params(self, model, component, columns):
-        std = _per_column(self.std, component, columns, "OrnsteinUhlenbeck.std")
-        mean = _per_column(self.mean, component, columns, "OrnsteinUhlenbeck.mean")
-        if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
-            raise ValueError(f"OrnsteinUhlenbeck: expected finite std >= 0 and finite mean, got "
-                             f"std={std}, mean={mean}")
         a = np.exp(-model.opt.timestep / _positive("OrnsteinUhlenbeck.tau", self.tau))
-        low, high = _clip_range(model, component, columns, self.clip)
-        return {"std": std, "mean": mean, "a": np.asarray(a), "low": low, "high": high}
+        return {**_gaussian_params(self, model, component, columns), "a": np.asarray(a)}
 
     def sample_numpy(self, rng, params, shape):
         a, std = float(params["a"]), params["std"]
