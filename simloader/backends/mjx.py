@@ -444,6 +444,7 @@ class MjxBackend(Backend):
                 device)
             self.restart = np.ones(config.nbatch, dtype=bool)
         self.last_ready = 0.0
+        self.last_dispatched: Any = None  # outputs of the newest dispatched batch
         self.in_worker = torch.utils.data.get_worker_info() is not None
 
     def produce(self, index: int) -> _Produced:
@@ -455,6 +456,7 @@ class MjxBackend(Backend):
         simulate = p.compile(args, self.stats)
         dispatched = time.perf_counter()
         outputs, carry = simulate(*args)
+        self.last_dispatched = outputs
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting
             self.carry, self.restart = carry, outputs["diverged"]
@@ -485,5 +487,10 @@ class MjxBackend(Backend):
         return batch
 
     def close(self) -> None:
+        # batches already dispatched but never delivered would otherwise keep the GPU busy
+        # (and their memory held) after the iterator is gone; the device runs them in order,
+        # so waiting for the last one waits for all
+        if self.last_dispatched is not None:
+            jax.block_until_ready(self.last_dispatched)
         # the carry is this iterator's; the program stays for the dataset's next iterator
-        self.carry = self.restart = None
+        self.carry = self.restart = self.last_dispatched = None
