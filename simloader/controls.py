@@ -73,10 +73,11 @@ def _per_column(value: Any, component: layout.Component, columns: np.ndarray,
         f"{arr.shape}")
 
 
-def _ctrl_range(model: mujoco.MjModel, component: layout.Component,
-                columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each driven column's natural range: `ctrlrange` for limited actuators, else [-1, 1]."""
-    low, high = -np.ones(len(columns)), np.ones(len(columns))
+def _ctrl_bounds(model: mujoco.MjModel, component: layout.Component, columns: np.ndarray,
+                 otherwise: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each driven column's bounds: `ctrlrange` for `ctrl` columns of limited actuators, else
+    [-otherwise, otherwise]."""
+    low, high = np.full(len(columns), -otherwise), np.full(len(columns), otherwise)
     if component.name == "ctrl":
         limited = model.actuator_ctrllimited[columns].astype(bool)
         low[limited] = model.actuator_ctrlrange[columns[limited], 0]
@@ -100,7 +101,7 @@ class Uniform(Generator):
     on: Names = None
 
     def params(self, model, component, columns):
-        low, high = _ctrl_range(model, component, columns)
+        low, high = _ctrl_bounds(model, component, columns, 1.0)  # natural range
         if self.low is not None:
             low = _per_column(self.low, component, columns, "Uniform.low")
         if self.high is not None:
@@ -176,17 +177,6 @@ class Constant(Generator):
         return jnp.broadcast_to(params["value"], shape)
 
 
-def _clip_range(model: mujoco.MjModel, component: layout.Component, columns: np.ndarray,
-                clip: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds for clipping: `ctrlrange` of limited actuators when `clip`, else unbounded."""
-    low, high = np.full(len(columns), -np.inf), np.full(len(columns), np.inf)
-    if clip and component.name == "ctrl":
-        limited = model.actuator_ctrllimited[columns].astype(bool)
-        low[limited] = model.actuator_ctrlrange[columns[limited], 0]
-        high[limited] = model.actuator_ctrlrange[columns[limited], 1]
-    return low, high
-
-
 def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Component,
                      columns: np.ndarray) -> dict[str, np.ndarray]:
     """Per-column std, mean and clip bounds of a generator with `std`, `mean`, `clip` fields."""
@@ -196,7 +186,9 @@ def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Componen
     if not (np.all(np.isfinite(std)) and np.all(std >= 0) and np.all(np.isfinite(mean))):
         raise ValueError(f"{name}: expected finite std >= 0 and finite mean, got std={std}, "
                          f"mean={mean}")
-    low, high = _clip_range(model, component, columns, gen.clip)
+    # clip to the ctrlrange of limited actuators when asked, else unbounded
+    low, high = (_ctrl_bounds(model, component, columns, np.inf) if gen.clip
+                 else (np.full(len(columns), -np.inf), np.full(len(columns), np.inf)))
     return {"std": std, "mean": mean, "low": low, "high": high}
 
 
@@ -411,7 +403,7 @@ class ControlPlan:
         self.components = layout.control_layout(model, control_spec)
         self.ncontrol = mujoco.mj_stateSize(model, control_spec)
         # (nbatch or 1, ncontrol): per model, since mocap poses come from each model's body_pos
-        self.default_rows = np.stack([layout.default_user_inputs(m, control_spec)
+        self.default_rows = np.stack([layout.reset_state(m, control_spec)
                                       for m in (models or [model])])
         self.fixed: Optional[np.ndarray] = None
         self.drivers: tuple[Driver, ...] = ()

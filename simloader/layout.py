@@ -168,12 +168,13 @@ def component_columns(model: mujoco.MjModel, outer: int, inner: int) -> np.ndarr
     return np.asarray(cols, dtype=np.intp)
 
 
-def default_user_inputs(model: mujoco.MjModel, control_spec: int) -> np.ndarray:
-    """The control row `mj_resetData` leaves: zero forces and controls, mocap bodies at their
-    model poses, equalities at `eq_active0`: what an undriven column holds."""
+def reset_state(model: mujoco.MjModel, spec: int) -> np.ndarray:
+    """The `spec` state vector `mj_resetData` leaves: for user inputs zero forces and
+    controls, mocap bodies at their model poses, equalities at `eq_active0` (what an undriven
+    control column holds); for mjSTATE_INTEGRATION also a zero warmstart."""
     data = mujoco.MjData(model)
-    row = np.empty(mujoco.mj_stateSize(model, control_spec))
-    mujoco.mj_getState(model, data, row, control_spec)
+    row = np.empty(mujoco.mj_stateSize(model, spec))
+    mujoco.mj_getState(model, data, row, spec)
     return row
 
 

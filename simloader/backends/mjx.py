@@ -375,7 +375,7 @@ class _Program:
         self.model, model_axes = _put_models(c, device)
         self.data0 = mjx.make_data(c.model, device=device, impl="jax")
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64
-        inputs0 = np.stack([layout.default_user_inputs(m, _MODEL_INPUTS)
+        inputs0 = np.stack([layout.reset_state(m, _MODEL_INPUTS)
                             for m in c.models or (c.model,)]).astype(self.dtype)
         self.inputs0 = jax.device_put(inputs0 if c.models is not None else inputs0[0], device)
         constant = c.control.fixed if c.control.fixed is not None else c.control.default_rows

@@ -17,7 +17,6 @@ import dataclasses
 import time
 from typing import Optional
 
-import mujoco
 import numpy as np
 import torch
 from mujoco import batch as mj_batch
@@ -56,7 +55,7 @@ class RolloutBackend(Backend):
         models = c.models or [c.model]
         # each row as mj_resetData leaves it (user inputs, zero warmstart), per model
         self.template_rows = np.ascontiguousarray(np.broadcast_to(
-            np.stack([_reset_row(m) for m in models]), self.batch.state.shape))
+            np.stack([layout.reset_state(m, layout.INTEGRATION) for m in models]), self.batch.state.shape))
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"
@@ -161,10 +160,3 @@ class RolloutBackend(Backend):
     def close(self) -> None:
         # drops the batch's thread pool now rather than at garbage collection
         self.batch = None
-
-
-def _reset_row(model: mujoco.MjModel) -> np.ndarray:
-    data = mujoco.MjData(model)
-    row = np.empty(mujoco.mj_stateSize(model, layout.INTEGRATION))
-    mujoco.mj_getState(model, data, row, layout.INTEGRATION)
-    return row
