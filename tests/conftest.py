@@ -1,6 +1,10 @@
-"""Shared test models: small inline MJCF with every kind of user input a control_spec drives."""
+"""Shared test models (small inline MJCF with every kind of user input a control_spec drives),
+JAX's compilation cache, and fresh Python processes that import this checkout."""
 
+import os
 import pathlib
+import subprocess
+import sys
 
 import mujoco
 import pytest
@@ -45,7 +49,8 @@ RICH_XML = """
 </mujoco>
 """
 
-SHARED_MODELS = pathlib.Path(__file__).resolve().parents[2] / "shared" / "models" / "dm_control"
+REPO = pathlib.Path(__file__).resolve().parents[1]
+SHARED_MODELS = REPO.parent / "shared" / "models" / "dm_control"
 
 
 @pytest.fixture(scope="session")
@@ -59,3 +64,40 @@ def humanoid_path():
     if not path.is_file():
         pytest.skip(f"standard models not found at {SHARED_MODELS}")
     return path
+
+
+@pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory):
+    """JAX's persistent compilation cache for the whole session. JAX takes the directory set
+    before its first cached compilation and ignores later changes, so there is one."""
+    return str(tmp_path_factory.mktemp("jax-cache"))
+
+
+def _fresh_python(script, runs, timeout=300):
+    """Runs `script` once per `(args, env)` of `runs`, each in a fresh interpreter that imports
+    this checkout's simloader (not another installed copy), all at once; returns their stdouts.
+    A run that fails or outlives `timeout` seconds fails the test (and is killed)."""
+    path = os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
+    procs = [subprocess.Popen([sys.executable, "-c", script, *map(str, args)],
+                              env={**os.environ, **env, "PYTHONPATH": path}, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for args, env in runs]
+    outputs = []
+    try:
+        for proc in procs:
+            out, err = proc.communicate(timeout=timeout)
+            assert proc.returncode == 0, f"the script failed ({proc.args[3:]}):\n{err}"
+            outputs.append(out)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    return outputs
+
+
+@pytest.fixture(scope="session")
+def fresh_python():
+    """`fresh_python(script, [(args, env), ...], timeout=300) -> [stdout, ...]`: the script run
+    in fresh interpreters at once, importing this checkout."""
+    return _fresh_python

@@ -128,21 +128,6 @@ def test_fixed_control_is_not_aliased_to_the_callers_array():
     assert torch.all(next(iter(ds))["control"] == 0.5)
 
 
-def test_diverged_flags_exactly_the_unstable_trajectory():
-    spec = int(S.mjSTATE_QFRC_APPLIED)
-    u = np.zeros((6, 20, 2))
-    clean = next(iter(cartpole(nbatch=6, nstep=20, control=u.copy(), control_spec=spec,
-                               initial_state=None)))
-    u[3, 5, 0] = np.nan
-    faulty = next(iter(cartpole(nbatch=6, nstep=20, control=u, control_spec=spec,
-                                initial_state=None)))
-    assert faulty["diverged"].tolist() == [False, False, False, True, False, False]
-    assert not clean["diverged"].any()
-    keep = [0, 1, 2, 4, 5]
-    assert torch.equal(faulty["state"][keep], clean["state"][keep])
-    assert torch.equal(faulty["sensordata"][keep], clean["sensordata"][keep])
-
-
 def test_nonfinite_outputs_without_a_mujoco_warning_are_flagged():
     # MuJoCo checks qpos/qvel/qacc; a sensor (a user sensor, say) can still produce NaN
     # without a warning: the delivery check must catch it
@@ -154,19 +139,6 @@ def test_nonfinite_outputs_without_a_mujoco_warning_are_flagged():
         assert backend.deliver(produced)["diverged"].tolist() == [False, True, True]
     finally:
         backend.close()
-
-
-def test_continuing_trajectory_restarts_after_divergence():
-    spec = int(S.mjSTATE_QFRC_APPLIED)
-    u = np.zeros((2, 5, 2))
-    u[1, 2, 0] = np.nan
-    ds = cartpole(nbatch=2, nstep=5, control=u, control_spec=spec, continue_episodes=True,
-                  initial_state=None, num_batches=2)
-    first, second = list(ds)
-    assert first["diverged"].tolist() == [False, True]
-    # the healthy trajectory continues; the diverged one starts again from the initial state
-    assert torch.equal(second["initial_state"][0], first["state"][0, -1])
-    assert torch.equal(second["initial_state"][1], first["initial_state"][1])
 
 
 def test_stats_count_batches_and_divergence():

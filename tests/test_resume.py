@@ -1,8 +1,7 @@
 """Resume: interrupting after k batches and resuming yields the uninterrupted stream, bit for bit."""
 
 import json
-import subprocess
-import sys
+import pathlib
 import textwrap
 
 import numpy as np
@@ -61,9 +60,9 @@ def test_dataset_state_is_small_json():
     it.close()
 
 
-def test_resume_in_a_new_process(tmp_path):
+def test_resume_in_a_new_process(tmp_path, fresh_python):
     script = textwrap.dedent("""
-        import json, sys, numpy as np, simloader
+        import json, sys, numpy as np
         sys.path.insert(0, %r)
         from test_resume import make, states, StatefulDataLoader
         loader = StatefulDataLoader(make(8, True), batch_size=None, num_workers=2)
@@ -73,12 +72,10 @@ def test_resume_in_a_new_process(tmp_path):
         else:
             loader.load_state_dict(json.load(open(sys.argv[2])))
             np.save(sys.argv[3], np.stack([s.numpy() for s in states(loader)]))
-    """ % str(__import__("pathlib").Path(__file__).parent))
-    path = tmp_path / "run.py"
-    path.write_text(script)
+    """ % str(pathlib.Path(__file__).parent))
     state, out = tmp_path / "state.json", tmp_path / "rest.npy"
-    subprocess.run([sys.executable, str(path), "save", str(state)], check=True)
-    subprocess.run([sys.executable, str(path), "load", str(state), str(out)], check=True)
+    fresh_python(script, [(["save", state], {})])
+    fresh_python(script, [(["load", state, out], {})])
     full = states(StatefulDataLoader(make(8, True), batch_size=None, num_workers=2))
     np.testing.assert_array_equal(np.load(out), np.stack([s.numpy() for s in full[5:]]))
 

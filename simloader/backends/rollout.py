@@ -60,7 +60,10 @@ class RolloutBackend(Backend):
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"
         self.fresh = np.ones(c.nbatch, dtype=bool)  # rows to (re)start from initial states
-        self.warnings = self.batch.warning[:, :, 1]  # live counters, (nbatch, mjNWARNING)
+        # live counters, (nbatch, mjNWARNING); zeroed before every batch, as mujoco.rollout
+        # does: mj_resetData, which MuJoCo calls on an unstable simulation, zeroes them and
+        # counts the new warning from 0, so a counter already at 1 would not rise again
+        self.warnings = self.batch.warning[:, :, 1]
         if c.control.fixed is not None:
             self.fixed_control = torch.from_numpy(c.control.fixed)
         elif not c.control.random:
@@ -92,13 +95,13 @@ class RolloutBackend(Backend):
 
         state_t, state = handoff.host_buffer((c.nbatch, c.nstep, c.nstate), pin=self.pin)
         sensor_t, sensor = handoff.host_buffer((c.nbatch, c.nstep, c.nsensordata), pin=self.pin)
-        before = self.warnings.sum(axis=1)
+        self.warnings[...] = 0
         start = time.perf_counter()
         self.batch.rollout(c.nstep, control, control_spec=c.control_spec,
                            record=(layout.FULLPHYSICS, "sensordata"),
                            out={layout.FULLPHYSICS: state, "sensordata": sensor})
         self.stats.add(simulate_s=time.perf_counter() - start)
-        warned = self.warnings.sum(axis=1) > before
+        warned = self.warnings.any(axis=1)
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
         rows_after = rows.copy() if c.continue_episodes else None

@@ -1,0 +1,89 @@
+"""Fault isolation at the issue's size (reliability check 4), on both backends: a NaN or an
+absurd force injected into one trajectory of 1,024 flags exactly that trajectory as diverged,
+counts it in `ds.stats`, leaves every other trajectory bit-identical to a run without the fault,
+and, with `continue_episodes`, restarts it from its initial state in the next batch (where the
+same fault strikes again and must be flagged again). MJX runs on CPU JAX here, with few steps.
+"""
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from mujoco import rollout
+
+import simloader
+
+S = mujoco.mjtState
+SPEC = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED)
+NBATCH, NSTEP, NUM_BATCHES = 1024, 5, 2
+FAULTY, FAULT_STEP = 613, 2  # the trajectory and the step that get the fault
+HINGE = 2  # the control column of the pole's qfrc_applied (after ctrl and the cart's)
+FAULTS = {"nan": np.nan, "absurd force": 1e30}
+KEYS = ("state", "sensordata", "control", "initial_state", "diverged")
+
+
+@pytest.fixture(scope="module")
+def cartpole():
+    return simloader.load_model("cartpole")
+
+
+def stream(model, backend, control, cache_dir):
+    """The batches of a continuing cart-pole stream with the given (fixed) controls, from
+    perturbed initial states that differ per trajectory, and its dataset."""
+    if backend == "mjx":
+        pytest.importorskip("mujoco.mjx")
+    x0 = simloader.initial.Perturbed(qpos_std=0.2, qvel_std=0.2).sample(
+        model, np.random.default_rng(1), NBATCH)
+    options = {"compilation_cache": cache_dir} if backend == "mjx" else {"nthread": 2}
+    ds = simloader.SimDataset(model, backend=backend, nbatch=NBATCH, nstep=NSTEP,
+                              control=control, control_spec=SPEC, initial_state=x0,
+                              continue_episodes=True, num_batches=NUM_BATCHES, **options)
+    return ds, x0, list(ds)
+
+
+def controls(model):
+    """A random push on the cart and random joint forces, for every trajectory."""
+    rng = np.random.default_rng(0)
+    u = np.empty((NBATCH, NSTEP, mujoco.mj_stateSize(model, SPEC)))
+    u[..., 0] = rng.uniform(-1, 1, (NBATCH, NSTEP))
+    u[..., 1:] = rng.normal(scale=0.5, size=(NBATCH, NSTEP, model.nv))
+    return u
+
+
+@pytest.fixture(scope="module", params=["rollout", "mjx"])
+def clean(request, cartpole, cache_dir):
+    ds, _, batches = stream(cartpole, request.param, controls(cartpole), cache_dir)
+    assert ds.stats["diverged"] == 0 and not any(b["diverged"].any() for b in batches)
+    return request.param, batches
+
+
+@pytest.mark.parametrize("fault", sorted(FAULTS))
+def test_fault_in_one_of_1024_trajectories_is_isolated(cartpole, cache_dir, clean, fault):
+    backend, reference = clean
+    u = controls(cartpole)
+    u[FAULTY, FAULT_STEP, HINGE] = FAULTS[fault]
+    ds, x0, batches = stream(cartpole, backend, u, cache_dir)
+    others = np.arange(NBATCH) != FAULTY
+    for batch, ref in zip(batches, reference):
+        np.testing.assert_array_equal(batch["diverged"].cpu().numpy(), ~others)
+        for key in KEYS:
+            assert torch.equal(batch[key][others], ref[key][others]), key
+        # the simulator reset the faulty trajectory: no NaN or huge value is delivered
+        for key in ("state", "sensordata"):
+            assert torch.isfinite(batch[key]).all() and batch[key].abs().max() < 1e10, key
+    assert ds.stats["diverged"] == NUM_BATCHES
+    # before the fault, the faulty trajectory was the clean one
+    assert torch.equal(batches[0]["state"][FAULTY, :FAULT_STEP],
+                       reference[0]["state"][FAULTY, :FAULT_STEP])
+    # the next batch continues the others and restarts the faulty one from its initial state
+    for prev, nxt in zip(batches, batches[1:]):
+        assert torch.equal(nxt["initial_state"][others], prev["state"][others, -1])
+        np.testing.assert_array_equal(nxt["initial_state"][FAULTY].cpu().numpy(),
+                                      x0[FAULTY].astype(nxt["initial_state"].cpu().numpy().dtype))
+    if backend == "rollout":
+        # every batch of the faulty trajectory is what mujoco.rollout gives from the same start
+        state, sensordata = rollout.rollout(cartpole, mujoco.MjData(cartpole), x0[[FAULTY]],
+                                            u[[FAULTY]], control_spec=SPEC)
+        for batch in batches:
+            np.testing.assert_array_equal(batch["state"][FAULTY].numpy(), state[0])
+            np.testing.assert_array_equal(batch["sensordata"][FAULTY].numpy(), sensordata[0])
