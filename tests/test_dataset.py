@@ -1,6 +1,7 @@
 """SimDataset behaviour on the rollout backend: schema, workers, zero copy, divergence, shutdown."""
 
 import gc
+import json
 import os
 import threading
 
@@ -188,6 +189,51 @@ def test_exception_in_worker_reaches_main_process():
 class _FailingInitial(simloader.initial.InitialStateGenerator):
     def sample(self, model, rng, nbatch):
         raise KeyError("boom in a worker")
+
+
+# Kills one of two DataLoader workers of an endless stream (a death that went unnoticed would
+# block the loader for ever) and records what the main process sees: each exception's type,
+# whether it names the dead worker, and when. In a fresh process, because torch's SIGCHLD
+# handler raises in the main thread whenever the signal arrives, which in pytest's own process
+# could be anywhere.
+KILL_A_WORKER = """
+import json, multiprocessing, os, signal, sys, time
+from torch.utils.data import DataLoader
+import simloader
+
+ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=4, nstep=8, nthread=1,
+                          control=simloader.controls.Uniform())
+it = iter(DataLoader(ds, batch_size=None, num_workers=2, multiprocessing_context=sys.argv[1]))
+next(it)
+victim = multiprocessing.active_children()[0].pid
+start = time.monotonic()
+os.kill(victim, signal.SIGKILL)
+delivered, reports = 0, []
+while time.monotonic() - start < 20 and not any(named for _, named, _ in reports):
+    try:
+        next(it)
+        delivered += 1
+    except Exception as e:
+        reports.append((type(e).__name__, f"(pid {victim})" in str(e)
+                        or f"(pid(s) {victim})" in str(e), time.monotonic() - start))
+print(json.dumps({"delivered": delivered, "reports": reports}))
+"""
+
+
+def test_killed_worker_is_reported_promptly(fresh_python):
+    outputs = fresh_python(KILL_A_WORKER, [(["fork"], {}), (["spawn"], {})], timeout=120)
+    for context, output in zip(["fork", "spawn"], outputs):
+        result = json.loads(output)
+        reports = result["reports"]
+        # no DataLoader(timeout=...) needed: torch's SIGCHLD handler raises RuntimeError naming
+        # the worker at once. A batch in transit from the dead worker may fail first, with the
+        # ConnectionResetError or EOFError of fetching its shared memory from a dead process
+        assert reports and reports[0][2] < 5, (context, result)
+        assert reports[-1][:2] == ["RuntimeError", True] and reports[-1][2] < 5, (context, result)
+        assert {r[0] for r in reports[:-1]} <= {"ConnectionResetError", "ConnectionRefusedError",
+                                                "EOFError"}, (context, result)
+        # at most the batches the loader had asked for ahead (2 workers x prefetch_factor 2)
+        assert result["delivered"] <= 4, (context, result)
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
