@@ -28,7 +28,6 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -174,12 +173,10 @@ def cold_and_cached(w: common.Workload, args: argparse.Namespace) -> list[str]:
         row = [w.name, f"{w.nbatch} x {w.nstep}"]
         for run in ("cold", "cached"):
             start = time.perf_counter()
-            proc = subprocess.run(command, capture_output=True, text=True)
+            result = common.run_child(command, f"{run} first batch of {w}")
             wall = time.perf_counter() - start
-            if proc.returncode != 0:
-                print(f"{run} first batch of {w} failed:\n{proc.stderr[-3000:]}", file=sys.stderr)
+            if result is None:
                 return row + ["failed"] * (len(COMPILE_HEADERS) - len(row))
-            result = json.loads(proc.stdout.strip().splitlines()[-1])
             if result["cache_dir"] != cache:
                 print(f"warning: the child used the compilation cache {result['cache_dir']!r}, "
                       f"not {cache!r}", file=sys.stderr)

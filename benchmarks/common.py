@@ -12,6 +12,7 @@ import argparse
 import dataclasses
 import datetime
 import importlib.metadata
+import json
 import math
 import os
 import pathlib
@@ -65,9 +66,10 @@ def parse_workload(text: str) -> Workload:
 
 
 def parser(description: str, workloads: Sequence[Workload], quick: Sequence[Workload],
-           throughput: bool = False) -> argparse.ArgumentParser:
+           throughput: bool = False, repeats: bool = True) -> argparse.ArgumentParser:
     """An argument parser with the options every script takes (`throughput`: and those of
-    the throughput benchmarks; `parse` fills in their defaults)."""
+    the throughput benchmarks; `parse` fills in their defaults; `repeats`: --repeats, for
+    scripts that time repeated measurements)."""
     p = argparse.ArgumentParser(description=description,
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--quick", action="store_true",
@@ -77,8 +79,9 @@ def parser(description: str, workloads: Sequence[Workload], quick: Sequence[Work
     p.add_argument("--model-dir", type=pathlib.Path,
                    help=f"folder of the MJCF files (default: the first of "
                         f"{', '.join(str(d) for d in MODEL_DIRS)} that exists)")
-    p.add_argument("--repeats", type=int, default=3,
-                   help="timed repetitions of each measurement (the median is reported)")
+    if repeats:
+        p.add_argument("--repeats", type=int, default=3,
+                       help="timed repetitions of each measurement (the median is reported)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", action="store_true",
                    help="write the table, the environment and the command line (and any plot) "
@@ -158,6 +161,17 @@ def cpu_count() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
+
+
+def run_child(command: Sequence[str], what: str,
+              env: Optional[dict[str, str]] = None) -> Optional[dict[str, Any]]:
+    """Runs a fresh process (a script's own child mode) and returns the JSON object on the
+    last line of its stdout; None, with the end of its stderr shown, if it failed."""
+    proc = subprocess.run(list(command), capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        print(f"{what} failed:\n{proc.stderr[-3000:]}", file=sys.stderr)
+        return None
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 # -- timing -----------------------------------------------------------------------------------
