@@ -1,7 +1,11 @@
 """Two torch.distributed ranks on localhost (gloo, CPU): distinct streams, clean shutdown."""
 
+import json
 import os
+import pathlib
 import socket
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -52,3 +56,18 @@ def test_two_ranks_draw_distinct_streams():
     assert threads == [] and results[1][1] == []  # no producer left behind
     rows = torch.cat([g.flatten(0, 1).flatten(1) for g in gathered])  # every trajectory's controls
     assert len(torch.unique(rows, dim=0)) == len(rows) == 2 * 3 * 4
+
+
+def test_ddp_example_under_torchrun(tmp_path):
+    """The DDP example as a user launches it: torchrun, two ranks, gloo on the CPU."""
+    root = pathlib.Path(__file__).parents[1]
+    result_file = tmp_path / "result.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+         str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "rollout",
+         "--json", str(result_file)],
+        capture_output=True, text=True, timeout=300, cwd=root)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    result = json.loads(result_file.read_text())
+    assert result["ranks"] == 2 and result["steps_per_s"] > 0
+    assert "open-loop RMSE" in proc.stdout
