@@ -63,7 +63,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                  nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
         super().__init__()
         from simloader import backends
-        backends.prepare(backend, backend_options, device)
+        backends.prepare(backend, backend_options)
         self.config: SimConfig = build_config(
             model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
             control_spec=control_spec, initial_state=initial_state, randomize=randomize,

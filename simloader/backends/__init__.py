@@ -10,14 +10,12 @@ from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig
 
 
-def prepare(backend: Any, options: dict[str, Any], device: Any) -> None:
+def prepare(backend: Any, options: dict[str, Any]) -> None:
     """Process-wide settings that must precede JAX's start, applied before the configuration
-    is validated (`backend="auto"` asks JAX for its devices): the mjx backend's GPU memory and,
-    under torchrun, the rank's GPU."""
+    is validated (`backend="auto"` asks JAX for its devices): the mjx backend's GPU memory."""
     if backend in ("auto", "mjx") and importlib.util.find_spec("mujoco.mjx") is not None:
         from simloader.backends import mjx
         mjx.configure_memory(options.get("memory_fraction"))
-        mjx.configure_devices(device)
 
 
 def check_options(config: SimConfig, options: dict[str, Any]) -> dict[str, Any]:

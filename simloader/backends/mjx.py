@@ -148,30 +148,6 @@ def configure_memory(memory_fraction: Any) -> Optional[float]:
     return fraction
 
 
-def configure_devices(device: Any) -> None:
-    """Under torchrun (several ranks on this machine), restricts JAX to the rank's GPU.
-
-    Otherwise every rank's JAX opens every GPU of the machine, with a CUDA context and memory
-    on each. Effective only before JAX starts its backends, and only where the user has not
-    chosen JAX's devices (`jax_cuda_visible_devices`) already.
-
-    Args:
-      device: the dataset's `device` argument: its GPU index if it names one, else LOCAL_RANK.
-    """
-    if (int(os.environ.get("LOCAL_WORLD_SIZE", "1")) <= 1 or "LOCAL_RANK" not in os.environ
-            or xla_bridge.backends_are_initialized()
-            or xla_bridge.CUDA_VISIBLE_DEVICES.value != "all"):
-        return
-    index = int(os.environ["LOCAL_RANK"])
-    try:
-        target = torch.device(device) if device is not None else None
-    except (TypeError, RuntimeError):
-        target = None  # the configuration's validation reports a bad device
-    if target is not None and target.type == "cuda" and target.index is not None:
-        index = target.index
-    jax.config.update("jax_cuda_visible_devices", str(index))
-
-
 def _cache_dir(value: Any) -> Any:
     if value is False:
         return False
@@ -216,7 +192,7 @@ def _jax_device(target: Optional[torch.device]) -> jax.Device:
         index = target.index if target.index is not None else torch.cuda.current_device()
     else:
         index = int(os.environ.get("LOCAL_RANK", "0"))
-    # by CUDA ordinal: JAX restricted to some GPUs (configure_devices) numbers only those
+    # by CUDA ordinal, not by position (JAX may see fewer GPUs than torch)
     for gpu in gpus:
         if gpu.local_hardware_id == index:
             return gpu
@@ -460,7 +436,6 @@ class MjxBackend(Backend):
         super().__init__(config, shard, stats)
         # again here: a spawned worker inherits the environment but not JAX's configuration
         configure_memory(memory_fraction)
-        configure_devices(config.device)
         _configure_cache(compilation_cache)
         device = _jax_device(config.device)
         self.program = _PROGRAMS.setdefault(config, {}).get(device)
