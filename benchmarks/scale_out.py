@@ -54,13 +54,17 @@ def main() -> None:
     p.add_argument("--batches", type=int, default=60, help="batches per rank")
     p.add_argument("--nbatch", type=int, default=16384)
     p.add_argument("--nstep", type=int, default=100)
+    p.add_argument("--minibatches", type=int, default=1,
+                   help="optimizer steps per simulated batch (the example's default is 4; "
+                        "fewer keeps the simulation the larger part of the time)")
     p.add_argument("--save", action="store_true")
     p.add_argument("--results-dir", type=common.pathlib.Path,
                    default=common.REPO / "benchmarks" / "results")
     p.add_argument("--tag", default="")
     args = p.parse_args()
     example_args = ["--backend", args.backend] + (["--quick"] if args.quick else [
-        "--batches", str(args.batches), "--nbatch", str(args.nbatch), "--nstep", str(args.nstep)])
+        "--batches", str(args.batches), "--nbatch", str(args.nbatch), "--nstep", str(args.nstep),
+        "--minibatches", str(args.minibatches)])
 
     rows, reference = [], None
     for nproc in common.progress(args.nprocs, desc="torchrun jobs"):
