@@ -40,13 +40,14 @@ import mujoco  # noqa: E402
 import bench_rollout  # noqa: E402
 import common  # noqa: E402
 import simloader  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", n, 1000) for n in (1024, 8192, 65536)] + \
     [common.Workload("humanoid", n, 200) for n in (4096, 16384)]
 QUICK = [common.Workload("cartpole", 64, 20)]
 TARGET = 0.97  # simloader / raw MJX throughput (performance.md)
 
-RAW, SIMLOADER = "raw MJX vmap+scan", "simloader mjx"
+RAW, SIMLOADER = bench.RAW_MJX, bench.SIMLOADER_MJX
 
 
 def jax_device() -> str:
@@ -60,61 +61,7 @@ def output_gb(model: mujoco.MjModel, w: common.Workload) -> float:
     return w.steps * (nstate + model.nsensordata + model.nu) * 4 / 1e9
 
 
-class RawMjx:
-    """The raw baseline: one jitted function per workload, `f(key, index) -> dict of arrays`."""
-
-    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int):
-        import jax
-        import jax.numpy as jnp
-        from mujoco import mjx
-
-        self.w = w
-        self.mx = mjx.put_model(model, impl="jax")
-        self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
-        self.key = jax.random.key(seed)
-        low, high = (jnp.asarray(b, jnp.float32) for b in common.ctrl_bounds(model))
-        step = jax.vmap(mjx.step, in_axes=(None, 0))
-        nbatch, nstep, nu = w.nbatch, w.nstep, model.nu
-
-        def batch(mx, d0, key, index):
-            ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
-                                      minval=low, maxval=high)
-            d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
-
-            def body(d, u):
-                d = step(mx, d.replace(ctrl=u))
-                state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
-                return d, (state, d.sensordata)
-
-            _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
-            # batch-major, as simloader delivers
-            return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
-                    "control": ctrl.swapaxes(0, 1)}
-
-        start = time.perf_counter()
-        self.fn = jax.jit(batch).lower(self.mx, self.d0, self.key, 0).compile()
-        self.compile_s = time.perf_counter() - start
-        self.index = 0
-        start = time.perf_counter()
-        out = self()
-        self.shapes = {k: tuple(v.shape) for k, v in out.items()}
-        del out
-        self.first_s = self.compile_s + time.perf_counter() - start
-        self.batch_s = self.measure(1) * w.steps
-
-    def __call__(self) -> dict[str, Any]:
-        import jax
-        out = self.fn(self.mx, self.d0, self.key, self.index)
-        self.index += 1
-        return jax.block_until_ready(out)
-
-    def measure(self, nbatches: int) -> float:
-        """Seconds per step of `nbatches` back-to-back blocked calls."""
-        start = time.perf_counter()
-        for _ in range(nbatches):
-            out = self()
-            del out
-        return (time.perf_counter() - start) / (nbatches * self.w.steps)
+RawMjx = bench.RawMjx  # the package's baseline (it backs `simloader bench` too)
 
 
 def simloader_dataset(model: mujoco.MjModel, w: common.Workload, seed: int,
@@ -125,26 +72,15 @@ def simloader_dataset(model: mujoco.MjModel, w: common.Workload, seed: int,
                                 compilation_cache=cache)
 
 
-class SimloaderMjx:
+class SimloaderMjx(bench.SimloaderMeasure):
     """simloader's MJX backend, warmed up by one pass (which compiles), then measured."""
 
     def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int):
         import torch
-        self.w = w
-        self.ds = simloader_dataset(model, w, seed, cache=False)  # JAX's: off in this process
-        first = common.time_stream(self.ds, 0, keep_last=True)
-        batch = first.last
-        self.first_s = first.first_s
-        self.compile_s = self.ds.stats.get("compile_s", 0.0)
-        self.shapes = {k: tuple(v.shape) for k, v in batch.items()}
-        self.device = str(batch["state"].device)
-        self.dtype = batch["state"].dtype
-        if torch.cuda.is_available() and batch["state"].device.type != "cuda":
+        # compilation_cache=False: JAX's setting, which main() turns off in this process
+        super().__init__(model, w, "mjx", seed, compilation_cache=False)
+        if torch.cuda.is_available() and self.device.type != "cuda":
             raise RuntimeError(f"simloader mjx delivered on {self.device}, not on the GPU")
-        del batch, first
-
-    def measure(self, nbatches: int) -> float:
-        return common.time_stream(self.ds, nbatches).steady_s / (nbatches * self.w.steps)
 
     def recompiled(self) -> bool:
         """Whether later iterators compiled again (each pass should reuse the first's)."""

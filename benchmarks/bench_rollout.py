@@ -17,89 +17,21 @@ MjData (extrapolated per step). The three run alternately in one process and the
 from __future__ import annotations
 
 import argparse
-import time
 from collections.abc import Callable
 
 import mujoco
-import numpy as np
-from mujoco import rollout
 
 import common
 import simloader
+from simloader import bench
 
 DEFAULT = [common.Workload("cartpole", 8192, 1000), common.Workload("humanoid", 4096, 200)]
 QUICK = [common.Workload("cartpole", 256, 200), common.Workload("humanoid", 64, 50)]
 TARGET = 0.95  # simloader / raw rollout throughput (performance.md)
 
-PYTHON, RAW, SIMLOADER = "Python mj_step loop", "mujoco.rollout (raw)", "simloader rollout"
-
-
-def default_state(model: mujoco.MjModel) -> np.ndarray:
-    """The FULLPHYSICS state `mj_resetData` gives (simloader's `initial_state=None`)."""
-    data = mujoco.MjData(model)
-    state = np.empty(mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
-    mujoco.mj_getState(model, data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-    return state
-
-
-def python_loop(model: mujoco.MjModel, nstep: int, total_steps: int,
-                seed: int) -> Callable[[], float]:
-    """A measure (seconds per step) of one MjData stepped from Python.
-
-    Trajectories of `nstep` steps, state and sensors recorded after each step into
-    preallocated arrays, as the batched methods record them.
-    """
-    data = mujoco.MjData(model)
-    low, high = common.ctrl_bounds(model)
-    rng = np.random.default_rng(seed)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state = np.empty((nstep, mujoco.mj_stateSize(model, spec)))
-    sensordata = np.empty((nstep, model.nsensordata))
-    ntraj = max(1, total_steps // nstep)
-    length = min(nstep, total_steps)
-
-    def measure() -> float:
-        start = time.perf_counter()
-        for _ in range(ntraj):
-            mujoco.mj_resetData(model, data)
-            control = rng.uniform(low, high, size=(length, model.nu))
-            for t in range(length):
-                data.ctrl[:] = control[t]
-                mujoco.mj_step(model, data)
-                mujoco.mj_getState(model, data, state[t], spec)
-                sensordata[t] = data.sensordata
-        return (time.perf_counter() - start) / (ntraj * length)
-
-    measure()  # warm-up
-    return measure
-
-
-def raw_rollout(model: mujoco.MjModel, w: common.Workload, nthread: int,
-                seed: int) -> tuple[Callable[[int], float], float]:
-    """A measure (seconds per step) of back-to-back `mujoco.rollout` calls, and the seconds
-    of one call.
-
-    One MjData per thread and a persistent thread pool, fresh uniform controls and fresh
-    output arrays every call (as simloader allocates a new tensor per batch).
-    """
-    datas = [mujoco.MjData(model) for _ in range(nthread)]
-    x0 = np.tile(default_state(model), (w.nbatch, 1))
-    low, high = common.ctrl_bounds(model)
-    rng = np.random.default_rng(seed)
-
-    def one_batch():
-        control = rng.uniform(low, high, size=(w.nbatch, w.nstep, model.nu))
-        return rollout.rollout(model, datas, x0, control, persistent_pool=True)
-
-    def measure(nbatches: int) -> float:
-        start = time.perf_counter()
-        for _ in range(nbatches):
-            state, sensordata = one_batch()
-            del state, sensordata
-        return (time.perf_counter() - start) / (nbatches * w.steps)
-
-    one_batch()  # warm-up: starts the pool, touches the code paths
-    return measure, measure(1) * w.steps
+PYTHON, RAW, SIMLOADER = bench.PYTHON, bench.RAW_ROLLOUT, bench.SIMLOADER_ROLLOUT
+# the baselines are the package's (they back `simloader bench` too)
+python_loop, raw_rollout = bench.python_loop, bench.raw_rollout
 
 
 def simloader_rollout(model: mujoco.MjModel, w: common.Workload,

@@ -9,48 +9,31 @@ are measured in the same process, alternating repetitions.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import importlib.metadata
 import json
-import math
-import os
 import pathlib
 import platform
 import shlex
-import statistics
 import subprocess
 import sys
-import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from typing import Any, Optional
 
 import mujoco
-import numpy as np
 import torch
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 # benchmark the checkout the scripts are in, installed or not
 sys.path.insert(0, str(REPO))
+# the measuring core is the package's (it backs `simloader bench`); re-exported for the scripts
+from simloader.bench import (  # noqa: E402,F401
+    HEADERS, Stream, Workload, cpu_count, ctrl_bounds, drain, interleave, markdown_table,
+    method_rows, ns, progress, rate, ratio, sync, time_stream)
+from simloader import bench as _bench  # noqa: E402
 # the lead copies the models into the ignored .models/ (only the repository travels to the GPU
 # machine); a developer checkout has them in ../shared
 MODEL_DIRS = (REPO / ".models" / "dm_control", REPO.parent / "shared" / "models" / "dm_control")
-
-
-@dataclasses.dataclass(frozen=True)
-class Workload:
-    """`nbatch` trajectories of `nstep` steps of the model `name` (a file `<name>.xml`)."""
-
-    name: str
-    nbatch: int
-    nstep: int
-
-    @property
-    def steps(self) -> int:
-        return self.nbatch * self.nstep
-
-    def __str__(self) -> str:
-        return f"{self.name}:{self.nbatch}x{self.nstep}"
 
 
 def parse_workload(text: str) -> Workload:
@@ -113,7 +96,7 @@ def parse(p: argparse.ArgumentParser) -> argparse.Namespace:
 
 def batches_for(args: argparse.Namespace, batch_s: float) -> int:
     """Timed batches per repetition: `--batches`, or more to last `--min-seconds`."""
-    return max(args.batches, math.ceil(args.min_seconds / batch_s))
+    return _bench.batches_for(batch_s, args.batches, args.min_seconds)
 
 
 def workloads(args: argparse.Namespace, default: Sequence[Workload],
@@ -142,27 +125,6 @@ def load_model(name: str, folder: Optional[pathlib.Path]) -> mujoco.MjModel:
     return mujoco.MjModel.from_xml_path(str(path))
 
 
-def ctrl_bounds(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
-    """Per-actuator (low, high) of uniform controls: `ctrlrange` if limited, else [-1, 1].
-
-    Written out here rather than taken from simloader, so that the raw baselines depend on
-    MuJoCo alone; it is the default range of `simloader.controls.Uniform()`.
-    """
-    limited = model.actuator_ctrllimited.astype(bool)
-    low, high = -np.ones(model.nu), np.ones(model.nu)
-    low[limited] = model.actuator_ctrlrange[limited, 0]
-    high[limited] = model.actuator_ctrlrange[limited, 1]
-    return low, high
-
-
-def cpu_count() -> int:
-    """CPU cores this process may run on (what simloader's rollout backend uses)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def run_child(command: Sequence[str], what: str,
               env: Optional[dict[str, str]] = None) -> Optional[dict[str, Any]]:
     """Runs a fresh process (a script's own child mode) and returns the JSON object on the
@@ -174,138 +136,7 @@ def run_child(command: Sequence[str], what: str,
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-# -- timing -----------------------------------------------------------------------------------
-
-def sync() -> None:
-    """Waits for all queued GPU work (every stream of the device: torch's and JAX's)."""
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-
-
-def drain() -> None:
-    """Waits until the work already dispatched to the devices has run.
-
-    simloader's MJX producer dispatches batches ahead; those an iterator was closed on still
-    run on the device and would slow whatever is timed next. Devices run their work in order,
-    so a tiny computation on each, waited for, waits for them.
-    """
-    sync()
-    jax = sys.modules.get("jax")
-    if jax is not None:
-        for device in jax.local_devices():
-            jax.block_until_ready(jax.device_put(0, device) + 1)
-
-
-def interleave(measures: dict[str, Callable[[], float]], repeats: int,
-               desc: str = "") -> dict[str, float]:
-    """The median of each measure's result, the measures run alternately `repeats` times.
-
-    Each measure times its own steady part (warm-up excluded) and returns seconds per
-    simulated step. The order is
-    reversed every repetition, so that drift in the machine (clocks, caches, other load)
-    touches every measure alike.
-    """
-    times: dict[str, list[float]] = {name: [] for name in measures}
-    order = list(measures)
-    for rep in progress(range(repeats), desc=desc):
-        for name in order if rep % 2 == 0 else reversed(order):
-            times[name].append(measures[name]())
-    return {name: statistics.median(t) for name, t in times.items()}
-
-
-@dataclasses.dataclass
-class Stream:
-    """One pass over a dataset: `first_s` to the first batch, `steady_s` for the rest."""
-
-    first_s: float
-    steady_s: float
-    last: Optional[dict[str, torch.Tensor]] = None
-
-
-def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
-                keep_last: bool = False) -> Stream:
-    """Delivered throughput of a dataset: `nbatches` batches after the first, tensors in hand.
-
-    A fresh iterator per call: simloader's producer thread starts with it and stops at
-    `close`, and the device is drained, so nothing simulates while another measure runs. The
-    first batch, which pays for threads, compilation and the empty prefetch queue, is timed
-    apart; the steady part runs from holding the first batch to holding the last, blocked on
-    the device after each.
-    """
-    it = iter(ds)
-    try:
-        start = time.perf_counter()
-        batch = next(it)
-        sync()
-        first = time.perf_counter()
-        for _ in range(nbatches):
-            del batch  # release a (possibly multi-GB) batch before the next arrives
-            batch = next(it)
-            sync()
-        return Stream(first - start, time.perf_counter() - first, batch if keep_last else None)
-    finally:
-        it.close()
-        drain()
-
-
-# -- output -----------------------------------------------------------------------------------
-
-def ns(seconds_per_step: float) -> str:
-    return f"{seconds_per_step * 1e9:,.1f}" if seconds_per_step < 1e-7 else \
-        f"{seconds_per_step * 1e9:,.0f}"
-
-
-def rate(steps_per_second: float) -> str:
-    return f"{steps_per_second / 1e6:,.2f}M"
-
-
-def ratio(x: Optional[float]) -> str:
-    return "-" if x is None else f"{x:.3f}"
-
-
-def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """A Markdown table, columns padded for reading in a terminal too."""
-    cells = [list(map(str, headers))] + [list(map(str, r)) for r in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
-    line = lambda r: "| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
-    return "\n".join([line(cells[0]), "| " + " | ".join("-" * w for w in widths) + " |"]
-                     + [line(r) for r in cells[1:]])
-
-
-HEADERS = ["workload", "nbatch x nstep", "method", "runs on", "ns/step", "steps/s",
-           "throughput / raw", "vs Python loop"]
-
-
-def method_rows(w: Workload, s_per_step: dict[str, float], runs_on: dict[str, str],
-                raw_of: dict[str, str], python: Optional[str]) -> list[list[str]]:
-    """Rows of `HEADERS`, one per method, in the order of `s_per_step`.
-
-    Args:
-      s_per_step: seconds per simulated step of each method.
-      runs_on: where each method runs ("16 cores", "NVIDIA H200").
-      raw_of: for a simloader method, the raw method it is compared to (throughput ratio).
-      python: the method that is the single-environment Python loop, for speed-ups.
-    """
-    base = s_per_step.get(python)
-    rows = []
-    for method, s in s_per_step.items():
-        raw = s_per_step.get(raw_of.get(method, method)) if method in raw_of or \
-            method in raw_of.values() else None
-        rows.append([w.name, f"{w.nbatch} x {w.nstep}", method, runs_on[method], ns(s),
-                     rate(1 / s), ratio(raw / s if raw else None),
-                     f"{base / s:,.1f}x" if base else "-"])
-    return rows
-
-
-def progress(iterable: Iterable, desc: str = "", total: Optional[int] = None) -> Iterable:
-    """A tqdm progress bar on stderr, or the bare iterable where tqdm is not installed."""
-    try:
-        from tqdm import tqdm
-    except ImportError:  # the GPU machine has only what its carried wheels install
-        return iterable
-    return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr,
-                mininterval=1.0 if sys.stderr.isatty() else 30.0)
-
+# -- result files -----------------------------------------------------------------------------
 
 def _version(package: str) -> str:
     try:

@@ -52,6 +52,29 @@ class Dynamics(nn.Module):
         return s + self.net(x) * self.delta_std
 
 
+@torch.no_grad()
+def evaluate(net, held_out, physics):
+    """Prints the one-step and HORIZON-step open-loop RMSE on held-out trajectories.
+
+    Returns:
+      (truth, prediction, open-loop RMSE per step).
+    """
+    s, a, s_next = transitions(held_out, physics)
+    one_step = ((net(s, a) - s_next) ** 2).mean().sqrt().item()
+    truth = held_out["state"][..., physics]
+    pred, x = [], held_out["initial_state"][:, physics]
+    for t in range(truth.shape[1]):  # open loop: the model feeds on its own predictions
+        x = net(x, held_out["control"][:, t])
+        pred.append(x)
+    pred = torch.stack(pred, 1)
+    err = (pred - truth).pow(2).mean(dim=(0, 2)).sqrt()
+    scale = truth.std().item()
+    print(f"one-step RMSE:            {one_step:.2e}  ({one_step / scale:.2%} of the state's std)")
+    print(f"{len(err)}-step open-loop RMSE: {err[-1].item():.2e}  "
+          f"({err[-1].item() / scale:.2%} of the state's std)")
+    return truth, pred, err
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
@@ -98,20 +121,7 @@ def main():
         progress.set_postfix(loss=f"{loss.item():.2e}")
     print(f"trained in {time.perf_counter() - start:.1f} s")
 
-    with torch.no_grad():
-        s, a, s_next = transitions(held_out, physics)
-        one_step = ((net(s, a) - s_next) ** 2).mean().sqrt().item()
-        truth = held_out["state"][..., physics]
-        pred, x = [], held_out["initial_state"][:, physics]
-        for t in range(HORIZON):  # open loop: the model feeds on its own predictions
-            x = net(x, held_out["control"][:, t])
-            pred.append(x)
-        pred = torch.stack(pred, 1)
-        err = (pred - truth).pow(2).mean(dim=(0, 2)).sqrt()
-    scale = truth.std().item()
-    print(f"one-step RMSE:            {one_step:.2e}  ({one_step / scale:.2%} of the state's std)")
-    print(f"{HORIZON}-step open-loop RMSE: {err[-1].item():.2e}  "
-          f"({err[-1].item() / scale:.2%} of the state's std)")
+    truth, pred, err = evaluate(net, held_out, physics)
 
     try:
         import matplotlib

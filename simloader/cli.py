@@ -1,4 +1,5 @@
-"""The `simloader` command line: `quickstart` (stream batches, print throughput) and `info`."""
+"""The `simloader` command line: `quickstart` (stream batches, print throughput), `info` (what
+the columns mean) and `bench` (simloader next to the raw simulators)."""
 
 from __future__ import annotations
 
@@ -59,6 +60,25 @@ def info(args: argparse.Namespace) -> None:
     print(simloader.describe(model, args.control_spec))
 
 
+def bench(args: argparse.Namespace) -> None:
+    from simloader import bench as b
+    model = simloader.load_model(args.model)
+    backends = args.backends or (["rollout", "mjx"] if b.jax_has_gpu() else ["rollout"])
+    name = args.model if len(args.model) < 40 else "model"
+    w = b.Workload(name, args.nbatch, args.nstep)
+    print(f"simloader {simloader.__version__} bench: {w} on {', '.join(backends)}, median of "
+          f"{args.repeats} alternating repetitions")
+    s_per_step, runs_on, notes = b.compare(
+        model, w, backends, repeats=args.repeats, min_seconds=args.min_seconds,
+        python_steps=args.python_steps, seed=args.seed)
+    print(b.markdown_table(b.HEADERS, b.method_rows(w, s_per_step, runs_on, b.RAW_OF, b.PYTHON)))
+    for note in notes:
+        print(note)
+    if args.plot:
+        b.bar_plot(args.plot, f"{w}: simloader vs raw", s_per_step)
+        print(f"plot saved to {args.plot}")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="simloader", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -78,6 +98,23 @@ def main(argv: list[str] | None = None) -> None:
     i.add_argument("--control-spec", type=parse_control_spec, default=_SPEC_NAMES["ctrl"],
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")
     i.set_defaults(run=info)
+
+    b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")
+    b.add_argument("model", nargs="?", default="cartpole",
+                   help="built-in model name or MJCF/MJB path (default: the built-in cartpole)")
+    b.add_argument("--backends", nargs="+", choices=("rollout", "mjx"),
+                   help="default: rollout, and mjx where JAX sees a GPU")
+    b.add_argument("--nbatch", type=int, default=1024)
+    b.add_argument("--nstep", type=int, default=200)
+    b.add_argument("--repeats", type=int, default=3, help="alternating timed repetitions")
+    b.add_argument("--min-seconds", type=float, default=2.0,
+                   help="each timed repetition lasts at least this long")
+    b.add_argument("--python-steps", type=int, default=5000,
+                   help="steps of the single-environment Python loop per repetition")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--plot", default="simloader-bench.png",
+                   help="where to save the bar chart ('' for none)")
+    b.set_defaults(run=bench)
 
     args = parser.parse_args(argv)
     args.run(args)

@@ -82,6 +82,9 @@ def resolve_backend(backend: str) -> str:
         raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if backend != "auto":
         return backend
+    # asking JAX for its devices starts it: with simloader's settings (no GPU preallocation)
+    from simloader import backends
+    backends.prepare(backend, {})
     try:
         import jax
         return "mjx" if any(d.platform == "gpu" for d in jax.devices()) else "rollout"

@@ -1,7 +1,10 @@
 """Two torch.distributed ranks on localhost (gloo, CPU): distinct streams, clean shutdown."""
 
-import os
+import json
+import pathlib
 import socket
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -52,3 +55,51 @@ def test_two_ranks_draw_distinct_streams():
     assert threads == [] and results[1][1] == []  # no producer left behind
     rows = torch.cat([g.flatten(0, 1).flatten(1) for g in gathered])  # every trajectory's controls
     assert len(torch.unique(rows, dim=0)) == len(rows) == 2 * 3 * 4
+
+
+def test_ddp_example_under_torchrun(tmp_path):
+    """The DDP example as a user launches it: torchrun, two ranks, gloo on the CPU."""
+    root = pathlib.Path(__file__).parents[1]
+    result_file = tmp_path / "result.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+         str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "rollout",
+         "--json", str(result_file)],
+        capture_output=True, text=True, timeout=300, cwd=root)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    result = json.loads(result_file.read_text())
+    assert result["ranks"] == 2 and result["steps_per_s"] > 0
+    assert "open-loop RMSE" in proc.stdout
+
+
+_RANK_DEVICE_SCRIPT = """
+import json, os
+import simloader
+# resolve_backend starts JAX: it must do so with simloader's settings (no preallocation)
+backend = simloader.config.resolve_backend("auto")
+ds = simloader.SimDataset("cartpole", backend=backend, nbatch=4, nstep=3, num_batches=1, seed=0)
+import jax
+batch = next(iter(ds))
+print(json.dumps({
+    "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE"),
+    "jax_gpus": sorted({d.local_hardware_id for a in jax.live_arrays() for d in a.devices()}),
+    "tensor": str(batch["state"].device), "rank": os.environ["LOCAL_RANK"]}))
+"""
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2,
+                    reason="needs 2 GPUs")
+def test_torchrun_ranks_simulate_on_their_own_gpu(tmp_path):
+    script = tmp_path / "rank.py"
+    script.write_text(_RANK_DEVICE_SCRIPT)
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+         str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    results = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    assert len(results) == 2
+    for r in results:  # JAX's buffers live on the rank's GPU, and the tensors too
+        assert r["jax_gpus"] == [int(r["rank"])], r
+        assert r["tensor"] == f"cuda:{r['rank']}", r
+        assert r["preallocate"] == "false", r

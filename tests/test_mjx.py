@@ -6,6 +6,7 @@ configuration), so each configuration is a module-scoped fixture shared by sever
 
 import contextlib
 import multiprocessing
+import os
 import subprocess
 import sys
 import textwrap
@@ -477,3 +478,19 @@ def test_gpu_jax_leaves_memory_to_torch(gpu_dataset):
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          check=True, timeout=300)
     assert float(out.stdout.split()[-1]) > 0.5, out.stderr
+
+
+def test_resolving_auto_backend_starts_jax_without_preallocation():
+    # resolve_backend("auto") asks JAX for its devices, which starts JAX: simloader's memory
+    # setting must be in place before, or JAX takes 75% of every GPU it sees
+    script = textwrap.dedent("""
+        import os, simloader
+        simloader.config.resolve_backend("auto")
+        from jax._src import xla_bridge
+        print(xla_bridge.backends_are_initialized(), os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"])
+    """)
+    env = {k: v for k, v in os.environ.items()
+           if k != "XLA_PYTHON_CLIENT_PREALLOCATE"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True, timeout=300, env=env)
+    assert out.stdout.split()[-2:] == ["True", "false"], out.stderr

@@ -190,10 +190,16 @@ def _jax_device(target: Optional[torch.device]) -> jax.Device:
         return jax.local_devices()[0]
     if target is not None and target.type == "cuda":
         index = target.index if target.index is not None else torch.cuda.current_device()
-        if index >= len(gpus):
-            raise ValueError(f"device: {target} requested but JAX sees {len(gpus)} GPU(s)")
-        return gpus[index]
-    return gpus[int(os.environ.get("LOCAL_RANK", "0")) % len(gpus)]
+    else:
+        index = int(os.environ.get("LOCAL_RANK", "0"))
+    # by CUDA ordinal, not by position (JAX may see fewer GPUs than torch)
+    for gpu in gpus:
+        if gpu.local_hardware_id == index:
+            return gpu
+    if target is not None and target.type == "cuda":
+        raise ValueError(f"device: {target} requested but JAX sees only the GPU(s) "
+                         f"{[g.local_hardware_id for g in gpus]}")
+    return gpus[index % len(gpus)]
 
 
 def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:

@@ -1,0 +1,447 @@
+"""Measuring simloader next to the raw simulators it wraps (`simloader bench` and benchmarks/).
+
+Every method does the same work: `nbatch` trajectories of `nstep` steps from the model's default
+state, controls drawn uniformly within `ctrlrange` for every batch, the `mjSTATE_FULLPHYSICS`
+state and the sensors recorded after every step. The raw baselines depend on MuJoCo (and JAX)
+alone, not on simloader's code:
+
+- a Python loop stepping one `MjData` (the single-environment reference for speed-ups);
+- `mujoco.rollout` on all cores with a persistent thread pool (what the rollout backend wraps);
+- a jitted `lax.scan` over `vmap(mjx.step)`, controls drawn in the jitted function (what the mjx
+  backend wraps).
+
+simloader is timed as delivered: torch tensors in hand (its producer simulating the next batch
+meanwhile), after a warm-up batch, blocked on the device after each. Measures run alternately in
+one process and the median of the repetitions is reported (`shared/design/performance.md`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import statistics
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+import torch
+from mujoco import rollout
+
+PYTHON, RAW_ROLLOUT, SIMLOADER_ROLLOUT = ("Python mj_step loop", "mujoco.rollout (raw)",
+                                          "simloader rollout")
+RAW_MJX, SIMLOADER_MJX = "raw MJX vmap+scan", "simloader mjx"
+# the raw method each simloader method is compared with
+RAW_OF = {SIMLOADER_ROLLOUT: RAW_ROLLOUT, SIMLOADER_MJX: RAW_MJX}
+
+
+@dataclasses.dataclass(frozen=True)
+class Workload:
+    """`nbatch` trajectories of `nstep` steps of the model `name`."""
+
+    name: str
+    nbatch: int
+    nstep: int
+
+    @property
+    def steps(self) -> int:
+        return self.nbatch * self.nstep
+
+    def __str__(self) -> str:
+        return f"{self.name}:{self.nbatch}x{self.nstep}"
+
+
+def ctrl_bounds(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """Per-actuator (low, high) of uniform controls: `ctrlrange` if limited, else [-1, 1].
+
+    Written out here rather than taken from simloader's controls, so that the raw baselines
+    depend on MuJoCo alone; it is the default range of `simloader.controls.Uniform()`.
+    """
+    limited = model.actuator_ctrllimited.astype(bool)
+    low, high = -np.ones(model.nu), np.ones(model.nu)
+    low[limited] = model.actuator_ctrlrange[limited, 0]
+    high[limited] = model.actuator_ctrlrange[limited, 1]
+    return low, high
+
+
+def cpu_count() -> int:
+    """CPU cores this process may run on (what simloader's rollout backend uses)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def jax_has_gpu() -> bool:
+    """Whether JAX (if installed) sees a GPU; starts JAX."""
+    try:
+        import jax
+    except ImportError:
+        return False
+    return any(d.platform == "gpu" for d in jax.devices())
+
+
+# -- timing -----------------------------------------------------------------------------------
+
+def sync() -> None:
+    """Waits for all queued GPU work (every stream of the device: torch's and JAX's)."""
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def drain() -> None:
+    """Waits until the work already dispatched to the devices has run.
+
+    simloader's MJX producer dispatches batches ahead; those an iterator was closed on still
+    run on the device and would slow whatever is timed next. Devices run their work in order,
+    so a tiny computation on each, waited for, waits for them.
+    """
+    sync()
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        for device in jax.local_devices():
+            jax.block_until_ready(jax.device_put(0, device) + 1)
+
+
+def progress(iterable: Iterable, desc: str = "", total: Optional[int] = None) -> Iterable:
+    """A tqdm progress bar on stderr (sparse when stderr is a log file)."""
+    from tqdm import tqdm
+    return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr,
+                mininterval=1.0 if sys.stderr.isatty() else 30.0)
+
+
+def interleave(measures: dict[str, Callable[[], float]], repeats: int,
+               desc: str = "") -> dict[str, float]:
+    """The median of each measure's result, the measures run alternately `repeats` times.
+
+    Each measure times its own steady part (warm-up excluded) and returns seconds per
+    simulated step. The order is reversed every repetition, so that drift in the machine
+    (clocks, caches, other load) touches every measure alike.
+    """
+    times: dict[str, list[float]] = {name: [] for name in measures}
+    order = list(measures)
+    for rep in progress(range(repeats), desc=desc):
+        for name in order if rep % 2 == 0 else reversed(order):
+            times[name].append(measures[name]())
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
+def batches_for(batch_s: float, min_batches: int, min_seconds: float) -> int:
+    """Timed batches per repetition: `min_batches`, or more to last `min_seconds`."""
+    return max(min_batches, math.ceil(min_seconds / max(batch_s, 1e-9)))
+
+
+@dataclasses.dataclass
+class Stream:
+    """One pass over a dataset: `first_s` to the first batch, `steady_s` for the rest."""
+
+    first_s: float
+    steady_s: float
+    last: Optional[dict[str, torch.Tensor]] = None
+
+
+def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
+                keep_last: bool = False) -> Stream:
+    """Delivered throughput of a dataset: `nbatches` batches after the first, tensors in hand.
+
+    A fresh iterator per call: simloader's producer thread starts with it and stops at
+    `close`, and the device is drained, so nothing simulates while another measure runs. The
+    first batch, which pays for threads, compilation and the empty prefetch queue, is timed
+    apart; the steady part runs from holding the first batch to holding the last, blocked on
+    the device after each.
+    """
+    it = iter(ds)
+    try:
+        start = time.perf_counter()
+        batch = next(it)
+        sync()
+        first = time.perf_counter()
+        for _ in range(nbatches):
+            del batch  # release a (possibly multi-GB) batch before the next arrives
+            batch = next(it)
+            sync()
+        return Stream(first - start, time.perf_counter() - first, batch if keep_last else None)
+    finally:
+        it.close()
+        drain()
+
+
+# -- the raw baselines ------------------------------------------------------------------------
+
+def default_state(model: mujoco.MjModel) -> np.ndarray:
+    """The FULLPHYSICS state `mj_resetData` gives (simloader's `initial_state=None`)."""
+    data = mujoco.MjData(model)
+    state = np.empty(mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+    mujoco.mj_getState(model, data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    return state
+
+
+def python_loop(model: mujoco.MjModel, nstep: int, total_steps: int,
+                seed: int) -> Callable[[], float]:
+    """A measure (seconds per step) of one MjData stepped from Python.
+
+    Trajectories of `nstep` steps (`total_steps` in all, extrapolated per step), state and
+    sensors recorded after each step into preallocated arrays, as the batched methods record.
+    """
+    data = mujoco.MjData(model)
+    low, high = ctrl_bounds(model)
+    rng = np.random.default_rng(seed)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    state = np.empty((nstep, mujoco.mj_stateSize(model, spec)))
+    sensordata = np.empty((nstep, model.nsensordata))
+    ntraj = max(1, total_steps // nstep)
+    length = min(nstep, total_steps)
+
+    def measure() -> float:
+        start = time.perf_counter()
+        for _ in range(ntraj):
+            mujoco.mj_resetData(model, data)
+            control = rng.uniform(low, high, size=(length, model.nu))
+            for t in range(length):
+                data.ctrl[:] = control[t]
+                mujoco.mj_step(model, data)
+                mujoco.mj_getState(model, data, state[t], spec)
+                sensordata[t] = data.sensordata
+        return (time.perf_counter() - start) / (ntraj * length)
+
+    measure()  # warm-up
+    return measure
+
+
+def raw_rollout(model: mujoco.MjModel, w: Workload, nthread: int,
+                seed: int) -> tuple[Callable[[int], float], float]:
+    """A measure (seconds per step) of back-to-back `mujoco.rollout` calls, and the seconds
+    of one call.
+
+    One MjData per thread and a persistent thread pool, fresh uniform controls and fresh
+    output arrays every call (as simloader allocates a new tensor per batch).
+    """
+    datas = [mujoco.MjData(model) for _ in range(nthread)]
+    x0 = np.tile(default_state(model), (w.nbatch, 1))
+    low, high = ctrl_bounds(model)
+    rng = np.random.default_rng(seed)
+
+    def one_batch():
+        control = rng.uniform(low, high, size=(w.nbatch, w.nstep, model.nu))
+        return rollout.rollout(model, datas, x0, control, persistent_pool=True)
+
+    def measure(nbatches: int) -> float:
+        start = time.perf_counter()
+        for _ in range(nbatches):
+            state, sensordata = one_batch()
+            del state, sensordata
+        return (time.perf_counter() - start) / (nbatches * w.steps)
+
+    one_batch()  # warm-up: starts the pool, touches the code paths
+    return measure, measure(1) * w.steps
+
+
+class RawMjx:
+    """The raw MJX baseline: one jitted function per workload, `f(key, index) -> arrays`.
+
+    Attributes:
+      compile_s: seconds to trace and compile; first_s: to the first batch in hand;
+      batch_s: seconds of one (warm) batch; shapes: the output shapes.
+    """
+
+    def __init__(self, model: mujoco.MjModel, w: Workload, seed: int):
+        import jax
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        self.w = w
+        self.mx = mjx.put_model(model, impl="jax")
+        self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
+        self.key = jax.random.key(seed)
+        low, high = (jnp.asarray(b, jnp.float32) for b in ctrl_bounds(model))
+        step = jax.vmap(mjx.step, in_axes=(None, 0))
+        nbatch, nstep, nu = w.nbatch, w.nstep, model.nu
+
+        def batch(mx, d0, key, index):
+            ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
+                                      minval=low, maxval=high)
+            d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
+
+            def body(d, u):
+                d = step(mx, d.replace(ctrl=u))
+                state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
+                return d, (state, d.sensordata)
+
+            _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
+            # batch-major, as simloader delivers
+            return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
+                    "control": ctrl.swapaxes(0, 1)}
+
+        start = time.perf_counter()
+        # the same matmul precision as simloader's (JAX's GPU default is TF32)
+        with jax.default_matmul_precision("float32"):
+            self.fn = jax.jit(batch).lower(self.mx, self.d0, self.key, 0).compile()
+        self.compile_s = time.perf_counter() - start
+        self.index = 0
+        start = time.perf_counter()
+        out = self()
+        self.shapes = {k: tuple(v.shape) for k, v in out.items()}
+        del out
+        self.first_s = self.compile_s + time.perf_counter() - start
+        self.batch_s = self.measure(1) * w.steps
+
+    def __call__(self) -> dict[str, Any]:
+        import jax
+        out = self.fn(self.mx, self.d0, self.key, self.index)
+        self.index += 1
+        return jax.block_until_ready(out)
+
+    def measure(self, nbatches: int) -> float:
+        """Seconds per step of `nbatches` back-to-back blocked calls."""
+        start = time.perf_counter()
+        for _ in range(nbatches):
+            out = self()
+            del out
+        return (time.perf_counter() - start) / (nbatches * self.w.steps)
+
+
+# -- simloader, measured the same way ---------------------------------------------------------
+
+class SimloaderMeasure:
+    """A simloader dataset, warmed up by one pass (which compiles on MJX), then measured.
+
+    Attributes:
+      ds: the dataset; first_s: seconds to its first batch (compilation included);
+      compile_s: of which compiling; shapes, device: of the delivered batch.
+    """
+
+    def __init__(self, model: mujoco.MjModel, w: Workload, backend: str, seed: int,
+                 **options: Any):
+        import simloader  # imported late: benchmarks/ put their checkout first on sys.path
+        self.w = w
+        self.ds = simloader.SimDataset(model, backend=backend, nbatch=w.nbatch, nstep=w.nstep,
+                                       control=simloader.controls.Uniform(), seed=seed,
+                                       **options)
+        first = time_stream(self.ds, 0, keep_last=True)
+        self.first_s = first.first_s
+        self.compile_s = self.ds.stats.get("compile_s", 0.0)
+        self.shapes = {k: tuple(v.shape) for k, v in first.last.items()}
+        self.device = first.last["state"].device
+        del first
+
+    def measure(self, nbatches: int) -> float:
+        """Seconds per step of `nbatches` delivered batches after a fresh iterator's first."""
+        return time_stream(self.ds, nbatches).steady_s / (nbatches * self.w.steps)
+
+
+# -- tables and plots -------------------------------------------------------------------------
+
+def ns(seconds_per_step: float) -> str:
+    return f"{seconds_per_step * 1e9:,.1f}" if seconds_per_step < 1e-7 else \
+        f"{seconds_per_step * 1e9:,.0f}"
+
+
+def rate(steps_per_second: float) -> str:
+    return f"{steps_per_second / 1e6:,.2f}M"
+
+
+def ratio(x: Optional[float]) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A Markdown table, columns padded for reading in a terminal too."""
+    cells = [list(map(str, headers))] + [list(map(str, r)) for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    line = lambda r: "| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
+    return "\n".join([line(cells[0]), "| " + " | ".join("-" * w for w in widths) + " |"]
+                     + [line(r) for r in cells[1:]])
+
+
+HEADERS = ["workload", "nbatch x nstep", "method", "runs on", "ns/step", "steps/s",
+           "throughput / raw", "vs Python loop"]
+
+
+def method_rows(w: Workload, s_per_step: dict[str, float], runs_on: dict[str, str],
+                raw_of: dict[str, str], python: Optional[str]) -> list[list[str]]:
+    """Rows of `HEADERS`, one per method, in the order of `s_per_step`.
+
+    Args:
+      s_per_step: seconds per simulated step of each method.
+      runs_on: where each method runs ("16 cores", "NVIDIA H200").
+      raw_of: for a simloader method, the raw method it is compared to (throughput ratio).
+      python: the method that is the single-environment Python loop, for speed-ups.
+    """
+    base = s_per_step.get(python)
+    rows = []
+    for method, s in s_per_step.items():
+        raw = s_per_step.get(raw_of.get(method, method)) if method in raw_of or \
+            method in raw_of.values() else None
+        rows.append([w.name, f"{w.nbatch} x {w.nstep}", method, runs_on[method], ns(s),
+                     rate(1 / s), ratio(raw / s if raw else None),
+                     f"{base / s:,.1f}x" if base else "-"])
+    return rows
+
+
+def bar_plot(path: str, title: str, s_per_step: dict[str, float]) -> None:
+    """A horizontal bar chart of steps/s per method (log scale), raw baselines hatched."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(s_per_step)
+    fig, ax = plt.subplots(figsize=(7, 0.6 * len(names) + 1.5))
+    rates = [1 / s_per_step[n] for n in names]
+    raw = [n in RAW_OF.values() or n == PYTHON for n in names]
+    bars = ax.barh(names, rates, color=["lightgray" if r else "tab:blue" for r in raw],
+                   edgecolor=["dimgray" if r else "tab:blue" for r in raw],
+                   hatch=["//" if r else "" for r in raw])
+    for value, bar in zip(rates, bars):
+        ax.annotate(f" {value:,.3g}", (bar.get_width(), bar.get_y() + bar.get_height() / 2),
+                    va="center")
+    ax.set_xscale("log")
+    # log-scale bars start at the left edge: put it well below the slowest, so lengths compare
+    ax.set_xlim(min(rates) / 10, max(rates) * 3)
+    ax.invert_yaxis()
+    ax.set_xlabel("simulated steps per second (log)")
+    ax.set_title(title)
+    ax.grid(True, axis="x", which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# -- `simloader bench` ------------------------------------------------------------------------
+
+def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repeats: int = 3,
+            min_batches: int = 3, min_seconds: float = 2.0, python_steps: int = 5000,
+            seed: int = 0) -> tuple[dict[str, float], dict[str, str], list[str]]:
+    """Measures the chosen backends next to their raw simulators and a Python loop.
+
+    Returns:
+      (seconds per step of each method, where each runs, notes).
+    """
+    measures: dict[str, Callable[[], float]] = {}
+    runs_on = {PYTHON: "1 core"}
+    notes = []
+    for backend in backends:
+        if backend == "rollout":
+            raw, batch_s = raw_rollout(model, w, cpu_count(), seed)
+            sim = SimloaderMeasure(model, w, "rollout", seed)
+            n = batches_for(batch_s, min_batches, min_seconds)
+            measures[RAW_ROLLOUT] = lambda raw=raw, n=n: raw(n)
+            measures[SIMLOADER_ROLLOUT] = lambda sim=sim, n=n: sim.measure(n)
+            runs_on[RAW_ROLLOUT] = runs_on[SIMLOADER_ROLLOUT] = f"{cpu_count()} cores"
+        elif backend == "mjx":
+            import jax
+            raw_mjx = RawMjx(model, w, seed)
+            sim = SimloaderMeasure(model, w, "mjx", seed)
+            n = batches_for(raw_mjx.batch_s, min_batches, min_seconds)
+            measures[RAW_MJX] = lambda raw_mjx=raw_mjx, n=n: raw_mjx.measure(n)
+            measures[SIMLOADER_MJX] = lambda sim=sim, n=n: sim.measure(n)
+            runs_on[RAW_MJX] = runs_on[SIMLOADER_MJX] = jax.devices()[0].device_kind
+            notes.append(f"mjx: compiled in {raw_mjx.compile_s:.1f} s (raw) and "
+                         f"{sim.compile_s:.1f} s (simloader, first batch after "
+                         f"{sim.first_s:.1f} s)")
+        else:
+            raise ValueError(f"backends: expected 'rollout' or 'mjx', got {backend!r}")
+    measures[PYTHON] = python_loop(model, w.nstep, python_steps, seed)
+    return interleave(measures, repeats, desc=f"{w} x{repeats}"), runs_on, notes
