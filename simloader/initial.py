@@ -102,7 +102,10 @@ class InitialPlan:
         self.model = model
         self.nstate = mujoco.mj_stateSize(model, layout.FULLPHYSICS)
         self.generator: Optional[InitialStateGenerator] = None
-        if initial_state is None or isinstance(initial_state, str):
+        # the states come from the model (defaults or this keyframe), so each model has its own
+        self.from_model = initial_state is None or isinstance(initial_state, str)
+        self.keyframe = initial_state if isinstance(initial_state, str) else None
+        if self.from_model:
             # per model: each trajectory starts from its own model's defaults or keyframe
             rows = np.stack([keyframe_state(m, initial_state) for m in (models or [model])])
             self.fixed = np.broadcast_to(rows, (nbatch, self.nstate)).copy()

@@ -20,7 +20,6 @@ mjx = pytest.importorskip("mujoco.mjx")
 import jax  # noqa: E402  (after the skip: JAX comes with MJX)
 
 import simloader  # noqa: E402
-import simloader.randomize  # noqa: E402
 from simloader import controls  # noqa: E402
 from simloader.backends import mjx as mjx_backend  # noqa: E402
 
@@ -65,12 +64,6 @@ def c_rollout(models, x0, control=None, spec=int(S.mjSTATE_CTRL), nstep=None):
     return rollout.rollout(models, mujoco.MjData(model), np.asarray(x0, np.float64),
                            None if control is None else np.asarray(control, np.float64),
                            control_spec=spec, nstep=nstep)
-
-
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    # process-wide: JAX takes the directory set before its first compilation
-    return str(tmp_path_factory.mktemp("jax-cache"))
 
 
 @pytest.fixture(scope="module")
@@ -374,15 +367,6 @@ def test_bad_input_fails_at_construction(cartpole, kwargs, error, message):
     with pytest.raises(error) as info:
         simloader.SimDataset(kwargs.pop("model"), backend="mjx", nbatch=2, nstep=2, **kwargs)
     assert str(info.value) == message
-
-
-def test_randomization_specs_are_refused_until_mjx_supports_them(cartpole):
-    spec = [simloader.randomize.scale("body_mass", simloader.randomize.Uniform(0.5, 2.0),
-                                      on="pole")]
-    with pytest.raises(ValueError) as info:
-        simloader.SimDataset(cartpole, backend="mjx", nbatch=2, nstep=2, randomize=spec)
-    assert str(info.value) == ("randomize: backend='mjx' takes a list of MjModel (one per "
-                               "trajectory); randomization specs run on backend='rollout'")
 
 
 def test_models_differing_in_a_compiled_in_field_are_refused(cartpole):

@@ -22,6 +22,7 @@ import torch
 from mujoco import batch as mj_batch
 
 from simloader import handoff, layout, resume, sharding
+from simloader import randomize as dr
 from simloader.backends.base import Backend
 
 
@@ -110,7 +111,7 @@ class RolloutBackend(Backend):
         c = self.config
         seed = self.seed(index, sharding.RANDOMIZE)
         if c.variants is not None:
-            draw = np.random.default_rng(seed).integers(len(c.variants), size=c.nbatch)
+            draw = dr.draw_variants(seed, len(c.variants), c.nbatch)
             self.variant[fresh] = draw[fresh]
             self.batch.set_models([c.variants[i] for i in self.variant])
             self.params["variant"] = self.variant
