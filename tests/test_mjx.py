@@ -207,6 +207,10 @@ class WithRunaway(simloader.initial.InitialStateGenerator):
 
 @pytest.fixture(scope="module")
 def pole_masses():
+    return pole_mass_models()
+
+
+def pole_mass_models():
     spec = mujoco.MjSpec.from_file(str(simloader.builtin_path("cartpole")))
     models = []
     for mass in (0.1, 0.2, 0.3):
@@ -215,13 +219,18 @@ def pole_masses():
     return models
 
 
+def continued_kwargs(pole_masses, cache_dir):
+    """A model list, continuing episodes, generated forces, one runaway trajectory."""
+    return dict(nbatch=3, nstep=20, num_batches=3, randomize=pole_masses,
+                continue_episodes=True, initial_state=WithRunaway(), control_spec=CTRL_XFRC,
+                control={"xfrc_applied": controls.Normal(std=1.0, on="pole")},
+                compilation_cache=cache_dir)
+
+
 @pytest.fixture(scope="module")
 def continued(pole_masses, cache_dir):
-    ds = simloader.SimDataset(
-        pole_masses[0], backend="mjx", nbatch=3, nstep=20, num_batches=3, randomize=pole_masses,
-        continue_episodes=True, initial_state=WithRunaway(), control_spec=CTRL_XFRC,
-        control={"xfrc_applied": controls.Normal(std=1.0, on="pole")},
-        compilation_cache=cache_dir)
+    ds = simloader.SimDataset(pole_masses[0], backend="mjx",
+                              **continued_kwargs(pole_masses, cache_dir))
     return ds, list(ds)
 
 
@@ -229,7 +238,7 @@ def test_continued_chunks_concatenate_to_one_rollout_of_each_model(pole_masses, 
     _, batches = continued
     ok = [0, 1]
     for prev, nxt in zip(batches, batches[1:]):
-        # exactly where the previous chunk ended (the whole mjx.Data is carried)
+        # exactly where the previous chunk ended
         np.testing.assert_array_equal(host(nxt["initial_state"])[ok], host(prev["state"])[ok, -1])
     control = np.concatenate([host(b["control"]) for b in batches], axis=1)
     state, sensordata = c_rollout(pole_masses[:2], host(batches[0]["initial_state"])[ok],

@@ -22,7 +22,7 @@ from simloader import controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 from simloader.backends import mjx_randomize, mjx_setconst  # noqa: E402
 from test_mjx import CONTACT_FREE_TOL, c_rollout, host, traces  # noqa: E402
-from test_randomize import SPEC, equivalent_models  # noqa: E402
+from test_randomize import SPEC, equivalent_models, pole_variant  # noqa: E402
 
 # mj_setConst's constants from float32 kinematics and a float32 Cholesky of M at qpos0,
 # relative to MuJoCo's float64 (measured: 4e-6 on the humanoid)
@@ -218,16 +218,6 @@ def mjx_backend_programs(ds):
 # --- structural variants, continuing, one trajectory diverging in every batch ---
 
 DIVERGING = 2
-
-
-def pole_variant(spec, rng):
-    """A pole of another length, whose hinge reads `ref` when upright: variants differ in
-    qpos0, so each must start from its own default state."""
-    length = rng.uniform(0.5, 1.5)
-    spec.geom("pole").fromto = [0, 0, 0, 0, 0, length]
-    spec.site("tip").pos = [0, 0, length]
-    spec.joint("hinge").ref = rng.uniform(-0.5, 0.5)
-    return spec
 
 
 def variant_kwargs(cache_dir):

@@ -20,6 +20,16 @@ SPEC = [
 ]
 
 
+def pole_variant(spec, rng):
+    """A pole of another length, whose hinge reads `ref` when upright: variants differ in
+    qpos0, so each must start from its own default state."""
+    length = rng.uniform(0.5, 1.5)
+    spec.geom("pole").fromto = [0, 0, 0, 0, 0, length]
+    spec.site("tip").pos = [0, 0, length]
+    spec.joint("hinge").ref = rng.uniform(-0.5, 0.5)
+    return spec
+
+
 def make(nbatch=64, nstep=20, randomize=SPEC, **kwargs):
     return simloader.SimDataset("cartpole", backend="rollout", nbatch=nbatch, nstep=nstep,
                                 control=controls.Uniform(), randomize=randomize, nthread=2,

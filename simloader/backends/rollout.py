@@ -51,8 +51,7 @@ class RolloutBackend(Backend):
         self.expanded = {} if c.randomization is None else {
             r.field: self.batch.expand(r.field).reshape(c.nbatch, -1)
             for r in c.randomization.resolved}
-        self.params: dict[str, np.ndarray] = {}
-        self.variant = np.zeros(c.nbatch, dtype=np.int64)
+        self.params: dict[str, np.ndarray] = {}  # what each trajectory runs with
         models = c.models or [c.model]
         # each row as mj_resetData leaves it (user inputs, zero warmstart), per model
         self.template_rows = np.ascontiguousarray(np.broadcast_to(
@@ -110,21 +109,26 @@ class RolloutBackend(Backend):
         """Draws model parameters (or variants) for the trajectories that start afresh."""
         c = self.config
         seed = self.seed(index, sharding.RANDOMIZE)
+        values = {}
         if c.variants is not None:
-            draw = dr.draw_variants(seed, len(c.variants), c.nbatch)
-            self.variant[fresh] = draw[fresh]
-            self.batch.set_models([c.variants[i] for i in self.variant])
-            self.params["variant"] = self.variant
+            values["variant"] = dr.draw_variants(seed, len(c.variants), c.nbatch)
+        if c.randomization is not None:
+            values.update(c.randomization.sample(seed, c.nbatch))
+        self._set_params(values, fresh)
+
+    def _set_params(self, values: dict[str, np.ndarray], rows: np.ndarray) -> None:
+        """Trajectories `rows` run with their `values` ({key: (nbatch, ...)}) from now on."""
+        c = self.config
+        for key, value in values.items():
+            self.params.setdefault(key, np.empty_like(value))[rows] = value[rows]
+        if c.variants is not None:
+            self.batch.set_models([c.variants[i] for i in self.params["variant"]])
         if c.randomization is None:
             return
-        values = c.randomization.sample(seed, c.nbatch)
         for r in c.randomization.resolved:
-            key = r.param.key
-            current = self.params.setdefault(key, np.empty_like(values[key]))
-            current[fresh] = values[key][fresh]
-            self.expanded[r.field][np.ix_(fresh, r.elements)] = values[key][fresh]
+            self.expanded[r.field][np.ix_(rows, r.elements)] = self.params[r.param.key][rows]
         if c.randomization.setconst:  # constants MuJoCo derives from the changed fields
-            self.batch.set_const(None if len(fresh) == c.nbatch else fresh)
+            self.batch.set_const(None if len(rows) == c.nbatch else rows)
 
     def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -152,11 +156,15 @@ class RolloutBackend(Backend):
         if not self.config.continue_episodes:
             return None
         return {"rows": resume.encode_array(produced.rows_after),
-                "fresh": resume.encode_array(produced.warned)}
+                "fresh": resume.encode_array(produced.warned),
+                "params": {k: resume.encode_array(v.numpy()) for k, v in produced.params.items()}}
 
     def restore(self, trajectories: dict) -> None:
         self.batch.state[...] = resume.decode_array(trajectories["rows"])
         self.fresh = resume.decode_array(trajectories["fresh"])
+        # the trajectories that continue run on the models they ran on
+        params = {k: resume.decode_array(v) for k, v in trajectories["params"].items()}
+        self._set_params(params, np.arange(self.config.nbatch))
 
     def close(self) -> None:
         # drops the batch's thread pool now rather than at garbage collection
