@@ -37,6 +37,11 @@ def keyframe_state(model: mujoco.MjModel, name: Optional[str]) -> np.ndarray:
     return state
 
 
+def default_states(models: Sequence[mujoco.MjModel], name: Optional[str]) -> np.ndarray:
+    """(len(models), nstate): each model's `keyframe_state` (model lists, variants)."""
+    return np.stack([keyframe_state(m, name) for m in models])
+
+
 class InitialStateGenerator(abc.ABC):
     """Base class of initial-state generators: `sample(model, rng, nbatch) -> (nbatch, nstate)`."""
 
@@ -107,7 +112,7 @@ class InitialPlan:
         self.keyframe = initial_state if isinstance(initial_state, str) else None
         if self.from_model:
             # per model: each trajectory starts from its own model's defaults or keyframe
-            rows = np.stack([keyframe_state(m, initial_state) for m in (models or [model])])
+            rows = default_states(models or [model], initial_state)
             self.fixed = np.broadcast_to(rows, (nbatch, self.nstate)).copy()
         elif isinstance(initial_state, InitialStateGenerator):
             initial_state.check(model)

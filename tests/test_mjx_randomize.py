@@ -243,6 +243,9 @@ def test_variants_drawn_as_on_the_rollout_backend_once_per_episode(variants, cac
     first = host(batches[0]["params"]["variant"])
     np.testing.assert_array_equal(first, reference["params"]["variant"].numpy())
     assert batches[0]["params"]["variant"].dtype == reference["params"]["variant"].dtype
+    # the same initial states: each variant's own defaults on both backends
+    np.testing.assert_array_equal(host(batches[0]["initial_state"]),
+                                  reference["initial_state"].numpy().astype(np.float32))
     ok = np.arange(4) != DIVERGING
     for index, batch in enumerate(batches):
         variant = host(batch["params"]["variant"])

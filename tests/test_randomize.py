@@ -145,6 +145,18 @@ def test_variants_pool_sampled_per_trajectory():
     np.testing.assert_array_equal(batch["state"].numpy(), state)
 
 
+def test_each_variant_starts_from_its_own_defaults():
+    ds = make(nbatch=8, randomize=dr.Variants(pole_variant, count=4))
+    batch = next(iter(ds))
+    pool = [ds.config.variants[v] for v in batch["params"]["variant"].numpy()]
+    assert len({m.qpos0[1] for m in pool}) > 1  # the variants' default states differ
+    np.testing.assert_array_equal(batch["initial_state"].numpy(),
+                                  simloader.initial.default_states(pool, None))
+    state, _ = rollout.rollout(pool, [mujoco.MjData(pool[0]) for _ in range(2)],
+                               batch["initial_state"].numpy(), batch["control"].numpy())
+    np.testing.assert_array_equal(batch["state"].numpy(), state)
+
+
 def test_variants_of_different_sizes_are_rejected():
     def extra_body(spec, rng):
         if rng.uniform() < 2:  # always

@@ -443,13 +443,12 @@ class _Program:
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64
         # per model of the pool (variants too): the inputs and states mj_resetData leaves
         pool = _pool(c)
-        inputs0 = np.stack([layout.reset_state(m, _MODEL_INPUTS) for m in pool]).astype(
-            self.dtype)
+        inputs0 = layout.reset_rows(pool, _MODEL_INPUTS).astype(self.dtype)
         self.inputs0 = jax.device_put(inputs0 if len(pool) > 1 else inputs0[0], device)
         if c.control.fixed is not None:
             constant = c.control.fixed
         elif c.variants is not None:
-            constant = np.stack([layout.reset_state(m, c.control_spec) for m in c.variants])
+            constant = layout.reset_rows(c.variants, c.control_spec)
         else:
             constant = c.control.default_rows
         self.control = jax.device_put(constant.astype(self.dtype), device)
@@ -457,7 +456,7 @@ class _Program:
         if c.initial.generator is not None:
             x0 = None
         elif c.variants is not None and c.initial.from_model:
-            x0 = np.stack([initial.keyframe_state(m, c.initial.keyframe) for m in c.variants])
+            x0 = initial.default_states(c.variants, c.initial.keyframe)
         else:
             x0 = c.initial.fixed
         self.x0 = None if x0 is None else jax.device_put(x0.astype(self.dtype), device)
