@@ -1,7 +1,10 @@
 """Domain randomization on the MJX backend: JAX draws that follow the declared distributions,
 derived constants against mj_setConst, float32 parity with MuJoCo C on the equivalent models,
 structural variants, one compilation, refusals. Each configuration compiles once (seconds on
-the CPU), so each is a module-scoped fixture shared by several tests.
+the CPU), so each is a module-scoped fixture shared by several tests, and both continue
+episodes with one trajectory restarting in every batch: a restart is where values are drawn
+(every batch for every trajectory without `continue_episodes`), and tests/test_mjx_resume.py
+resumes the same configurations.
 """
 
 import copy
@@ -21,13 +24,13 @@ import simloader  # noqa: E402
 from simloader import controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 from simloader.backends import mjx_randomize, mjx_setconst  # noqa: E402
-from test_mjx import CONTACT_FREE_TOL, c_rollout, host, traces  # noqa: E402
+from test_mjx import (RUNAWAY, CONTACT_FREE_TOL, WithRunaway, c_rollout, host,  # noqa: E402
+                      traces)
 from test_randomize import SPEC, equivalent_models, pole_variant  # noqa: E402
 
 # mj_setConst's constants from float32 kinematics and a float32 Cholesky of M at qpos0,
 # relative to MuJoCo's float64 (measured: 4e-6 on the humanoid)
 SETCONST_RTOL = 1e-4
-NSTEP = 60  # contact-free steps within CONTACT_FREE_TOL of MuJoCo C
 
 
 # --- the JAX draws follow the declared distributions (no simulation) ---
@@ -137,19 +140,23 @@ def test_derived_constants_match_mj_set_const(which, cartpole, humanoid_path):
                                    err_msg=field)
 
 
-# --- a randomized cartpole (mass, damping, gain, gravity), fresh every batch ---
+# --- a randomized cartpole (mass, damping, gain, gravity), continuing episodes, one runaway
+#     trajectory that restarts (with fresh values) in every batch ---
 
 @pytest.fixture(scope="module")
 def cartpole():
     return simloader.load_model("cartpole")
 
 
+def params_kwargs(cache_dir):
+    return dict(nbatch=8, nstep=20, num_batches=3, seed=3, control=controls.Uniform(),
+                randomize=SPEC, initial_state=WithRunaway(), continue_episodes=True,
+                compilation_cache=cache_dir)
+
+
 @pytest.fixture(scope="module")
 def randomized(cache_dir):
-    ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=16, nstep=NSTEP, seed=3,
-                              control=controls.Uniform(), num_batches=2, randomize=SPEC,
-                              initial_state=simloader.initial.Perturbed(),
-                              compilation_cache=cache_dir)
+    ds = simloader.SimDataset("cartpole", backend="mjx", **params_kwargs(cache_dir))
     with traces() as seen:
         epochs = [list(ds), list(ds)]
     return ds, epochs, len(seen)
@@ -157,7 +164,7 @@ def randomized(cache_dir):
 
 def test_one_compilation_over_batches_and_epochs(randomized):
     ds, epochs, ntraces = randomized
-    assert ntraces == 1 and ds.stats["compiles"] == 1 and ds.stats["batches"] == 4
+    assert ntraces == 1 and ds.stats["compiles"] == 1 and ds.stats["batches"] == 6
     # the same seed gives the same stream, draws included
     for a, b in zip(*epochs):
         for key in a["params"]:
@@ -166,53 +173,57 @@ def test_one_compilation_over_batches_and_epochs(randomized):
 
 def test_params_as_the_rollout_backend_returns_them(randomized, cartpole):
     _, (batches, _), _ = randomized
-    ref = simloader.SimDataset("cartpole", backend="rollout", nbatch=16, nstep=1, num_batches=1,
+    ref = simloader.SimDataset("cartpole", backend="rollout", nbatch=8, nstep=1, num_batches=1,
                                randomize=SPEC, nthread=1)
     expected = next(iter(ref))["params"]
     for batch in batches:
         params = batch["params"]
         assert list(params) == list(expected)  # same keys, in the spec's order
         for key, value in params.items():
-            assert value.shape == expected[key].shape == (16, 1)
+            assert value.shape == expected[key].shape == (8, 1)
             assert value.dtype == torch.float32  # the backend's native precision
         mass = host(params["body_mass[pole]"])[:, 0] / cartpole.body("pole").mass[0]
         assert mass.min() >= 0.5 - 1e-6 and mass.max() <= 2.0 + 1e-6
-        assert len(np.unique(mass)) == 16  # distinct per trajectory
+        assert len(np.unique(mass)) == 8  # distinct per trajectory
         gain = host(params["actuator_gainprm[push]"])
         assert gain.min() >= 5.0 and gain.max() <= 15.0
-    # fresh every batch
-    assert not np.any(host(batches[0]["params"]["body_mass[pole]"])
-                      == host(batches[1]["params"]["body_mass[pole]"]))
 
 
-def test_matches_mujoco_on_the_equivalent_models(randomized, cartpole):
+def test_values_last_an_episode_and_a_restart_draws_fresh_ones(randomized):
     _, (batches, _), _ = randomized
-    for batch in batches:
-        params = {k: host(v).astype(np.float64) for k, v in batch["params"].items()}
-        state, sensordata = c_rollout(equivalent_models(cartpole, params),
-                                      host(batch["initial_state"]), host(batch["control"]))
-        np.testing.assert_allclose(host(batch["state"]), state, rtol=0, atol=CONTACT_FREE_TOL)
-        np.testing.assert_allclose(host(batch["sensordata"]), sensordata, rtol=0,
-                                   atol=CONTACT_FREE_TOL)
-        # the parameters matter: the unrandomized model is far from it
-        base, _ = c_rollout(cartpole, host(batch["initial_state"]), host(batch["control"]))
-        assert np.abs(base - state).max(axis=(1, 2)).min() > 10 * CONTACT_FREE_TOL
+    ok = np.arange(8) != RUNAWAY
+    for prev, nxt in zip(batches, batches[1:]):
+        np.testing.assert_array_equal(host(nxt["diverged"]), ~ok)
+        for key in prev["params"]:
+            before, after = host(prev["params"][key]), host(nxt["params"][key])
+            np.testing.assert_array_equal(after[ok], before[ok])
+            assert np.all(after[RUNAWAY] != before[RUNAWAY]), key  # a new batch's draw
+
+
+def test_chunks_match_mujoco_on_the_equivalent_models(randomized, cartpole):
+    _, (batches, _), _ = randomized
+    ok = np.flatnonzero(np.arange(8) != RUNAWAY)
+    params = {k: host(v)[ok].astype(np.float64) for k, v in batches[0]["params"].items()}
+    control = np.concatenate([host(b["control"]) for b in batches], axis=1)[ok]
+    x0 = host(batches[0]["initial_state"])[ok]
+    state, sensordata = c_rollout(equivalent_models(cartpole, params), x0, control)
+    np.testing.assert_allclose(np.concatenate([host(b["state"])[ok] for b in batches], 1), state,
+                               rtol=0, atol=CONTACT_FREE_TOL)
+    np.testing.assert_allclose(np.concatenate([host(b["sensordata"])[ok] for b in batches], 1),
+                               sensordata, rtol=0, atol=CONTACT_FREE_TOL)
+    # the parameters matter: the unrandomized model is far from it
+    base, _ = c_rollout(cartpole, x0, control)
+    assert np.abs(base - state).max(axis=(1, 2)).min() > 10 * CONTACT_FREE_TOL
 
 
 def test_only_the_randomized_and_derived_fields_are_batched(randomized):
     ds, _, _ = randomized
-    program = next(iter(mjx_backend_programs(ds)))
-    axes = program.randomizer.axes
-    batched = {jax.tree_util.keystr(path) for path, axis in
-               jax.tree_util.tree_flatten_with_path(axes)[0] if axis == 0}
-    expected = {".body_mass", ".dof_damping", ".actuator_gainprm", ".opt.gravity"} | {
-        f".{f}" for f in mjx_setconst.OUTPUTS}
-    assert batched == expected
-
-
-def mjx_backend_programs(ds):
     from simloader.backends import mjx as mjx_backend
-    return mjx_backend._PROGRAMS[ds.config].values()
+    program, = mjx_backend._PROGRAMS[ds.config].values()
+    batched = {jax.tree_util.keystr(path) for path, axis in
+               jax.tree_util.tree_flatten_with_path(program.randomizer.axes)[0] if axis == 0}
+    assert batched == {".body_mass", ".dof_damping", ".actuator_gainprm", ".opt.gravity"} | {
+        f".{f}" for f in mjx_setconst.OUTPUTS}
 
 
 # --- structural variants, continuing, one trajectory diverging in every batch ---
