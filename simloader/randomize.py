@@ -15,10 +15,14 @@ One line per randomized parameter, objects addressed by name:
 Values are drawn fresh for every batch (with `continue_episodes`, once per episode). `set`
 replaces the model's value, `scale` multiplies it, `add` adds to it. Fields that MuJoCo derives
 constants from (`mj_setConst` inputs such as body masses and inertias, and `opt.*`) have those
-constants recomputed per trajectory on the CPU backend.
+constants recomputed per trajectory. The CPU backend draws with NumPy (`sample`) and randomizes
+any floating-point field; the MJX backend draws with `jax.random` inside its jitted function
+(`sample_jax`: same distributions, other numbers) and randomizes the fields listed in
+`simloader.backends.mjx_randomize`.
 
 Structural variants (geometry sizes, meshes) go through `Variants(fn, count)`: `fn(spec, rng)`
-edits an `MjSpec`, compiled into a pool of `count` models sampled per trajectory.
+edits an `MjSpec`, compiled into a pool of `count` models sampled per trajectory
+(`draw_variants`, on the host for both backends).
 """
 
 from __future__ import annotations

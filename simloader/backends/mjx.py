@@ -14,6 +14,12 @@ here as MuJoCo checks it (|qpos|, |qvel|, |qacc| within mjMAXVAL, all finite) pl
 a trajectory that fails is flagged in `diverged` and, as in MuJoCo, continues from the state
 `mj_resetData` leaves: no NaN is delivered, and the others are bit-identical to a run without it.
 
+A model list or a variant pool is one mjx.Model batched only where the models differ; a
+randomization spec is drawn and applied inside the batch function (`mjx_randomize`). With
+`continue_episodes` a batch hands the next only what a step reads of the previous one (physics
+state, solver warmstart) and the randomized values: the next batch resets its rows and sets
+these back, which is exact and keeps checkpoints small.
+
 `produce` only dispatches (JAX runs asynchronously); `deliver` waits for the results and hands
 every output to torch through DLPack: the delivered tensors are the JAX buffers, on the torch
 device of the JAX device (`cuda:k` for JAX GPU k). They are fresh buffers for every batch, but
@@ -257,6 +263,11 @@ def _pool(config: SimConfig) -> tuple[mujoco.MjModel, ...]:
     return config.models or config.variants or (config.model,)
 
 
+def _pooled(config: SimConfig) -> bool:
+    """Whether trajectories pick their model from a pool (per-model inputs, one row each)."""
+    return config.models is not None or config.variants is not None
+
+
 def _static_difference(a: Any, b: Any, path: str) -> str:
     """The first non-array field (compiled in) where two mjx.Models differ, as a path."""
     if isinstance(a, jax.Array):
@@ -307,9 +318,10 @@ def _simulator(c: SimConfig, model_axes: Any, pool_axes: Any,
       seeds: (2, 2) uint32, this batch's CONTROL and RANDOMIZE seeds.
       variant: with variants, (nbatch,) int32 each trajectory's variant (drawn on the host as
         the rollout backend draws it); None otherwise.
-      carry, restart: with `continue_episodes`, what the previous batch left (`_carry`: the
-        last state, the solver warmstart and the randomized values) and the (nbatch,) bool
-        rows to restart from `x0` with fresh values instead; None otherwise.
+      carry, restart: with `continue_episodes`, what the previous batch left ({"state":
+        (nbatch, nstate) after its last step, "qacc_warmstart": (nbatch, nv), "params": the
+        randomized values and variants}) and the (nbatch,) bool rows to restart from `x0`
+        with fresh values instead; None otherwise.
 
     It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
     the carry for the next batch.
@@ -319,7 +331,7 @@ def _simulator(c: SimConfig, model_axes: Any, pool_axes: Any,
     nbatch, nstep, control_spec, drivers = c.nbatch, c.nstep, c.control_spec, c.control.drivers
     given = c.control.fixed is not None or bool(drivers)  # control=None leaves inputs alone
     shape = (nbatch, nstep, c.ncontrol)
-    per_model, continuing = len(_pool(c)) > 1, c.continue_episodes
+    per_model, continuing = _pooled(c), c.continue_episodes
     variants, fixed_control = c.variants is not None, c.control.fixed is not None
     x0_per_variant = variants and c.initial.from_model
 
@@ -368,7 +380,7 @@ def _simulator(c: SimConfig, model_axes: Any, pool_axes: Any,
         params = {}  # the values each trajectory runs with, delivered in `params`
         if variants:
             if continuing:
-                variant = _restarted(restart, variant, carry["variant"])
+                variant = _restarted(restart, variant, carry["params"]["variant"])
             m = mjx_randomize.gather(m, pool_axes, variant)
             inputs0 = inputs0[variant]
             control = control if fixed_control else control[variant]
@@ -417,19 +429,10 @@ def _simulator(c: SimConfig, model_axes: Any, pool_axes: Any,
             outputs["params"] = params
         if not continuing:
             return outputs, None
-        return outputs, _carry(state[-1], data.qacc_warmstart, params)
+        return outputs, {"state": state[-1], "qacc_warmstart": data.qacc_warmstart,
+                         "params": params}
 
     return simulate
-
-
-def _carry(state: Any, qacc_warmstart: Any, params: dict[str, Any]) -> dict[str, Any]:
-    """What a continuing batch hands to the next: the (nbatch, nstate) physics state after its
-    last step, the (nbatch, nv) solver warmstart, the randomized values and the variants."""
-    carry = {"state": state, "qacc_warmstart": qacc_warmstart,
-             "params": {k: v for k, v in params.items() if k != "variant"}}
-    if "variant" in params:
-        carry["variant"] = params["variant"]
-    return carry
 
 
 class _Program:
@@ -444,7 +447,7 @@ class _Program:
         # per model of the pool (variants too): the inputs and states mj_resetData leaves
         pool = _pool(c)
         inputs0 = layout.reset_rows(pool, _MODEL_INPUTS).astype(self.dtype)
-        self.inputs0 = jax.device_put(inputs0 if len(pool) > 1 else inputs0[0], device)
+        self.inputs0 = jax.device_put(inputs0 if _pooled(c) else inputs0[0], device)
         if c.control.fixed is not None:
             constant = c.control.fixed
         elif c.variants is not None:
@@ -473,13 +476,13 @@ class _Program:
         self.lock = threading.Lock()
 
     def initial_carry(self, c: SimConfig) -> Any:
-        """A `_carry` of the right shapes for the first batch, which restarts every row."""
+        """A carry of the right shapes for the first batch, which restarts every row."""
         zeros = lambda *shape: np.zeros((c.nbatch, *shape), self.dtype)  # noqa: E731
         params = ({} if self.randomizer is None else
                   {r.param.key: zeros(len(r.elements)) for r in self.randomizer.plan.resolved})
         if c.variants is not None:
             params["variant"] = np.zeros(c.nbatch, np.int32)
-        return _carry(zeros(c.nstate), zeros(c.model.nv), params)
+        return {"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv), "params": params}
 
     def compile(self, args: tuple, stats: Stats) -> Callable:
         """The compiled batch function, compiled (or loaded from JAX's cache) on first use."""
@@ -504,7 +507,7 @@ _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 class _Produced:
     outputs: dict[str, Any]  # arrays (and the `params` dict), dispatched, maybe not ready yet
     dispatched: float  # time.perf_counter() at dispatch
-    carry: Any = None  # continue_episodes: what the next batch continues from (`_carry`)
+    carry: Any = None  # continue_episodes: what the next batch continues from
 
 
 class MjxBackend(Backend):
@@ -594,23 +597,19 @@ class MjxBackend(Backend):
         if not self.config.continue_episodes:
             return None
         carry = produced.carry
-        saved = {"state": carry["state"], "qacc_warmstart": carry["qacc_warmstart"],
-                 "restart": produced.outputs["diverged"]}
-        if "variant" in carry:
-            saved["variant"] = carry["variant"]
-        out = {k: resume.encode_array(np.asarray(v)) for k, v in saved.items()}
-        out["params"] = {k: resume.encode_array(np.asarray(v))
-                         for k, v in carry["params"].items()}
-        return out
+        return {"state": resume.encode_array(np.asarray(carry["state"])),
+                "qacc_warmstart": resume.encode_array(np.asarray(carry["qacc_warmstart"])),
+                "restart": resume.encode_array(np.asarray(produced.outputs["diverged"])),
+                "params": {k: resume.encode_array(np.asarray(v))
+                           for k, v in carry["params"].items()}}
 
     def restore(self, trajectories: dict[str, Any]) -> None:
-        decoded = {k: resume.decode_array(v) for k, v in trajectories.items() if k != "params"}
-        params = {k: resume.decode_array(v) for k, v in trajectories["params"].items()}
-        if "variant" in decoded:
-            params["variant"] = decoded["variant"]
-        self.carry = jax.device_put(_carry(decoded["state"], decoded["qacc_warmstart"], params),
-                                    self.device)
-        self.restart = decoded["restart"]
+        carry = {"state": resume.decode_array(trajectories["state"]),
+                 "qacc_warmstart": resume.decode_array(trajectories["qacc_warmstart"]),
+                 "params": {k: resume.decode_array(v)
+                            for k, v in trajectories["params"].items()}}
+        self.carry = jax.device_put(carry, self.device)
+        self.restart = resume.decode_array(trajectories["restart"])
 
     def close(self) -> None:
         # batches already dispatched but never delivered would otherwise keep the GPU busy
