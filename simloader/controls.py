@@ -403,8 +403,7 @@ class ControlPlan:
         self.components = layout.control_layout(model, control_spec)
         self.ncontrol = mujoco.mj_stateSize(model, control_spec)
         # (nbatch or 1, ncontrol): per model, since mocap poses come from each model's body_pos
-        self.default_rows = np.stack([layout.reset_state(m, control_spec)
-                                      for m in (models or [model])])
+        self.default_rows = layout.reset_rows(models or [model], control_spec)
         self.fixed: Optional[np.ndarray] = None
         self.drivers: tuple[Driver, ...] = ()
         if control is None:
@@ -452,12 +451,14 @@ class ControlPlan:
                                           gen.params(model, comp, cols)))
         return tuple(drivers)
 
-    def sample_numpy(self, seed: np.random.SeedSequence, out: np.ndarray) -> None:
-        """Fills `out` (nbatch, nstep, ncontrol) with one draw (each driver its own stream)."""
+    def sample_numpy(self, seed: np.random.SeedSequence, out: np.ndarray,
+                     defaults: Optional[np.ndarray] = None) -> None:
+        """Fills `out` (nbatch, nstep, ncontrol) with one draw (each driver its own stream),
+        undriven columns from `defaults` ([nbatch or 1] x ncontrol; default `default_rows`)."""
         shape = out.shape[:2]
         driven = sum(len(d.columns) for d in self.drivers)
         if driven < self.ncontrol:
-            out[...] = self.default_rows[:, None, :]
+            out[...] = (self.default_rows if defaults is None else defaults)[:, None, :]
         for driver, child in zip(self.drivers, seed.spawn(len(self.drivers))):
             rng = np.random.default_rng(child)
             draw = driver.generator.sample_numpy(rng, driver.params, (*shape, len(driver.columns)))

@@ -38,8 +38,9 @@ class SimDataset(torch.utils.data.IterableDataset):
       control_spec: `mjtState` bits within `mjSTATE_USER`: the components of a control row.
       initial_state: None (model defaults), an array `([nbatch or 1] x nstate)`, a keyframe
         name, or a `simloader.initial` generator.
-      randomize: None, or a sequence of nbatch `MjModel` of identical sizes (trajectory i runs
-        on model i).
+      randomize: None, a sequence of nbatch `MjModel` of identical sizes (trajectory i runs
+        on model i), or a `simloader.randomize` spec: parameters (`dr.scale(...)`, ...) or
+        `dr.Variants`; the values each trajectory runs with come back in `batch["params"]`.
       continue_episodes: each batch continues every trajectory where the previous one ended
         (solver warmstart included), so consecutive batches concatenate to one long rollout.
         A trajectory that diverged restarts from a fresh initial state in the next batch.

@@ -37,6 +37,11 @@ def keyframe_state(model: mujoco.MjModel, name: Optional[str]) -> np.ndarray:
     return state
 
 
+def default_states(models: Sequence[mujoco.MjModel], name: Optional[str]) -> np.ndarray:
+    """(len(models), nstate): each model's `keyframe_state` (model lists, variants)."""
+    return np.stack([keyframe_state(m, name) for m in models])
+
+
 class InitialStateGenerator(abc.ABC):
     """Base class of initial-state generators: `sample(model, rng, nbatch) -> (nbatch, nstate)`."""
 
@@ -102,9 +107,12 @@ class InitialPlan:
         self.model = model
         self.nstate = mujoco.mj_stateSize(model, layout.FULLPHYSICS)
         self.generator: Optional[InitialStateGenerator] = None
-        if initial_state is None or isinstance(initial_state, str):
+        # the states come from the model (defaults or this keyframe), so each model has its own
+        self.from_model = initial_state is None or isinstance(initial_state, str)
+        self.keyframe = initial_state if isinstance(initial_state, str) else None
+        if self.from_model:
             # per model: each trajectory starts from its own model's defaults or keyframe
-            rows = np.stack([keyframe_state(m, initial_state) for m in (models or [model])])
+            rows = default_states(models or [model], initial_state)
             self.fixed = np.broadcast_to(rows, (nbatch, self.nstate)).copy()
         elif isinstance(initial_state, InitialStateGenerator):
             initial_state.check(model)

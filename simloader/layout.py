@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
@@ -176,6 +177,11 @@ def reset_state(model: mujoco.MjModel, spec: int) -> np.ndarray:
     row = np.empty(mujoco.mj_stateSize(model, spec))
     mujoco.mj_getState(model, data, row, spec)
     return row
+
+
+def reset_rows(models: Sequence[mujoco.MjModel], spec: int) -> np.ndarray:
+    """(len(models), size of spec): `reset_state` of each model (model lists, variants)."""
+    return np.stack([reset_state(m, spec) for m in models])
 
 
 def describe(model: mujoco.MjModel, control_spec: int = int(S.mjSTATE_CTRL)) -> str:

@@ -15,10 +15,14 @@ One line per randomized parameter, objects addressed by name:
 Values are drawn fresh for every batch (with `continue_episodes`, once per episode). `set`
 replaces the model's value, `scale` multiplies it, `add` adds to it. Fields that MuJoCo derives
 constants from (`mj_setConst` inputs such as body masses and inertias, and `opt.*`) have those
-constants recomputed per trajectory on the CPU backend.
+constants recomputed per trajectory. The CPU backend draws with NumPy (`sample`) and randomizes
+any floating-point field; the MJX backend draws with `jax.random` inside its jitted function
+(`sample_jax`: same distributions, other numbers) and randomizes the fields listed in
+`simloader.backends.mjx_randomize`.
 
 Structural variants (geometry sizes, meshes) go through `Variants(fn, count)`: `fn(spec, rng)`
-edits an `MjSpec`, compiled into a pool of `count` models sampled per trajectory.
+edits an `MjSpec`, compiled into a pool of `count` models sampled per trajectory
+(`draw_variants`, on the host for both backends).
 """
 
 from __future__ import annotations
@@ -72,6 +76,11 @@ class Uniform:
     def sample(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
         return rng.uniform(self.low, self.high, shape)
 
+    def sample_jax(self, key: Any, shape: tuple[int, ...], dtype: Any) -> Any:
+        """The same distribution with `jax.random` (inside a jitted function)."""
+        import jax
+        return jax.random.uniform(key, shape, dtype, self.low, self.high)
+
 
 @dataclasses.dataclass(frozen=True)
 class LogUniform:
@@ -90,6 +99,13 @@ class LogUniform:
 
     def sample(self, rng, shape):
         return np.exp(rng.uniform(np.log(self.low), np.log(self.high), shape))
+
+    def sample_jax(self, key, shape, dtype):
+        import jax
+        import jax.numpy as jnp
+        draw = jnp.exp(jax.random.uniform(key, shape, dtype, np.log(self.low), np.log(self.high)))
+        # exp in float32 may round one ulp past the bounds
+        return jnp.clip(draw, self.low, self.high)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,6 +129,12 @@ class Normal:
 
     def sample(self, rng, shape):
         return np.clip(rng.normal(self.mean, self.std, shape), *self.bounds())
+
+    def sample_jax(self, key, shape, dtype):
+        import jax
+        import jax.numpy as jnp
+        draw = self.mean + self.std * jax.random.normal(key, shape, dtype)
+        return jnp.clip(draw, *self.bounds())
 
 
 Distribution = Union[Uniform, LogUniform, Normal]
@@ -187,6 +209,16 @@ class Resolved:
     elements: np.ndarray  # flat indices into the field's (per-simulation) values
     base: np.ndarray  # the model's values there
     setconst: bool  # mj_setConst reads the field
+
+    @property
+    def ndraws(self) -> int:
+        """Draws per trajectory: one for all values (shared), else one per value."""
+        return 1 if self.param.shared else len(self.elements)
+
+    def combine(self, base: Any, draw: Any) -> Any:
+        """The values a trajectory runs with, from the model's (NumPy or JAX arrays)."""
+        op = self.param.op
+        return draw if op == "set" else base * draw if op == "scale" else base + draw
 
 
 def _field_array(model: mujoco.MjModel, field: str) -> np.ndarray:
@@ -291,12 +323,22 @@ class RandomizationPlan:
         """{key: (nbatch, nvalues)} values each trajectory runs with, one stream per param."""
         out = {}
         for r, child in zip(self.resolved, seed.spawn(len(self.resolved))):
-            rng = np.random.default_rng(child)
-            n = 1 if r.param.shared else len(r.elements)
-            draw = np.broadcast_to(r.param.dist.sample(rng, (nbatch, n)), (nbatch, len(r.elements)))
-            op = r.param.op
-            out[r.param.key] = (draw.copy() if op == "set" else
-                                r.base * draw if op == "scale" else r.base + draw)
+            draw = r.param.dist.sample(np.random.default_rng(child), (nbatch, r.ndraws))
+            out[r.param.key] = np.array(r.combine(r.base, np.broadcast_to(
+                draw, (nbatch, len(r.elements)))))
+        return out
+
+    def sample_jax(self, key: Any, nbatch: int, dtype: Any) -> dict[str, Any]:
+        """The same with `jax.random` inside a jitted function: `key` splits into one stream
+        per parameter; values in `dtype` (the numbers differ from `sample`'s, the
+        distributions do not)."""
+        import jax
+        import jax.numpy as jnp
+        out = {}
+        for r, k in zip(self.resolved, jax.random.split(key, len(self.resolved))):
+            draw = r.param.dist.sample_jax(k, (nbatch, r.ndraws), dtype)
+            out[r.param.key] = r.combine(jnp.asarray(r.base, dtype),
+                                         jnp.broadcast_to(draw, (nbatch, len(r.elements))))
         return out
 
 
@@ -321,6 +363,11 @@ def parse(model: mujoco.MjModel, randomize: Any, nbatch: int):
     if variants:
         return None, None, variants[0]
     return None, RandomizationPlan(model, params), None
+
+
+def draw_variants(seed: np.random.SeedSequence, count: int, nbatch: int) -> np.ndarray:
+    """Each trajectory's variant, uniform over the pool (the same on both backends)."""
+    return np.random.default_rng(seed).integers(count, size=nbatch)
 
 
 def compile_variants(spec: mujoco.MjSpec, variants: Variants,

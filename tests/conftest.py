@@ -54,6 +54,14 @@ SHARED_MODELS = REPO.parent / "shared" / "models" / "dm_control"
 
 
 @pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory):
+    """JAX's persistent compilation cache for the MJX tests: process-wide, since JAX takes the
+    directory set before its first compilation; a dataset of a configuration compiled before
+    loads it from there."""
+    return str(tmp_path_factory.mktemp("jax-cache"))
+
+
+@pytest.fixture(scope="session")
 def rich_model():
     return mujoco.MjModel.from_xml_string(RICH_XML)
 

@@ -21,7 +21,6 @@ mjx = pytest.importorskip("mujoco.mjx")
 import jax  # noqa: E402  (after the skip: JAX comes with MJX)
 
 import simloader  # noqa: E402
-import simloader.randomize  # noqa: E402
 from simloader import controls  # noqa: E402
 from simloader.backends import mjx as mjx_backend  # noqa: E402
 
@@ -197,6 +196,10 @@ class WithRunaway(simloader.initial.InitialStateGenerator):
 
 @pytest.fixture(scope="module")
 def pole_masses():
+    return pole_mass_models()
+
+
+def pole_mass_models():
     spec = mujoco.MjSpec.from_file(str(simloader.builtin_path("cartpole")))
     models = []
     for mass in (0.1, 0.2, 0.3):
@@ -205,13 +208,18 @@ def pole_masses():
     return models
 
 
+def continued_kwargs(pole_masses, cache_dir):
+    """A model list, continuing episodes, generated forces, one runaway trajectory."""
+    return dict(nbatch=3, nstep=20, num_batches=3, randomize=pole_masses,
+                continue_episodes=True, initial_state=WithRunaway(), control_spec=CTRL_XFRC,
+                control={"xfrc_applied": controls.Normal(std=1.0, on="pole")},
+                compilation_cache=cache_dir)
+
+
 @pytest.fixture(scope="module")
 def continued(pole_masses, cache_dir):
-    ds = simloader.SimDataset(
-        pole_masses[0], backend="mjx", nbatch=3, nstep=20, num_batches=3, randomize=pole_masses,
-        continue_episodes=True, initial_state=WithRunaway(), control_spec=CTRL_XFRC,
-        control={"xfrc_applied": controls.Normal(std=1.0, on="pole")},
-        compilation_cache=cache_dir)
+    ds = simloader.SimDataset(pole_masses[0], backend="mjx",
+                              **continued_kwargs(pole_masses, cache_dir))
     return ds, list(ds)
 
 
@@ -219,7 +227,7 @@ def test_continued_chunks_concatenate_to_one_rollout_of_each_model(pole_masses, 
     _, batches = continued
     ok = [0, 1]
     for prev, nxt in zip(batches, batches[1:]):
-        # exactly where the previous chunk ended (the whole mjx.Data is carried)
+        # exactly where the previous chunk ended
         np.testing.assert_array_equal(host(nxt["initial_state"])[ok], host(prev["state"])[ok, -1])
     control = np.concatenate([host(b["control"]) for b in batches], axis=1)
     state, sensordata = c_rollout(pole_masses[:2], host(batches[0]["initial_state"])[ok],
@@ -357,15 +365,6 @@ def test_bad_input_fails_at_construction(cartpole, kwargs, error, message):
     with pytest.raises(error) as info:
         simloader.SimDataset(kwargs.pop("model"), backend="mjx", nbatch=2, nstep=2, **kwargs)
     assert str(info.value) == message
-
-
-def test_randomization_specs_are_refused_until_mjx_supports_them(cartpole):
-    spec = [simloader.randomize.scale("body_mass", simloader.randomize.Uniform(0.5, 2.0),
-                                      on="pole")]
-    with pytest.raises(ValueError) as info:
-        simloader.SimDataset(cartpole, backend="mjx", nbatch=2, nstep=2, randomize=spec)
-    assert str(info.value) == ("randomize: backend='mjx' takes a list of MjModel (one per "
-                               "trajectory); randomization specs run on backend='rollout'")
 
 
 def test_models_differing_in_a_compiled_in_field_are_refused(cartpole):

@@ -20,6 +20,16 @@ SPEC = [
 ]
 
 
+def pole_variant(spec, rng):
+    """A pole of another length, whose hinge reads `ref` when upright: variants differ in
+    qpos0, so each must start from its own default state."""
+    length = rng.uniform(0.5, 1.5)
+    spec.geom("pole").fromto = [0, 0, 0, 0, 0, length]
+    spec.site("tip").pos = [0, 0, length]
+    spec.joint("hinge").ref = rng.uniform(-0.5, 0.5)
+    return spec
+
+
 def make(nbatch=64, nstep=20, randomize=SPEC, **kwargs):
     return simloader.SimDataset("cartpole", backend="rollout", nbatch=nbatch, nstep=nstep,
                                 control=controls.Uniform(), randomize=randomize, nthread=2,
@@ -131,6 +141,18 @@ def test_variants_pool_sampled_per_trajectory():
     assert len({m.geom("pole").size[1] for m in pool}) == 4
     state, _ = rollout.rollout([pool[i] for i in variant],
                                [mujoco.MjData(pool[0]) for _ in range(2)],
+                               batch["initial_state"].numpy(), batch["control"].numpy())
+    np.testing.assert_array_equal(batch["state"].numpy(), state)
+
+
+def test_each_variant_starts_from_its_own_defaults():
+    ds = make(nbatch=8, randomize=dr.Variants(pole_variant, count=4))
+    batch = next(iter(ds))
+    pool = [ds.config.variants[v] for v in batch["params"]["variant"].numpy()]
+    assert len({m.qpos0[1] for m in pool}) > 1  # the variants' default states differ
+    np.testing.assert_array_equal(batch["initial_state"].numpy(),
+                                  simloader.initial.default_states(pool, None))
+    state, _ = rollout.rollout(pool, [mujoco.MjData(pool[0]) for _ in range(2)],
                                batch["initial_state"].numpy(), batch["control"].numpy())
     np.testing.assert_array_equal(batch["state"].numpy(), state)
 

@@ -10,6 +10,8 @@ import torch
 
 import simloader
 from simloader import controls
+from simloader import randomize as dr
+from test_randomize import SPEC, pole_variant
 
 StatefulDataLoader = pytest.importorskip("torchdata.stateful_dataloader").StatefulDataLoader
 
@@ -87,3 +89,31 @@ def test_mismatched_configuration_is_a_clear_error():
         make(5, seed=1).load_state_dict(saved)
     with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 1"):
         make(5).load_state_dict({"version": 99})
+
+
+@pytest.mark.parametrize("randomize", [SPEC, dr.Variants(pole_variant, count=4)],
+                         ids=["params", "variants"])
+def test_resume_continues_each_trajectory_on_its_randomized_model(randomize):
+    def make_randomized():
+        return simloader.SimDataset("cartpole", backend="rollout", nbatch=4, nstep=10,
+                                    control=controls.Uniform(), randomize=randomize,
+                                    continue_episodes=True, num_batches=5, nthread=1)
+
+    def run(loader, n=None):
+        out = []
+        for batch in loader:
+            out.append((batch["state"].clone(), {k: v.clone() for k, v in batch["params"].items()}))
+            if len(out) == n:
+                break
+        return out
+
+    full = run(StatefulDataLoader(make_randomized(), batch_size=None))
+    loader = StatefulDataLoader(make_randomized(), batch_size=None)
+    first = run(loader, 2)
+    saved = json.loads(json.dumps(loader.state_dict()))
+    resumed = StatefulDataLoader(make_randomized(), batch_size=None)
+    resumed.load_state_dict(saved)
+    for (state, params), (ref_state, ref_params) in zip(first + run(resumed), full):
+        assert torch.equal(state, ref_state)
+        assert params.keys() == ref_params.keys()
+        assert all(torch.equal(params[k], ref_params[k]) for k in params)

@@ -14,6 +14,12 @@ here as MuJoCo checks it (|qpos|, |qvel|, |qacc| within mjMAXVAL, all finite) pl
 a trajectory that fails is flagged in `diverged` and, as in MuJoCo, continues from the state
 `mj_resetData` leaves: no NaN is delivered, and the others are bit-identical to a run without it.
 
+A model list or a variant pool is one mjx.Model batched only where the models differ; a
+randomization spec is drawn and applied inside the batch function (`mjx_randomize`). With
+`continue_episodes` a batch hands the next only what a step reads of the previous one (physics
+state, solver warmstart) and the randomized values: the next batch resets its rows and sets
+these back, which is exact and keeps checkpoints small.
+
 `produce` only dispatches (JAX runs asynchronously); `deliver` waits for the results and hands
 every output to torch through DLPack: the delivered tensors are the JAX buffers, on the torch
 device of the JAX device (`cuda:k` for JAX GPU k). They are fresh buffers for every batch, but
@@ -45,7 +51,9 @@ import torch
 from jax._src import xla_bridge
 from mujoco import mjx
 
-from simloader import handoff, layout, sharding
+from simloader import handoff, initial, layout, resume, sharding
+from simloader import randomize as dr
+from simloader.backends import mjx_randomize
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig
 
@@ -91,13 +99,12 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
                         f"backend='mjx' (its options are {list(OPTIONS)})")
-    if config.randomization is not None or config.variants is not None:
-        raise ValueError("randomize: backend='mjx' takes a list of MjModel (one per trajectory); "
-                         "randomization specs run on backend='rollout'")
     cache = _cache_dir(options.get("compilation_cache"))
     fraction = configure_memory(options.get("memory_fraction"))
     _configure_cache(cache)
-    _put_models(config, _jax_device(config.device))
+    mx, _ = _put_models(config, _jax_device(config.device))
+    if config.randomization is not None:
+        mjx_randomize.check(config.model, mx, config.randomization)
     return {"compilation_cache": cache, "memory_fraction": fraction}
 
 
@@ -203,7 +210,8 @@ def _jax_device(target: Optional[torch.device]) -> jax.Device:
 
 
 def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
-    """The model, or the model list as one mjx.Model batched only where the models differ.
+    """The model, or the model list or variant pool as one mjx.Model batched only where the
+    models differ.
 
     Returns:
       (model, in_axes): `in_axes` is the model's `vmap` axes, 0 on the fields that differ
@@ -212,9 +220,10 @@ def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
     Raises:
       ValueError: MJX cannot simulate a model, or the models differ in a field MJX compiles in.
     """
-    names = ["model"] if config.models is None else [
-        f"randomize[{i}]" for i in range(len(config.models))]
-    models = config.models or (config.model,)
+    models = _pool(config)
+    names = (["model"] if len(models) == 1 else
+             [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
+             [f"randomize: variant[{i}]" for i in range(len(models))])
     # a list is compared and stacked on the host, then moved at once
     host = device if len(models) == 1 else jax.local_devices(backend="cpu")[0]
     puts = []
@@ -231,6 +240,12 @@ def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
                              f"backend='rollout'") from None
     if len(puts) == 1:
         return puts[0], None
+    if models[0].nhfield == 0:
+        # MJX keeps a static copy of geom_rbound, read only to size the patch of a height field
+        # a geom collides with: without height fields it would make models differing in a geom
+        # size (variants) differ in a compiled-in field for nothing
+        puts = [put.replace(_impl=put._impl.replace(
+            geom_rbound_hfield=np.zeros_like(put._impl.geom_rbound_hfield))) for put in puts]
     leaves, treedef = jax.tree_util.tree_flatten(puts[0])
     columns = [leaves]
     for name, put in zip(names[1:], puts[1:]):
@@ -238,7 +253,7 @@ def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
         if other_def != treedef:
             raise ValueError(
                 f"{name}: {_static_difference(puts[0], put, 'model')} differs from "
-                f"randomize[0], but MJX compiles it into the simulation; only numeric "
+                f"{names[0]}, but MJX compiles it into the simulation; only numeric "
                 f"parameters may differ across the models")
         columns.append(other)
     batched, axes = [], []
@@ -247,6 +262,16 @@ def _put_models(config: SimConfig, device: jax.Device) -> tuple[mjx.Model, Any]:
         batched.append(column[0] if same else jnp.stack(column))
         axes.append(None if same else 0)
     return jax.device_put(treedef.unflatten(batched), device), treedef.unflatten(axes)
+
+
+def _pool(config: SimConfig) -> tuple[mujoco.MjModel, ...]:
+    """The models trajectories pick from: the model list, the variant pool, or the model."""
+    return config.models or config.variants or (config.model,)
+
+
+def _pooled(config: SimConfig) -> bool:
+    """Whether trajectories pick their model from a pool (per-model inputs, one row each)."""
+    return config.models is not None or config.variants is not None
 
 
 def _static_difference(a: Any, b: Any, path: str) -> str:
@@ -272,30 +297,49 @@ def _rows(mask: jax.Array, x: jax.Array) -> jax.Array:
     return mask.reshape((-1,) + (1,) * (x.ndim - 1))
 
 
-def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
+def _restarted(restart: jax.Array, fresh: jax.Array, kept: jax.Array) -> jax.Array:
+    """Per row: `fresh` where the (nbatch,) `restart` is set, else `kept`."""
+    return jnp.where(_rows(restart, fresh), fresh, kept)
+
+
+def _key(seed: jax.Array) -> jax.Array:
+    """A JAX key from a (2,) uint32 row of a batch's SeedSequence."""
+    return jax.random.fold_in(jax.random.key(seed[0]), seed[1])
+
+
+def _simulator(c: SimConfig, model_axes: Any, pool_axes: Any,
+               randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype) -> Callable:
     """The pure function that simulates one batch of configuration `c`.
 
-    The returned `simulate(model, data0, inputs0, x0, control, seed, carry, restart)` takes:
-      model: the mjx.Model, batched along `model_axes`.
+    The returned `simulate(model, data0, inputs0, x0, control, seeds, variant, carry,
+    restart)` takes:
+      model: the mjx.Model; a model list or variant pool is batched along `pool_axes`.
       data0: one trajectory's mjx.Data as `make_data` leaves it.
-      inputs0: `_MODEL_INPUTS` rows as mj_resetData leaves them, (ninputs,) or per model
-        (nbatch, ninputs).
-      x0: (nbatch, nstate) initial states.
+      inputs0: `_MODEL_INPUTS` rows as mj_resetData leaves them, (ninputs,) or per model of
+        the pool (npool, ninputs).
+      x0: (nbatch, nstate) initial states, or per variant (nvariant, nstate) when they come
+        from the model.
       control: the fixed controls (nbatch, nstep, ncontrol), or the default rows
-        ([nbatch or 1], ncontrol) of undriven columns.
-      seed: (2,) uint32, this batch's control seed.
-      carry, restart: with `continue_episodes`, the previous batch's final batched mjx.Data
-        and the (nbatch,) bool rows to restart from `x0` instead; None otherwise.
+        ([nbatch or 1 or nvariant], ncontrol) of undriven columns.
+      seeds: (2, 2) uint32, this batch's CONTROL and RANDOMIZE seeds.
+      variant: with variants, (nbatch,) int32 each trajectory's variant (drawn on the host as
+        the rollout backend draws it); None otherwise.
+      carry, restart: with `continue_episodes`, what the previous batch left ({"state":
+        (nbatch, nstate) after its last step, "qacc_warmstart": (nbatch, nv), "params": the
+        randomized values and variants}) and the (nbatch,) bool rows to restart from `x0`
+        with fresh values instead; None otherwise.
 
     It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
-    the final batched mjx.Data for the next batch.
+    the carry for the next batch.
     """
     # only plain values are captured: the program that holds this function is cached per
     # configuration and must not keep the configuration alive
     nbatch, nstep, control_spec, drivers = c.nbatch, c.nstep, c.control_spec, c.control.drivers
     given = c.control.fixed is not None or bool(drivers)  # control=None leaves inputs alone
     shape = (nbatch, nstep, c.ncontrol)
-    per_model, continuing = c.models is not None, c.continue_episodes
+    per_model, continuing = _pooled(c), c.continue_episodes
+    variants, fixed_control = c.variants is not None, c.control.fixed is not None
+    x0_per_variant = variants and c.initial.from_model
 
     def reset(m, d0, inputs0, x0):
         d = mjx.set_state(m, d0, inputs0, _MODEL_INPUTS)
@@ -331,23 +375,43 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
         return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (model_axes, 0))(m, d)
 
     def draw(defaults, seed):
-        key = jax.random.fold_in(jax.random.key(seed[0]), seed[1])
         control = jnp.broadcast_to(defaults[:, None, :], shape)
-        for driver, k in zip(drivers, jax.random.split(key, len(drivers))):
+        for driver, k in zip(drivers, jax.random.split(_key(seed), len(drivers))):
             params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
             sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
             control = control.at[..., driver.columns].set(sample.astype(dtype))
         return control
 
-    def simulate(m, d0, inputs0, x0, control, seed, carry, restart):
+    def simulate(m, d0, inputs0, x0, control, seeds, variant, carry, restart):
+        params = {}  # the values each trajectory runs with, delivered in `params`
+        if variants:
+            if continuing:
+                variant = _restarted(restart, variant, carry["params"]["variant"])
+            m = mjx_randomize.gather(m, pool_axes, variant)
+            inputs0 = inputs0[variant]
+            control = control if fixed_control else control[variant]
+            x0 = x0[variant] if x0_per_variant else x0
+            params["variant"] = variant
+        if randomizer is not None:
+            values = randomizer.plan.sample_jax(_key(seeds[1]), nbatch, dtype)
+            if continuing:
+                values = {k: _restarted(restart, v, carry["params"][k])
+                          for k, v in values.items()}
+            m = randomizer(m, d0, values, nbatch)
+            params.update(values)
+        if continuing:
+            # a step reads no more of the previous one than its physics state and the solver
+            # warmstart (inputs are set before every step): carrying only these restores the
+            # trajectory exactly, and makes a small checkpoint
+            x0 = _restarted(restart, x0, carry["state"])
         data = jax.vmap(reset, (model_axes, None, 0 if per_model else None, 0))(
             m, d0, inputs0, x0)
         if continuing:
-            data = jax.tree.map(lambda new, old: jnp.where(_rows(restart, new), new, old),
-                                data, carry)
+            data = data.replace(qacc_warmstart=_restarted(
+                restart, jnp.zeros_like(data.qacc_warmstart), carry["qacc_warmstart"]))
         initial = physics(m, data)
         if drivers:
-            control = draw(control, seed)
+            control = draw(control, seeds[0])
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
 
@@ -367,7 +431,12 @@ def _simulator(c: SimConfig, model_axes: Any, dtype: np.dtype) -> Callable:
             "initial_state": initial,
             "diverged": diverged,
         }
-        return outputs, data if continuing else None
+        if params:
+            outputs["params"] = params
+        if not continuing:
+            return outputs, None
+        return outputs, {"state": state[-1], "qacc_warmstart": data.qacc_warmstart,
+                         "params": params}
 
     return simulate
 
@@ -378,21 +447,48 @@ class _Program:
 
     def __init__(self, config: SimConfig, device: jax.Device):
         c = config
-        self.model, model_axes = _put_models(c, device)
+        self.model, pool_axes = _put_models(c, device)
         self.data0 = mjx.make_data(c.model, device=device, impl="jax")
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64
-        inputs0 = np.stack([layout.reset_state(m, _MODEL_INPUTS)
-                            for m in c.models or (c.model,)]).astype(self.dtype)
-        self.inputs0 = jax.device_put(inputs0 if c.models is not None else inputs0[0], device)
-        constant = c.control.fixed if c.control.fixed is not None else c.control.default_rows
+        # per model of the pool (variants too): the inputs and states mj_resetData leaves
+        pool = _pool(c)
+        inputs0 = layout.reset_rows(pool, _MODEL_INPUTS).astype(self.dtype)
+        self.inputs0 = jax.device_put(inputs0 if _pooled(c) else inputs0[0], device)
+        if c.control.fixed is not None:
+            constant = c.control.fixed
+        elif c.variants is not None:
+            constant = layout.reset_rows(c.variants, c.control_spec)
+        else:
+            constant = c.control.default_rows
         self.control = jax.device_put(constant.astype(self.dtype), device)
         # fixed initial states go to the device once; generated ones with every batch
-        self.x0 = (None if c.initial.generator is not None else
-                   jax.device_put(c.initial.fixed.astype(self.dtype), device))
-        self.jitted = jax.jit(_simulator(c, model_axes, self.dtype),
-                              donate_argnames=("carry",) if c.continue_episodes else ())
+        if c.initial.generator is not None:
+            x0 = None
+        elif c.variants is not None and c.initial.from_model:
+            x0 = initial.default_states(c.variants, c.initial.keyframe)
+        else:
+            x0 = c.initial.fixed
+        self.x0 = None if x0 is None else jax.device_put(x0.astype(self.dtype), device)
+        self.randomizer = (None if c.randomization is None else mjx_randomize.Randomizer(
+            c.model, c.randomization, pool_axes, self.model))
+        model_axes = pool_axes if self.randomizer is None else self.randomizer.axes
+        # `params` keys in the order of the spec, as the rollout backend gives them (JAX
+        # returns dicts sorted)
+        self.param_keys = (("variant",) if c.variants is not None else
+                           () if c.randomization is None else
+                           tuple(r.param.key for r in c.randomization.resolved))
+        self.jitted = jax.jit(_simulator(c, model_axes, pool_axes, self.randomizer, self.dtype))
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
+
+    def initial_carry(self, c: SimConfig) -> Any:
+        """A carry of the right shapes for the first batch, which restarts every row."""
+        zeros = lambda *shape: np.zeros((c.nbatch, *shape), self.dtype)  # noqa: E731
+        params = ({} if self.randomizer is None else
+                  {r.param.key: zeros(len(r.elements)) for r in self.randomizer.plan.resolved})
+        if c.variants is not None:
+            params["variant"] = np.zeros(c.nbatch, np.int32)
+        return {"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv), "params": params}
 
     def compile(self, args: tuple, stats: Stats) -> Callable:
         """The compiled batch function, compiled (or loaded from JAX's cache) on first use."""
@@ -415,8 +511,9 @@ _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 @dataclasses.dataclass
 class _Produced:
-    outputs: dict[str, jax.Array]  # dispatched, maybe not computed yet
+    outputs: dict[str, Any]  # arrays (and the `params` dict), dispatched, maybe not ready yet
     dispatched: float  # time.perf_counter() at dispatch
+    carry: Any = None  # continue_episodes: what the next batch continues from
 
 
 class MjxBackend(Backend):
@@ -441,13 +538,12 @@ class MjxBackend(Backend):
         self.program = _PROGRAMS.setdefault(config, {}).get(device)
         if self.program is None:
             self.program = _PROGRAMS[config][device] = _Program(config, device)
+        self.device = device
         self.carry: Any = None
         self.restart: Any = None
         if config.continue_episodes:
             # the first batch starts every row from x0, so any carry of the right shapes will do
-            self.carry = jax.device_put(jax.tree.map(
-                lambda x: np.zeros((config.nbatch, *x.shape), x.dtype), self.program.data0),
-                device)
+            self.carry = jax.device_put(self.program.initial_carry(config), device)
             self.restart = np.ones(config.nbatch, dtype=bool)
         self.last_ready = 0.0
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch
@@ -457,8 +553,13 @@ class MjxBackend(Backend):
         c, p = self.config, self.program
         x0 = p.x0 if p.x0 is not None else c.initial.sample(
             self.seed(index, sharding.INITIAL), c.nbatch).astype(p.dtype)
-        seed = self.seed(index, sharding.CONTROL).generate_state(2, np.uint32)
-        args = (p.model, p.data0, p.inputs0, x0, p.control, seed, self.carry, self.restart)
+        randomize_seed = self.seed(index, sharding.RANDOMIZE)
+        seeds = np.stack([self.seed(index, sharding.CONTROL).generate_state(2, np.uint32),
+                          randomize_seed.generate_state(2, np.uint32)])
+        variant = None if c.variants is None else dr.draw_variants(
+            randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
+        args = (p.model, p.data0, p.inputs0, x0, p.control, seeds, variant, self.carry,
+                self.restart)
         simulate = p.compile(args, self.stats)
         dispatched = time.perf_counter()
         outputs, carry = simulate(*args)
@@ -466,7 +567,7 @@ class MjxBackend(Backend):
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting
             self.carry, self.restart = carry, outputs["diverged"]
-        return _Produced(outputs, dispatched)
+        return _Produced(outputs, dispatched, carry)
 
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -480,17 +581,41 @@ class MjxBackend(Backend):
                        batches=1, steps=c.nbatch * c.nstep,
                        diverged=int(np.count_nonzero(outputs["diverged"])))
         self.last_ready = ready
-        batch = {}
-        for key, array in outputs.items():
-            tensor = handoff.to_target(handoff.from_jax(array), c.device,
-                                       None if key == "diverged" else c.dtype)
-            if (self.in_worker and tensor.is_cuda
-                    and tensor.data_ptr() == array.unsafe_buffer_pointer()):
-                # CUDA IPC, which carries a worker's tensors to the main process, shares only
-                # torch's own allocations, not JAX's: a worker hands over a copy
-                tensor = tensor.clone()
-            batch[key] = tensor
+        batch = {key: self._tensor(array, None if key == "diverged" else c.dtype)
+                 for key, array in outputs.items() if key != "params"}
+        if "params" in outputs:
+            # variant indices as the rollout backend gives them (JAX has no int64 without x64)
+            batch["params"] = {key: self._tensor(outputs["params"][key],
+                                                 torch.int64 if key == "variant" else c.dtype)
+                               for key in self.program.param_keys}
         return batch
+
+    def _tensor(self, array: jax.Array, dtype: Optional[torch.dtype]) -> torch.Tensor:
+        tensor = handoff.to_target(handoff.from_jax(array), self.config.device, dtype)
+        if (self.in_worker and tensor.is_cuda
+                and tensor.data_ptr() == array.unsafe_buffer_pointer()):
+            # CUDA IPC, which carries a worker's tensors to the main process, shares only
+            # torch's own allocations, not JAX's: a worker hands over a copy
+            tensor = tensor.clone()
+        return tensor
+
+    def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
+        if not self.config.continue_episodes:
+            return None
+        carry = produced.carry
+        return {"state": resume.encode_array(np.asarray(carry["state"])),
+                "qacc_warmstart": resume.encode_array(np.asarray(carry["qacc_warmstart"])),
+                "restart": resume.encode_array(np.asarray(produced.outputs["diverged"])),
+                "params": {k: resume.encode_array(np.asarray(v))
+                           for k, v in carry["params"].items()}}
+
+    def restore(self, trajectories: dict[str, Any]) -> None:
+        carry = {"state": resume.decode_array(trajectories["state"]),
+                 "qacc_warmstart": resume.decode_array(trajectories["qacc_warmstart"]),
+                 "params": {k: resume.decode_array(v)
+                            for k, v in trajectories["params"].items()}}
+        self.carry = jax.device_put(carry, self.device)
+        self.restart = resume.decode_array(trajectories["restart"])
 
     def close(self) -> None:
         # batches already dispatched but never delivered would otherwise keep the GPU busy

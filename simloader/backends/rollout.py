@@ -22,7 +22,9 @@ import torch
 from mujoco import batch as mj_batch
 
 from simloader import handoff, layout, resume, sharding
+from simloader import randomize as dr
 from simloader.backends.base import Backend
+from simloader.initial import default_states
 
 
 @dataclasses.dataclass
@@ -50,12 +52,16 @@ class RolloutBackend(Backend):
         self.expanded = {} if c.randomization is None else {
             r.field: self.batch.expand(r.field).reshape(c.nbatch, -1)
             for r in c.randomization.resolved}
-        self.params: dict[str, np.ndarray] = {}
-        self.variant = np.zeros(c.nbatch, dtype=np.int64)
-        models = c.models or [c.model]
-        # each row as mj_resetData leaves it (user inputs, zero warmstart), per model
-        self.template_rows = np.ascontiguousarray(np.broadcast_to(
-            np.stack([layout.reset_state(m, layout.INTEGRATION) for m in models]), self.batch.state.shape))
+        self.params: dict[str, np.ndarray] = {}  # what each trajectory runs with
+        # per model (of the list, or variant): each row as mj_resetData leaves it (user
+        # inputs, zero warmstart), the undriven control columns, and with variants the
+        # initial states that come from the model; `_per_trajectory` picks them
+        self.reset_rows = layout.reset_rows(c.models or c.variants or [c.model],
+                                            layout.INTEGRATION)
+        self.control_defaults = (c.control.default_rows if c.variants is None else
+                                 layout.reset_rows(c.variants, c.control_spec))
+        self.variant_states = (default_states(c.variants, c.initial.keyframe)
+                               if c.variants is not None and c.initial.from_model else None)
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"
@@ -64,14 +70,6 @@ class RolloutBackend(Backend):
         # does: mj_resetData, which MuJoCo calls on an unstable simulation, zeroes them and
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
-        if c.control.fixed is not None:
-            self.fixed_control = torch.from_numpy(c.control.fixed)
-        elif not c.control.random:
-            # control=None: the inputs stay as mj_resetData left them, for every step
-            self.fixed_control = torch.from_numpy(c.control.default_rows).unsqueeze(1).expand(
-                c.nbatch, c.nstep, c.ncontrol)
-        else:
-            self.fixed_control = None
 
     def produce(self, index: int) -> _Produced:
         c = self.config
@@ -81,17 +79,25 @@ class RolloutBackend(Backend):
             x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
             fresh = np.flatnonzero(self.fresh)
             self._randomize(index, fresh)
-            rows[fresh] = self.template_rows[fresh]
+            rows[fresh] = self._per_trajectory(self.reset_rows)[fresh]
+            if self.variant_states is not None:
+                x0 = self._per_trajectory(self.variant_states)
             rows[np.ix_(fresh, self.physics_cols)] = x0[fresh]
         initial[...] = rows[:, self.physics_cols]
 
-        if self.fixed_control is None:
+        if c.control.fixed is not None:
+            control_t, control = torch.from_numpy(c.control.fixed), c.control.fixed
+        elif c.control.random:
             control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
-            c.control.sample_numpy(self.seed(index, sharding.CONTROL), control)
+            c.control.sample_numpy(self.seed(index, sharding.CONTROL), control,
+                                   self._per_trajectory(self.control_defaults))
         else:
-            control_t, control = self.fixed_control, None
-            if c.control.fixed is not None:
-                control = c.control.fixed
+            # control=None: the inputs stay as mj_resetData left them (in the rows), for every
+            # step; delivered as such
+            control_t = torch.from_numpy(np.ascontiguousarray(
+                self._per_trajectory(self.control_defaults))).unsqueeze(1).expand(
+                c.nbatch, c.nstep, c.ncontrol)
+            control = None
 
         state_t, state = handoff.host_buffer((c.nbatch, c.nstep, c.nstate), pin=self.pin)
         sensor_t, sensor = handoff.host_buffer((c.nbatch, c.nstep, c.nsensordata), pin=self.pin)
@@ -108,25 +114,36 @@ class RolloutBackend(Backend):
         params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
         return _Produced(state_t, sensor_t, control_t, initial_t, params, warned, rows_after)
 
+    def _per_trajectory(self, table: np.ndarray) -> np.ndarray:
+        """(nbatch, ...): each trajectory's row of a per-model table (its variant's)."""
+        if self.config.variants is not None:
+            return table[self.params["variant"]]
+        return np.broadcast_to(table, (self.config.nbatch, *table.shape[1:]))
+
     def _randomize(self, index: int, fresh: np.ndarray) -> None:
         """Draws model parameters (or variants) for the trajectories that start afresh."""
         c = self.config
         seed = self.seed(index, sharding.RANDOMIZE)
+        values = {}
         if c.variants is not None:
-            draw = np.random.default_rng(seed).integers(len(c.variants), size=c.nbatch)
-            self.variant[fresh] = draw[fresh]
-            self.batch.set_models([c.variants[i] for i in self.variant])
-            self.params["variant"] = self.variant
+            values["variant"] = dr.draw_variants(seed, len(c.variants), c.nbatch)
+        if c.randomization is not None:
+            values.update(c.randomization.sample(seed, c.nbatch))
+        self._set_params(values, fresh)
+
+    def _set_params(self, values: dict[str, np.ndarray], rows: np.ndarray) -> None:
+        """Trajectories `rows` run with their `values` ({key: (nbatch, ...)}) from now on."""
+        c = self.config
+        for key, value in values.items():
+            self.params.setdefault(key, np.empty_like(value))[rows] = value[rows]
+        if c.variants is not None:
+            self.batch.set_models([c.variants[i] for i in self.params["variant"]])
         if c.randomization is None:
             return
-        values = c.randomization.sample(seed, c.nbatch)
         for r in c.randomization.resolved:
-            key = r.param.key
-            current = self.params.setdefault(key, np.empty_like(values[key]))
-            current[fresh] = values[key][fresh]
-            self.expanded[r.field][np.ix_(fresh, r.elements)] = values[key][fresh]
+            self.expanded[r.field][np.ix_(rows, r.elements)] = self.params[r.param.key][rows]
         if c.randomization.setconst:  # constants MuJoCo derives from the changed fields
-            self.batch.set_const(None if len(fresh) == c.nbatch else fresh)
+            self.batch.set_const(None if len(rows) == c.nbatch else rows)
 
     def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -154,11 +171,15 @@ class RolloutBackend(Backend):
         if not self.config.continue_episodes:
             return None
         return {"rows": resume.encode_array(produced.rows_after),
-                "fresh": resume.encode_array(produced.warned)}
+                "fresh": resume.encode_array(produced.warned),
+                "params": {k: resume.encode_array(v.numpy()) for k, v in produced.params.items()}}
 
     def restore(self, trajectories: dict) -> None:
         self.batch.state[...] = resume.decode_array(trajectories["rows"])
         self.fresh = resume.decode_array(trajectories["fresh"])
+        # the trajectories that continue run on the models they ran on
+        params = {k: resume.decode_array(v) for k, v in trajectories["params"].items()}
+        self._set_params(params, np.arange(self.config.nbatch))
 
     def close(self) -> None:
         # drops the batch's thread pool now rather than at garbage collection
