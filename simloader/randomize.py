@@ -190,8 +190,11 @@ def add(field: str, dist: Distribution, on: Names = None, **kwargs: Any) -> Para
 class Variants:
     """Structural variants: `fn(spec, rng) -> spec` compiled into a pool of `count` models.
 
-    Each trajectory runs on a variant drawn uniformly from the pool; `batch["params"]["variant"]`
-    holds its index. Variants must have identical sizes (same bodies, joints, geoms, ...).
+    Each trajectory runs on a variant drawn uniformly from the pool, and starts from that
+    variant's defaults (initial state from the model or a keyframe, `mj_resetData`'s inputs);
+    `batch["params"]["variant"]` holds its index. Variants must have identical sizes (same
+    bodies, joints, geoms, ...); on the MJX backend they must also agree in everything MJX
+    compiles in (integrator, meshes, which dofs have friction loss, ...).
     """
 
     fn: Callable[[mujoco.MjSpec, np.random.Generator], Optional[mujoco.MjSpec]]

@@ -125,19 +125,22 @@ def test_derived_constants_match_mj_set_const(which, cartpole, humanoid_path):
         assert set(model.jnt_type) == {0, 1, 2, 3} and 2 in model.body_simple
     rng = np.random.default_rng(0)
     model.body_mass[1:] *= rng.uniform(0.5, 2.0, model.nbody - 1)
-    model.body_inertia[1:] *= rng.uniform(0.5, 2.0, (model.nbody - 1, 3))
+    model.body_inertia[1:] *= rng.uniform(0.5, 2.0, (model.nbody - 1, 1))
     model.dof_armature[:] += rng.uniform(0.0, 0.1, model.nv)
     model.actuator_gear[:, 0] *= rng.uniform(0.5, 2.0, model.nu)
     # MJX given the edited inputs, but the derived constants of the unedited model
     mx = mjx.put_model(model, impl="jax")
-    setconst = mjx_setconst.SetConst(model)
-    derived = jax.jit(setconst)(mx, mjx.make_data(model, impl="jax"))
+    stale = {field: np.asarray(getattr(mx, field)) for field in mjx_setconst.OUTPUTS}
+    derived = jax.jit(mjx_setconst.SetConst(model))(mx, mjx.make_data(model, impl="jax"))
     mujoco.mj_setConst(model, mujoco.MjData(model))
     assert sorted(derived) == sorted(mjx_setconst.OUTPUTS)
     for field, value in derived.items():
-        np.testing.assert_allclose(value, getattr(model, field), rtol=SETCONST_RTOL,
-                                   atol=SETCONST_RTOL * np.abs(getattr(model, field)).max(initial=0),
-                                   err_msg=field)
+        expected = getattr(model, field)
+        # relative, and relative to the field's scale where MuJoCo's value is 0
+        np.testing.assert_allclose(value, expected, rtol=SETCONST_RTOL, err_msg=field,
+                                   atol=SETCONST_RTOL * np.abs(expected).max(initial=0))
+        if expected.size:  # the edits changed it: keeping the model's would fail
+            assert not np.allclose(stale[field], expected, rtol=10 * SETCONST_RTOL), field
 
 
 # --- a randomized cartpole (mass, damping, gain, gravity), continuing episodes, one runaway
@@ -329,6 +332,32 @@ def allowed():
 def test_fields_mjx_cannot_randomize_are_refused_with_the_list(param, message):
     with pytest.raises(ValueError, match=re.escape(message.format(allowed=allowed()))):
         simloader.SimDataset("cartpole", backend="mjx", nbatch=2, nstep=2, randomize=[param])
+
+
+def euler_variant(spec, rng):
+    """A variant that changes what MJX compiles in (the integrator), for every other one."""
+    if rng.uniform() < 0.5:
+        spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    return spec
+
+
+def extra_body(spec, rng):
+    """A variant with another size (a body more), for every other one."""
+    if rng.uniform() < 0.5:
+        spec.worldbody.add_body(name="extra").add_geom(size=[0.1, 0, 0])
+    return spec
+
+
+@pytest.mark.parametrize("variant, message", [
+    (euler_variant, r"randomize: variant\[\d+\]: model\.opt\.integrator differs from "
+                    r"randomize: variant\[0\], but MJX compiles it into the simulation; only "
+                    r"numeric parameters may differ across the models"),
+    (extra_body, r"randomize: variant\[\d+\]: models must have identical sizes; nbody is"),
+])
+def test_variants_mjx_cannot_stack_are_refused(variant, message):
+    with pytest.raises(ValueError, match=message):
+        simloader.SimDataset("cartpole", backend="mjx", nbatch=2, nstep=2,
+                             randomize=dr.Variants(variant, count=8))
 
 
 def test_every_listed_field_is_a_traced_mjx_field_without_hidden_derived_constants(cartpole):

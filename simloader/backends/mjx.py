@@ -93,7 +93,8 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> dict[str, Any]:
 
     Raises:
       TypeError: an unknown option or a value of the wrong type.
-      ValueError: a bad option value, or a model MJX cannot simulate.
+      ValueError: a bad option value, a model MJX cannot simulate, models or variants that
+        differ in what MJX compiles in, or a parameter MJX cannot randomize (`mjx_randomize`).
     """
     unknown = sorted(set(options) - set(OPTIONS))
     if unknown:
