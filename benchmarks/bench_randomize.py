@@ -28,13 +28,16 @@ import os
 # torch shares the GPU (DLPack views, training); JAX must not take 75% of it up front
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
+import copy  # noqa: E402
 import importlib.util  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 
 import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
 
 import common  # noqa: E402
 import simloader  # noqa: E402
+from simloader import bench  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 
 BACKENDS = ("rollout", "mjx")
@@ -84,6 +87,25 @@ class Measure:
         return self.ds.stats["compiles"] > 1
 
 
+def equivalent_models(model: mujoco.MjModel, spec: list[dr.Param], nbatch: int,
+                      seed: int) -> list[mujoco.MjModel]:
+    """`nbatch` MjModel copies with values drawn as the spec draws them, constants recomputed:
+    what raw `mujoco.rollout` needs to do the randomized work."""
+    plan = dr.RandomizationPlan(model, spec)
+    values = plan.sample(np.random.SeedSequence(seed), nbatch)
+    models = []
+    for i in range(nbatch):
+        m = copy.copy(model)
+        for r in plan.resolved:
+            field = getattr(m.opt, r.field[4:]) if r.field.startswith("opt.") else \
+                getattr(m, r.field)
+            field.reshape(-1)[r.elements] = values[r.param.key][i]
+        if plan.setconst:
+            mujoco.mj_setConst(m, mujoco.MjData(m))
+        models.append(m)
+    return models
+
+
 def runs_on(backend: str) -> str:
     if backend == "rollout":
         return f"{common.cpu_count()} cores"
@@ -96,6 +118,9 @@ def main() -> None:
                       QUICK["rollout"] + QUICK["mjx"], throughput=True)
     p.add_argument("--backends", nargs="+", choices=BACKENDS, default=list(BACKENDS),
                    help="backends to measure (mjx is skipped where JAX is not installed)")
+    p.add_argument("--raw", action="store_true",
+                   help="rollout backend: also raw mujoco.rollout on one model and on the "
+                        "equivalent list of randomized models")
     args = common.parse(p)
     backends = [b for b in args.backends
                 if b != "mjx" or importlib.util.find_spec("mujoco.mjx") is not None]
@@ -115,7 +140,21 @@ def main() -> None:
             counts.append(f"{nbatches} for {w} on {backend}")
             measures: dict[str, Callable[[], float]] = {
                 "plain": lambda: plain(nbatches), "randomized": lambda: randomized(nbatches)}
+            if backend == "rollout" and args.raw:
+                # the same two workloads on raw mujoco.rollout: what per-trajectory models
+                # cost MuJoCo itself
+                raw_one, _ = bench.raw_rollout(model, w, common.cpu_count(), args.seed)
+                raw_list, _ = bench.raw_rollout(
+                    equivalent_models(model, spec, w.nbatch, args.seed), w, common.cpu_count(),
+                    args.seed)
+                measures["raw"] = lambda: raw_one(nbatches)
+                measures["raw models"] = lambda: raw_list(nbatches)
             results = common.interleave(measures, args.repeats, desc=f"{w} {backend}")
+            if "raw" in results:
+                notes.append(f"{w}, raw mujoco.rollout: {common.ns(results['raw'])} ns/step on "
+                             f"one model, {common.ns(results['raw models'])} ns/step on "
+                             f"{w.nbatch} models randomized alike: per-trajectory models / one "
+                             f"model = {results['raw'] / results['raw models']:.3f}")
             ratio = results["plain"] / results["randomized"]
             compile_s = (f"{plain.compile_s:.1f}, {randomized.compile_s:.1f}"
                          if backend == "mjx" else "-")

@@ -211,21 +211,23 @@ def python_loop(model: mujoco.MjModel, nstep: int, total_steps: int,
     return measure
 
 
-def raw_rollout(model: mujoco.MjModel, w: Workload, nthread: int,
+def raw_rollout(model: Any, w: Workload, nthread: int,
                 seed: int) -> tuple[Callable[[int], float], float]:
     """A measure (seconds per step) of back-to-back `mujoco.rollout` calls, and the seconds
     of one call.
 
     One MjData per thread and a persistent thread pool, fresh uniform controls and fresh
-    output arrays every call (as simloader allocates a new tensor per batch).
+    output arrays every call (as simloader allocates a new tensor per batch). `model`: one
+    MjModel, or a list of `w.nbatch` (one per trajectory, as `mujoco.rollout` takes them).
     """
-    datas = [mujoco.MjData(model) for _ in range(nthread)]
-    x0 = np.tile(default_state(model), (w.nbatch, 1))
-    low, high = ctrl_bounds(model)
+    first = model[0] if isinstance(model, (list, tuple)) else model
+    datas = [mujoco.MjData(first) for _ in range(nthread)]
+    x0 = np.tile(default_state(first), (w.nbatch, 1))
+    low, high = ctrl_bounds(first)
     rng = np.random.default_rng(seed)
 
     def one_batch():
-        control = rng.uniform(low, high, size=(w.nbatch, w.nstep, model.nu))
+        control = rng.uniform(low, high, size=(w.nbatch, w.nstep, first.nu))
         return rollout.rollout(model, datas, x0, control, persistent_pool=True)
 
     def measure(nbatches: int) -> float:
