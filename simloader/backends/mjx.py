@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import os
+import sys
 import threading
 import time
 import warnings
@@ -618,11 +619,13 @@ class MjxBackend(Backend):
         self.carry = jax.device_put(carry, self.device)
         self.restart = resume.decode_array(trajectories["restart"])
 
-    def close(self) -> None:
+    def close(self, _finalizing: Callable[[], bool] = sys.is_finalizing) -> None:
+        # (`_finalizing` is bound at definition: at exit this module's globals may be gone)
         # batches already dispatched but never delivered would otherwise keep the GPU busy
         # (and their memory held) after the iterator is gone; the device runs them in order,
-        # so waiting for the last one waits for all
-        if self.last_dispatched is not None:
+        # so waiting for the last one waits for all. Not at interpreter exit (an iterator left
+        # open): the process and its device work end anyway, and modules are being torn down
+        if self.last_dispatched is not None and not _finalizing():
             jax.block_until_ready(self.last_dispatched)
         # the carry is this iterator's; the program stays for the dataset's next iterator
         self.carry = self.restart = self.last_dispatched = None
