@@ -75,11 +75,8 @@ def main() -> None:
              f"batches each after a warm-up ({', '.join(counts)}); the Python loop "
              f"{args.python_steps} steps. Target: simloader throughput / raw >= {TARGET}. On a "
              f"machine other than the 16-core GPU host only ratios mean something.")
-    if args.save:
-        common.save(args, "bench_rollout", "simloader rollout backend vs mujoco.rollout",
-                    [notes, text])
-    print(notes)
-    print(text)
+    common.report(args, "bench_rollout", "simloader rollout backend vs mujoco.rollout",
+                  [notes, text])
 
 
 if __name__ == "__main__":

@@ -206,6 +206,13 @@ def save(args: argparse.Namespace, name: str, title: str, sections: Sequence[str
     return path
 
 
+def report(args: argparse.Namespace, name: str, title: str, sections: Sequence[str]) -> None:
+    """Prints `sections` and, with --save, writes them as `save` does."""
+    if args.save:
+        save(args, name, title, sections)
+    print("\n\n".join(sections))
+
+
 def save_plot(args: argparse.Namespace, name: str, series: dict[str, tuple[list, list]],
               xlabel: str, ylabel: str, title: str, log: bool = True) -> Optional[pathlib.Path]:
     """A line plot of `{label: (x, y)}` (log-log unless `log` is False), saved as a PNG next

@@ -82,11 +82,8 @@ def main() -> None:
              f"GPU, each simulating its own stream, DDP gradients over NCCL); steps/s is all "
              f"ranks' simulated steps over the slowest rank's time after a warm-up of 5 "
              f"batches, training included. Target: 2 ranks >= {TARGET}x 1 rank.")
-    if args.save:
-        common.save(args, "scale_out", "DDP world-model example: throughput vs ranks",
-                    [notes, table])
-    print(notes)
-    print(table)
+    common.report(args, "scale_out", "DDP world-model example: throughput vs ranks",
+                  [notes, table])
 
 
 if __name__ == "__main__":

@@ -223,10 +223,7 @@ def main() -> None:
              f"wall time of {args.batches} batches of training after a warm-up batch; median and "
              f"max of {args.repeats} runs. Training is set to take {args.slack}x the simulation "
              f"time of a batch (both measured alone first). Target: waiting < 5%.")
-    if args.save:
-        common.save(args, "train_overlap", "Training while simloader simulates", [notes, text])
-    print(notes)
-    print(text)
+    common.report(args, "train_overlap", "Training while simloader simulates", [notes, text])
 
 
 if __name__ == "__main__":

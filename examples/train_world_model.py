@@ -75,6 +75,28 @@ def evaluate(net, held_out, physics):
     return truth, pred, err
 
 
+def setup(args, device):
+    """The training stream, held-out trajectories and a dynamics model normalized on them.
+
+    Returns:
+      (backend, training SimDataset, held-out batch, model, the state's physics columns).
+    """
+    backend = simloader.config.resolve_backend(args.backend)
+    common = dict(backend=backend, device=device, dtype=torch.float32,
+                  control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.2),
+                  initial_state=simloader.initial.Perturbed(qpos_std=0.3, qvel_std=0.3))
+    # under torchrun, every rank passes the same arguments and streams its own part of seed 0
+    train = simloader.SimDataset("cartpole", nbatch=args.nbatch, nstep=args.nstep,
+                                 num_batches=args.batches, seed=0, **common)
+    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=64, nstep=HORIZON, seed=1,
+                                              **common)))
+    model = train.model
+    physics = slice(1, 1 + model.nq + model.nv)  # drop time, the state's first column
+    net = Dynamics(model.nq + model.nv, model.nu, args.width).to(device)
+    net.fit_normalization(*transitions(held_out, physics))
+    return backend, train, held_out, net, physics
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
@@ -88,21 +110,9 @@ def main():
     if args.quick:
         args.batches, args.nbatch, args.nstep, args.width = 15, 64, 60, 64
 
-    backend = simloader.config.resolve_backend(args.backend)
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    common = dict(backend=backend, device=device, dtype=torch.float32,
-                  control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.2),
-                  initial_state=simloader.initial.Perturbed(qpos_std=0.3, qvel_std=0.3))
-    train = simloader.SimDataset("cartpole", nbatch=args.nbatch, nstep=args.nstep,
-                                 num_batches=args.batches, seed=0, **common)
-    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=64, nstep=HORIZON, seed=1,
-                                              **common)))
+    backend, train, held_out, net, physics = setup(args, device)
     model = train.model
-    physics = slice(1, 1 + model.nq + model.nv)  # drop time, the state's first column
-    nstate = model.nq + model.nv
-
-    net = Dynamics(nstate, model.nu, args.width).to(device)
-    net.fit_normalization(*transitions(held_out, physics))
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.batches)
     print(f"backend {backend} on {device}: {args.batches} batches of {args.nbatch} x {args.nstep}")

@@ -24,9 +24,7 @@ import torch.distributed as dist
 from torch import nn
 from tqdm import tqdm
 
-import simloader
-from simloader import controls
-from train_world_model import HORIZON, Dynamics, evaluate, transitions
+from train_world_model import evaluate, setup, transitions
 
 
 def main():
@@ -59,21 +57,7 @@ def main():
     rank = dist.get_rank() if distributed else 0
     world = dist.get_world_size() if distributed else 1
 
-    backend = simloader.config.resolve_backend(args.backend)
-    common = dict(backend=backend, device=device, dtype=torch.float32,
-                  control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.2),
-                  initial_state=simloader.initial.Perturbed(qpos_std=0.3, qvel_std=0.3))
-    # the same arguments on every rank: each rank streams its own part of seed 0
-    train = simloader.SimDataset("cartpole", nbatch=args.nbatch, nstep=args.nstep,
-                                 num_batches=args.batches, seed=0, **common)
-    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=64, nstep=HORIZON, seed=1,
-                                              **common)))
-    model = train.model
-    physics = slice(1, 1 + model.nq + model.nv)  # drop time, the state's first column
-    nstate = model.nq + model.nv
-
-    net = Dynamics(nstate, model.nu, args.width).to(device)
-    net.fit_normalization(*transitions(held_out, physics))
+    backend, train, held_out, net, physics = setup(args, device)
     ddp = nn.parallel.DistributedDataParallel(net) if distributed else net
     opt = torch.optim.Adam(ddp.parameters(), lr=1e-3)
     if rank == 0:
