@@ -94,7 +94,8 @@ class RolloutBackend(Backend):
         else:
             # control=None: the inputs stay as mj_resetData left them (in the rows), for every
             # step; delivered as such
-            control_t = torch.from_numpy(np.ascontiguousarray(
+            # (a copy: broadcast views are read-only, and torch tensors are writable)
+            control_t = torch.from_numpy(np.array(
                 self._per_trajectory(self.control_defaults))).unsqueeze(1).expand(
                 c.nbatch, c.nstep, c.ncontrol)
             control = None
