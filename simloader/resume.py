@@ -16,7 +16,7 @@ import numpy as np
 
 from simloader.config import SimConfig
 
-VERSION = 1
+VERSION = 2  # 2: continuing checkpoints carry the randomized values and variants
 
 
 def encode_array(array: np.ndarray) -> dict[str, Any]:
