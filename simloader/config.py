@@ -64,6 +64,15 @@ class SimConfig:
     nthread: Optional[int]
     prefetch: int
 
+    def variant_defaults(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """With variants, what each variant starts from: its undriven control columns
+        (nvariant, ncontrol), as mj_resetData leaves them, and its initial state
+        (nvariant, nstate) where initial states come from the model (else None)."""
+        controls_ = layout.reset_rows(self.variants, self.control_spec)
+        states = (initial.default_states(self.variants, self.initial.keyframe)
+                  if self.initial.from_model else None)
+        return controls_, states
+
 
 def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[int]:
     if value is None and allow_none:

@@ -52,7 +52,7 @@ import torch
 from jax._src import xla_bridge
 from mujoco import mjx
 
-from simloader import handoff, initial, layout, resume, sharding
+from simloader import handoff, layout, resume, sharding
 from simloader import randomize as dr
 from simloader.backends import mjx_randomize
 from simloader.backends.base import Backend, Stats
@@ -456,20 +456,15 @@ class _Program:
         pool = _pool(c)
         inputs0 = layout.reset_rows(pool, _MODEL_INPUTS).astype(self.dtype)
         self.inputs0 = jax.device_put(inputs0 if _pooled(c) else inputs0[0], device)
-        if c.control.fixed is not None:
-            constant = c.control.fixed
-        elif c.variants is not None:
-            constant = layout.reset_rows(c.variants, c.control_spec)
-        else:
-            constant = c.control.default_rows
+        control_defaults, variant_states = (
+            (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
+        constant = c.control.fixed if c.control.fixed is not None else control_defaults
         self.control = jax.device_put(constant.astype(self.dtype), device)
         # fixed initial states go to the device once; generated ones with every batch
         if c.initial.generator is not None:
             x0 = None
-        elif c.variants is not None and c.initial.from_model:
-            x0 = initial.default_states(c.variants, c.initial.keyframe)
         else:
-            x0 = c.initial.fixed
+            x0 = variant_states if variant_states is not None else c.initial.fixed
         self.x0 = None if x0 is None else jax.device_put(x0.astype(self.dtype), device)
         self.randomizer = (None if c.randomization is None else mjx_randomize.Randomizer(
             c.model, c.randomization, pool_axes, self.model))

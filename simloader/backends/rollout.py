@@ -24,7 +24,6 @@ from mujoco import batch as mj_batch
 from simloader import handoff, layout, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend
-from simloader.initial import default_states
 
 
 @dataclasses.dataclass
@@ -58,10 +57,8 @@ class RolloutBackend(Backend):
         # initial states that come from the model; `_per_trajectory` picks them
         self.reset_rows = layout.reset_rows(c.models or c.variants or [c.model],
                                             layout.INTEGRATION)
-        self.control_defaults = (c.control.default_rows if c.variants is None else
-                                 layout.reset_rows(c.variants, c.control_spec))
-        self.variant_states = (default_states(c.variants, c.initial.keyframe)
-                               if c.variants is not None and c.initial.from_model else None)
+        self.control_defaults, self.variant_states = (
+            (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"
