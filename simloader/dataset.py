@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from typing import Any, Optional
 
 import mujoco
 import torch
 
-from simloader import layout, resume, sharding
+from simloader import backends, layout, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
@@ -63,14 +64,15 @@ class SimDataset(torch.utils.data.IterableDataset):
                  seed: int = 0, device: Any = None, dtype: Any = None,
                  nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
         super().__init__()
-        from simloader import backends
         backends.prepare(backend, backend_options)
-        self.config: SimConfig = build_config(
-            model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
-            control_spec=control_spec, initial_state=initial_state, randomize=randomize,
-            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
-        self.backend_options = backends.check_options(self.config, backend_options)
+        config = build_config(
+            model, backend=backends.resolve(backend), nbatch=nbatch, nstep=nstep,
+            control=control, control_spec=control_spec, initial_state=initial_state,
+            randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
+            seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
+        # one route for every backend option: validated by the backend, kept in the config
+        self.config: SimConfig = dataclasses.replace(
+            config, options=backends.check_options(config, backend, backend_options))
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
@@ -87,13 +89,23 @@ class SimDataset(torch.utils.data.IterableDataset):
         return self.config.model
 
     @property
-    def stats(self) -> dict[str, float]:
-        """Counters of the iterators run in this process (workers keep their own)."""
-        return self._stats.as_dict()
+    def stats(self) -> dict[str, Any]:
+        """Counters of the iterators run in this process (workers keep their own), and the
+        implementation that simulates (`impl`: "jax" or "warp" on MJX, "c" on rollout)."""
+        out = self._stats.as_dict()
+        out["impl"] = self.config.options.impl if self.config.options is not None else "c"
+        return out
 
     def describe(self) -> str:
-        """Which columns of state and control mean what, by object name."""
-        return layout.describe(self.config.model, self.config.control_spec)
+        """Which columns of state and control mean what, by object name, and what simulates."""
+        c = self.config
+        text = layout.describe(c.model, c.control_spec)
+        if c.options is not None:
+            text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
+                     f"({c.options.implementation().describe()}; chosen: {c.options.impl_reason})")
+        else:
+            text += "\nsimulated by: backend='rollout' (mujoco.batch on CPU threads)"
+        return text
 
     def __len__(self) -> int:
         if self.config.num_batches is None:
@@ -102,9 +114,8 @@ class SimDataset(torch.utils.data.IterableDataset):
 
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
-        from simloader import backends
         shard = shard or sharding.current_shard(self._rank)
-        return backends.create(self.config, shard, self._stats, self.backend_options)
+        return backends.create(self.config, shard, self._stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Where this iterator (this DataLoader worker, or this process) is in the stream.
