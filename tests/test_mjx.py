@@ -511,6 +511,31 @@ def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_prealloca
         assert lines[1] == ["True", "false"], out.stderr
 
 
+def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing():
+    # MJX prints "Failed to import warp" when it is imported without warp-lang: only a user who
+    # asks for impl="warp" hears of it, inside the error
+    script = textwrap.dedent("""
+        import sys
+        sys.modules["warp"] = None  # as if warp-lang were not installed
+        import simloader
+        ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=2, nstep=2)
+        print("impl", ds.config.options.impl)
+        try:
+            simloader.SimDataset("cartpole", backend="mjx", impl="warp", nbatch=2, nstep=2)
+        except ValueError as e:
+            print("error", e)
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True, timeout=300)
+    lines = out.stdout.splitlines()
+    assert lines[0] == "impl jax", out.stdout
+    assert lines[1].startswith(
+        "error impl: 'warp' cannot run here: the warp-lang package is not installed (pip "
+        "install 'simloader[warp]') [Failed to import warp: import of warp halted; None in "
+        "sys.modules"), lines[1]
+    assert len(lines) == 2 and "Failed to import" not in out.stderr
+
+
 def test_iterator_left_open_at_exit_exits_quietly():
     # the generator is finalized after the modules are torn down: closing must not touch them
     script = textwrap.dedent("""

@@ -28,6 +28,9 @@ class Implementation:
     """`impl="jax"`: MJX's XLA implementation. Runs anywhere JAX runs."""
 
     name = "jax"
+    # whether a randomized input of mj_setConst gets its derived constants recomputed in the
+    # batch function (setconst.py), i.e. whether those inputs can be randomized
+    recomputes_constants = True
 
     def put_model(self, model: mujoco.MjModel, device: jax.Device) -> Any:
         """The model on `device` (not yet batched)."""

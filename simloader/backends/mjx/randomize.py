@@ -67,9 +67,13 @@ def check(model: mujoco.MjModel, mx: mjx.Model, plan: dr.RandomizationPlan,
     """
     for r in plan.resolved:
         field, key = r.field, r.param.key
-        why = impl.cannot_randomize(field)
+        why = impl.cannot_randomize(field) or (
+            None if impl.recomputes_constants or field not in mjx_setconst.INPUTS else
+            "MuJoCo derives constants from it (mj_setConst) that simloader recomputes only "
+            "with impl='jax'")
         if field in FIELDS and why:
-            allowed = [f for f in FIELDS if not impl.cannot_randomize(f)]
+            allowed = [f for f in FIELDS if not impl.cannot_randomize(f) and (
+                impl.recomputes_constants or f not in mjx_setconst.INPUTS)]
             raise ValueError(
                 f"randomize: {key}: impl={impl.name!r} cannot randomize {field} ({why}); it "
                 f"can randomize {', '.join(allowed)} (impl='jax' randomizes {len(FIELDS)} "

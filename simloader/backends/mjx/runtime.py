@@ -28,7 +28,7 @@ _import_log = io.StringIO()
 with contextlib.redirect_stdout(_import_log):
     from mujoco import mjx  # noqa: F401  (re-exported: the backend's modules import it from here)
     from mujoco.mjx import warp as _mjx_warp
-WARP_IMPORT_LOG = _import_log.getvalue().strip()
+WARP_IMPORT_LOG = "; ".join(_import_log.getvalue().split("\n")).strip("; ")
 
 _PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
 _FRACTION = "XLA_CLIENT_MEM_FRACTION"

@@ -50,6 +50,8 @@ class WarpImpl(Implementation):
     """
 
     name = "warp"
+    # setconst.py recomputes derived constants with MJX-JAX's kinematics, which Warp models lack
+    recomputes_constants = False
 
     def __init__(self, naconmax: int, njmax: int):
         self.naconmax, self.njmax = naconmax, njmax
