@@ -229,3 +229,22 @@ def test_gpu_humanoid_batch_flags_overflow_and_keeps_the_rest(cache_dir):
         batch = next(iter(ds))
     assert batch["overflow"].any()
     assert ds.stats["overflow"] == int(batch["overflow"].sum())
+
+
+def test_warmup_command_compiles_ahead_of_time(capsys):
+    from simloader import cli
+    cli.main(["warmup", "cartpole", "--impl", "warp", "--nbatch", "4", "--nstep", "5"])
+    out = capsys.readouterr().out
+    assert "impl='warp'" in out and "warm: compiled in" in out
+
+
+def test_spawned_dataloader_worker_streams_the_same_batches(cache_dir):
+    model = simloader.load_model("cartpole")
+    kwargs = dict(nbatch=3, nstep=10, control=controls.Uniform(), num_batches=2)
+    expected = [b["state"].cpu() for b in dataset(model, cache_dir, **kwargs)]
+    loader = torch.utils.data.DataLoader(dataset(model, cache_dir, **kwargs), batch_size=None,
+                                         num_workers=1, multiprocessing_context="spawn")
+    got = [b["state"].cpu() for b in loader]
+    assert len(got) == 2
+    for want, have in zip(expected, got):
+        np.testing.assert_array_equal(have.numpy(), want.numpy())
