@@ -57,7 +57,7 @@ def test_two_ranks_draw_distinct_streams():
     assert len(torch.unique(rows, dim=0)) == len(rows) == 2 * 3 * 4
 
 
-def test_ddp_example_under_torchrun(tmp_path):
+def test_ddp_example_under_torchrun(tmp_path, checkout_env):
     """The DDP example as a user launches it: torchrun, two ranks, gloo on the CPU."""
     root = pathlib.Path(__file__).parents[1]
     result_file = tmp_path / "result.json"
@@ -65,7 +65,7 @@ def test_ddp_example_under_torchrun(tmp_path):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
          str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "rollout",
          "--json", str(result_file)],
-        capture_output=True, text=True, timeout=300, cwd=root)
+        capture_output=True, text=True, timeout=300, cwd=root, env=checkout_env())
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     result = json.loads(result_file.read_text())
     assert result["ranks"] == 2 and result["steps_per_s"] > 0
