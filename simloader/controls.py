@@ -468,6 +468,72 @@ class ControlPlan:
                 out[..., driver.columns] = draw
 
 
+# mjMAXVAL: MuJoCo's bound for a sane value (its checks of qpos, qvel, qacc and ctrl)
+MAXVAL = 1e10
+
+
+def applied_bounds(models: Sequence[mujoco.MjModel], control_spec: int,
+                   ctrlrange: Any = None, xp: Any = np) -> tuple[Any, Any]:
+    """The range MuJoCo clamps each control column to before a step, per model.
+
+    `ctrl` columns of actuators with `actuator_ctrllimited` (the compiled flag, in which
+    `autolimits` is already resolved) get their `ctrlrange`, unless the model disables
+    clamping (`mjDSBL_CLAMPCTRL`); every other column is unbounded. Backend-agnostic: with
+    `ctrlrange` as JAX arrays and `xp=jax.numpy` it runs inside a jitted function.
+
+    Args:
+      models: the models (one per trajectory, one per variant, or just the model); sizes and
+        flags of all but the first matter only without `ctrlrange`.
+      control_spec: the mjtState bits of the control vector.
+      ctrlrange: per-trajectory ranges `(n, nu, 2)` replacing the models' (a randomized
+        `actuator_ctrlrange`), or None.
+      xp: the array module of `ctrlrange` (numpy or jax.numpy).
+
+    Returns:
+      (low, high), each `(len(models) or n, ncontrol)`, -inf / inf where nothing clamps.
+    """
+    model = models[0]
+    ncontrol = mujoco.mj_stateSize(model, control_spec)
+    if ctrlrange is None:
+        ctrlrange = np.stack([m.actuator_ctrlrange for m in models]).reshape(-1, model.nu, 2)
+        limited = np.stack([_clamped(m) for m in models])
+    else:
+        limited = _clamped(model)[None]
+    n = ctrlrange.shape[0]
+    if not control_spec & int(mujoco.mjtState.mjSTATE_CTRL):
+        unbounded = np.full((n, ncontrol), np.inf)
+        return xp.asarray(-unbounded), xp.asarray(unbounded)
+    # ctrl is the first component of a control row (mjtState order)
+    rest = np.full((n, ncontrol - model.nu), np.inf)
+    low = xp.where(limited, ctrlrange[..., 0], -np.inf)
+    high = xp.where(limited, ctrlrange[..., 1], np.inf)
+    return (xp.concatenate([low, xp.asarray(-rest, low.dtype)], axis=1),
+            xp.concatenate([high, xp.asarray(rest, high.dtype)], axis=1))
+
+
+def _clamped(model: mujoco.MjModel) -> np.ndarray:
+    """(nu,) bool: the actuators whose ctrl MuJoCo clamps to ctrlrange."""
+    if model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL):
+        return np.zeros(model.nu, dtype=bool)
+    return model.actuator_ctrllimited.astype(bool)
+
+
+def clamp_applied(control: Any, low: Any, high: Any, xp: Any = np) -> Any:
+    """The control rows as they act: `control` clamped to `[low, high]` (broadcasting, e.g.
+    `(nbatch, 1, ncontrol)` bounds from `applied_bounds`), NaN kept (a bad control, flagged
+    by `bad_controls`). Works on NumPy and JAX arrays (`xp`: their module)."""
+    return xp.minimum(xp.maximum(control, low), high)
+
+
+def bad_controls(control: Any) -> Any:
+    """(nbatch,) bool: the trajectories of `control` (nbatch, ...) holding a non-finite value
+    or one beyond mjMAXVAL, before clamping (MuJoCo warns only about what is still bad after
+    it clamps, so `inf` on a limited actuator would pass unwarned). Works on NumPy and JAX
+    arrays alike."""
+    bad = ~(abs(control) <= MAXVAL)  # NaN compares False
+    return bad.reshape(bad.shape[0], -1).any(axis=1)
+
+
 def _fixed_control(control: Any, nbatch: int, nstep: int, model: mujoco.MjModel,
                    control_spec: int) -> np.ndarray:
     """Validates an explicit control array and tiles it to (nbatch, nstep, ncontrol), once."""
