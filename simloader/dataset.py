@@ -75,6 +75,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
+        self._pending: Optional[dict] = None  # the one the current iterator resumes from
         self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -112,8 +113,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         Small and JSON-serializable; usable by torchdata's `StatefulDataLoader`. Loading it into
         a dataset of the same configuration resumes exactly after the last delivered batch.
         """
-        if self._progress is None:
-            return self._loaded or {"version": resume.VERSION,
+        if self._progress is None:  # nothing delivered since the last load or iter()
+            return self._loaded or self._pending or {"version": resume.VERSION,
                                     "config": resume.fingerprint(self.config),
                                     "shard": None, "next_index": None, "trajectories": None}
         shard, next_index, backend, produced = self._progress
@@ -128,18 +129,29 @@ class SimDataset(torch.utils.data.IterableDataset):
           ValueError: the state belongs to a stream of another configuration.
         """
         resume.check(self.config, state)
-        self._loaded, self._progress = state, None
+        self._loaded, self._pending, self._progress = state, None, None
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        # the loaded position is taken by iter(), not by the first next(): a loader may make an
+        # iterator and drop it unstarted (StatefulDataLoader does when it resumes from the end
+        # of an epoch), and the next iterator must start the next epoch, not find it again
         shard = sharding.current_shard(self._rank)
         loaded, self._loaded = self._loaded, None
-        start = None
-        backend = self.make_backend(shard)
+        self._pending, self._progress = loaded, None
         if loaded is not None and loaded["next_index"] is not None:
             saved = [shard.worker, shard.num_workers, shard.rank]
             if loaded["shard"] != saved:
                 raise ValueError(f"state_dict: saved by worker/num_workers/rank "
                                  f"{loaded['shard']}, resumed as {saved}")
+        else:
+            loaded = None
+        return self._batches(shard, loaded)
+
+    def _batches(self, shard: sharding.Shard,
+                 loaded: Optional[dict]) -> Iterator[dict[str, torch.Tensor]]:
+        backend = self.make_backend(shard)
+        start = None
+        if loaded is not None:
             start = loaded["next_index"]
             if loaded["trajectories"] is not None:
                 backend.restore(loaded["trajectories"])

@@ -53,6 +53,45 @@ def test_resume_after_k_batches(k, workers, continue_episodes):
         assert torch.equal(a, b)
 
 
+def timeline(loader, epochs, stop_after=None):
+    """What `epochs` passes over `loader` deliver: each batch's state, and None where an epoch
+    ends; stops after `stop_after` of these tokens."""
+    out = []
+    for _ in range(epochs):
+        for batch in loader:
+            out.append(batch["state"].clone())
+            if len(out) == stop_after:
+                return out
+        out.append(None)
+        if len(out) == stop_after:
+            return out
+    return out
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+@pytest.mark.parametrize("position", [2, 4, 5, 10, 12])
+@pytest.mark.parametrize("continue_episodes", [False, True])
+def test_resume_at_any_point_of_any_epoch(position, workers, continue_episodes):
+    # 3 epochs of 4 batches; position 4: after the last batch of epoch 0, before its end was
+    # seen; 5 and 10: at the end of an epoch (before the fix, with 0 workers, the resumed
+    # loader delivered an empty epoch there: the position was read at the first next())
+    def loader():
+        return StatefulDataLoader(make(4, continue_episodes), batch_size=None,
+                                  num_workers=workers)
+
+    full = timeline(loader(), 3)
+    interrupted = loader()
+    first = timeline(interrupted, 3, stop_after=position)
+    saved = json.loads(json.dumps(interrupted.state_dict()))
+    resumed = loader()
+    resumed.load_state_dict(saved)
+    rest = timeline(resumed, 3 - first.count(None))
+    got = first + rest
+    assert [t is None for t in got] == [t is None for t in full]
+    for a, b in zip(got, full):
+        assert a is None or torch.equal(a, b)
+
+
 def test_dataset_state_is_small_json():
     ds = make(None, continue_episodes=True)
     it = iter(ds)
