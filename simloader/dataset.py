@@ -114,11 +114,13 @@ class SimDataset(torch.utils.data.IterableDataset):
         a dataset of the same configuration resumes exactly after the last delivered batch.
         """
         if self._progress is None:  # nothing delivered since the last load or iter()
-            return self._loaded or self._pending or {"version": resume.VERSION,
-                                    "config": resume.fingerprint(self.config),
-                                    "shard": None, "next_index": None, "trajectories": None}
+            return self._loaded or self._pending or {
+                "version": resume.VERSION,
+                "config": resume.fingerprint(self.config, self.backend_options),
+                "shard": None, "next_index": None, "trajectories": None}
         shard, next_index, backend, produced = self._progress
-        return {"version": resume.VERSION, "config": resume.fingerprint(self.config),
+        return {"version": resume.VERSION,
+                "config": resume.fingerprint(self.config, self.backend_options),
                 "shard": [shard.worker, shard.num_workers, shard.rank],
                 "next_index": next_index, "trajectories": backend.checkpoint(produced)}
 
@@ -128,7 +130,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         Raises:
           ValueError: the state belongs to a stream of another configuration.
         """
-        resume.check(self.config, state)
+        resume.check(self.config, self.backend_options, state)
         self._loaded, self._pending, self._progress = state, None, None
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:

@@ -126,8 +126,82 @@ def test_mismatched_configuration_is_a_clear_error():
     with pytest.raises(ValueError, match="state_dict: the saved stream has another "
                                          "configuration: seed is 1 here but 0 in the state"):
         make(5, seed=1).load_state_dict(saved)
-    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 2"):
+    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 3"):
         make(5).load_state_dict({"version": 99})
+
+
+def other_pole_variant(spec, rng):
+    spec.geom("pole").fromto = [0, 0, 0, 0, 0, rng.uniform(2.0, 3.0)]
+    return spec
+
+
+BASE = dict(control=controls.Uniform(), initial_state=simloader.initial.Perturbed(),
+            randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="pole")])
+CHANGES = {  # one change of what the stream is made of, and the name the refusal gives it
+    "control generator": (dict(control=controls.PiecewiseConstant(hold=2)), "control"),
+    "control parameter": (dict(control=controls.Uniform(low=-0.5)), "control"),
+    "control array": (dict(control=np.full((1, 1, 1), 0.25)), "control"),
+    "initial generator": (dict(initial_state=simloader.initial.Perturbed(qpos_std=0.3)),
+                          "initial_state"),
+    "initial array": (dict(initial_state=np.zeros((1, 5))), "initial_state"),
+    "randomized object": (dict(randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0),
+                                                   on="cart")]), "randomize"),
+    "distribution": (dict(randomize=[dr.scale("body_mass", dr.Uniform(0.5, 3.0), on="pole")]),
+                     "randomize"),
+    "variant pool": (dict(randomize=dr.Variants(pole_variant, count=4)), "randomize"),
+    "dtype": (dict(dtype=torch.float32), "dtype"),
+}
+
+
+def configured(**changes):
+    return simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=4, nthread=1,
+                                continue_episodes=True, num_batches=5, **{**BASE, **changes})
+
+
+@pytest.mark.parametrize("change", sorted(CHANGES))
+def test_resuming_another_configuration_is_refused_naming_it(change):
+    # before the fix: control, initial state and randomization were not in the fingerprint;
+    # a randomized stream resumed into another one failed late with KeyError('body_mass[cart]')
+    changes, name = CHANGES[change]
+    ds = configured()
+    it = iter(ds)
+    next(it)
+    saved = json.loads(json.dumps(ds.state_dict()))
+    it.close()
+    configured().load_state_dict(saved)  # the same configuration, made anew, resumes
+    with pytest.raises(ValueError, match=rf"the saved stream has another configuration: "
+                                         rf"(.* )?{name}\S* is "):
+        configured(**changes).load_state_dict(saved)
+
+
+def test_variant_pools_of_other_functions_differ():
+    a = configured(randomize=dr.Variants(pole_variant, count=4)).state_dict()
+    with pytest.raises(ValueError, match="randomize"):
+        configured(randomize=dr.Variants(other_pole_variant, count=4)).load_state_dict(a)
+
+
+def test_fingerprint_covers_stream_changing_backend_options_only():
+    from simloader import resume
+    config = configured().config
+    jax_impl = resume.fingerprint(config, {"impl": "jax", "compilation_cache": "/a"})
+    state = {"version": resume.VERSION, "config": jax_impl}
+    # where JAX caches compilations and how much memory it takes do not change the stream
+    resume.check(config, {"impl": "jax", "compilation_cache": "/b", "memory_fraction": 0.5},
+                 state)
+    with pytest.raises(ValueError, match=r"backend_options.impl is 'warp' here but 'jax'"):
+        resume.check(config, {"impl": "warp"}, state)
+
+
+def test_fingerprint_is_the_same_in_fresh_processes(fresh_python):
+    script = textwrap.dedent("""
+        import json, sys
+        sys.path.insert(0, %r)
+        from test_resume import configured
+        print(json.dumps(configured().state_dict()["config"], sort_keys=True))
+    """ % str(pathlib.Path(__file__).parent))
+    first, second = fresh_python(script, [([], {}), ([], {"PYTHONHASHSEED": "7"})])
+    assert first == second
+    assert json.loads(first) == json.loads(json.dumps(configured().state_dict()["config"]))
 
 
 @pytest.mark.parametrize("randomize", [SPEC, dr.Variants(pole_variant, count=4)],
