@@ -6,7 +6,7 @@
         batch["state"]  # (4096, 200, nstate)
 """
 
-from simloader import controls, initial, layout
+from simloader import controls, initial, layout, randomize
 from simloader.dataset import SimDataset
 from simloader.layout import describe
 from simloader.models import builtin_models, builtin_path, load_model
@@ -22,4 +22,5 @@ __all__ = [
     "initial",
     "layout",
     "load_model",
+    "randomize",
 ]

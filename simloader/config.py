@@ -8,6 +8,10 @@ thread, worker or compilation starts.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import os
+import pathlib
+import warnings
 from collections.abc import Sequence
 from typing import Any, Optional
 
@@ -41,6 +45,7 @@ class SimConfig:
       device, dtype: where and in what the tensors are delivered (None: backend native).
       nthread: CPU threads of the rollout backend (None: the cores split among workers).
       prefetch: batches simulated ahead of the consumer.
+      torch_threads: torch's intra-op threads in the constructing process (the consumer's).
     """
 
     model: mujoco.MjModel
@@ -63,6 +68,7 @@ class SimConfig:
     dtype: Optional[torch.dtype]
     nthread: Optional[int]
     prefetch: int
+    torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
 
     def variant_defaults(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
         """With variants, what each variant starts from: its undriven control columns
@@ -85,19 +91,32 @@ def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[
     return int(value)
 
 
-def resolve_backend(backend: str) -> str:
-    """"auto" is "mjx" when JAX is installed and sees a GPU, else "rollout"."""
+def gpu_visible() -> bool:
+    """Whether this machine shows a GPU JAX could use, decided without starting JAX: NVIDIA's
+    driver lists its GPUs under /proc/driver/nvidia/gpus (AMD's ROCm has /dev/kfd), and a
+    CUDA build of torch asks the driver (CUDA_VISIBLE_DEVICES respected)."""
+    gpus = pathlib.Path("/proc/driver/nvidia/gpus")
+    if (gpus.is_dir() and any(gpus.iterdir())) or os.path.exists("/dev/kfd"):
+        return True
+    return torch.version.cuda is not None and torch.cuda.is_available()
+
+
+def resolve_backend(backend: str, options: Optional[dict[str, Any]] = None) -> str:
+    """"auto" is "mjx" when JAX is installed and sees a GPU, else "rollout". Without a visible
+    GPU it is "rollout" at once: JAX is neither imported nor started."""
     if backend not in BACKENDS:
         raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if backend != "auto":
         return backend
+    if not gpu_visible() or importlib.util.find_spec("jax") is None:
+        return "rollout"
     # asking JAX for its devices starts it: with simloader's settings (no GPU preallocation)
     from simloader import backends
-    backends.prepare(backend, {})
+    backends.prepare(backend, options or {})
     try:
         import jax
         return "mjx" if any(d.platform == "gpu" for d in jax.devices()) else "rollout"
-    except Exception:  # JAX missing or without a usable platform
+    except Exception:  # JAX without a usable platform
         return "rollout"
 
 
@@ -153,24 +172,36 @@ def _torch_device(device: Any) -> Optional[torch.device]:
     return dev
 
 
-def _torch_dtype(dtype: Any) -> Optional[torch.dtype]:
+def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
     if dtype is None:
         return None
+    half = (torch.float16, torch.bfloat16, np.float16, "float16", "bfloat16", "half")
+    if any(dtype is h or (isinstance(dtype, str) and dtype == h) for h in half):
+        raise ValueError(f"dtype: {dtype} (half precision) cannot hold simulation states: 3 "
+                         f"significant digits, and float16 overflows above 65504 and rounds "
+                         f"time steps away; use torch.float32 or torch.float64 and convert "
+                         f"in your model")
     allowed = {torch.float64: torch.float64, torch.float32: torch.float32,
-               torch.float16: torch.float16, torch.bfloat16: torch.bfloat16,
                np.float64: torch.float64, np.float32: torch.float32,
                "float64": torch.float64, "float32": torch.float32}
     try:
-        return allowed[dtype]
+        out = allowed[dtype]
     except (KeyError, TypeError):
-        raise ValueError(f"dtype: expected None or a floating torch dtype (torch.float32, "
-                         f"torch.float64, ...), got {dtype!r}") from None
+        raise ValueError(f"dtype: expected None, torch.float32 or torch.float64, got "
+                         f"{dtype!r}") from None
+    if out == torch.float64 and backend == "mjx":
+        import jax
+        if not jax.config.jax_enable_x64:
+            warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
+                          "(JAX without jax_enable_x64), so the tensors are float32 values "
+                          "up-cast to float64", UserWarning, stacklevel=4)
+    return out
 
 
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
-                 prefetch: Any) -> SimConfig:
+                 prefetch: Any, options: Optional[dict[str, Any]] = None) -> SimConfig:
     """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
@@ -180,15 +211,17 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     prefetch = _int("prefetch", prefetch, 1)
     if not isinstance(continue_episodes, bool):
         raise TypeError(f"continue_episodes: expected a bool, got {type(continue_episodes).__name__}")
+    if isinstance(control_spec, str):
+        control_spec = layout.parse_control_spec(control_spec)
     if isinstance(control_spec, bool) or not isinstance(control_spec, (int, np.integer,
                                                                         mujoco.mjtState)):
-        raise TypeError(f"control_spec: expected an mjtState bitmask (int), got "
-                        f"{type(control_spec).__name__}")
+        raise TypeError(f"control_spec: expected an mjtState bitmask (int) or component names "
+                        f"('ctrl|xfrc_applied'), got {type(control_spec).__name__}")
     control_spec = int(control_spec)
     if control_spec & ~layout.USER or control_spec < 0:
         raise ValueError(f"control_spec: expected bits within mjSTATE_USER ({layout.USER}), got "
                          f"{control_spec} (bits {control_spec & ~layout.USER} are outside)")
-    backend_ = resolve_backend(backend) if isinstance(backend, str) else None
+    backend_ = resolve_backend(backend, options) if isinstance(backend, str) else None
     if backend_ is None:
         raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__}")
     base = models.load_model(model)
@@ -206,5 +239,5 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
         variants=variants, control=plan, initial=init,
         continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-        device=_torch_device(device), dtype=_torch_dtype(dtype), nthread=nthread,
-        prefetch=prefetch)
+        device=_torch_device(device), dtype=_torch_dtype(dtype, backend_), nthread=nthread,
+        prefetch=prefetch, torch_threads=torch.get_num_threads())

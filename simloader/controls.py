@@ -119,19 +119,22 @@ class Uniform(Generator):
         return jax.random.uniform(key, shape, dtype=low.dtype, minval=low, maxval=high)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Normal(Generator):
     """Independent Gaussian draws `mean + std * N(0, 1)` at every step.
 
+    Keywords only (`Normal(mean=0.0, std=0.5)`): `simloader.randomize.Normal(mean, std)` takes
+    the same two in this order, positionally too.
+
     Args:
-      std, mean: a scalar or one value per column.
+      mean, std: a scalar or one value per column.
       clip: clip `ctrl` columns of limited actuators to their `ctrlrange` (MuJoCo clamps
         them anyway; clipping makes the recorded `control` the value that acted).
       on: the objects to drive; `None` drives the whole component.
     """
 
-    std: Any = 1.0
     mean: Any = 0.0
+    std: Any = 1.0
     clip: bool = True
     on: Names = None
 
@@ -179,7 +182,7 @@ class Constant(Generator):
 
 def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Component,
                      columns: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-column std, mean and clip bounds of a generator with `std`, `mean`, `clip` fields."""
+    """Per-column std, mean and clip bounds of a generator with `mean`, `std`, `clip` fields."""
     name = type(gen).__name__
     std = _per_column(gen.std, component, columns, f"{name}.std")
     mean = _per_column(gen.mean, component, columns, f"{name}.mean")
@@ -199,26 +202,27 @@ def _positive(name: str, value: Any) -> float:
     return float(value)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class OrnsteinUhlenbeck(Generator):
     """Smooth noise: a stationary Ornstein-Uhlenbeck process with correlation time `tau`.
 
     `x[t] = mean + a (x[t-1] - mean) + std sqrt(1 - a^2) eps[t]`, `a = exp(-timestep / tau)`,
     started from the stationary distribution, so every step has standard deviation `std` and
     steps `tau` seconds apart correlate by 1/e. World models need such excitation: white noise
-    at a small timestep barely moves a system. Each batch starts a fresh process.
+    at a small timestep barely moves a system. Each batch starts a fresh process. Keywords
+    only, as `Normal`.
 
     Args:
+      mean: the level the process reverts to.
       std: stationary standard deviation, a scalar or one value per column.
       tau: correlation time in seconds (simulated time, the model's timestep per step).
-      mean: the level the process reverts to.
       clip: clip `ctrl` columns of limited actuators to their `ctrlrange`.
       on: the objects to drive; `None` drives the whole component.
     """
 
+    mean: Any = 0.0
     std: Any = 1.0
     tau: float = 0.1
-    mean: Any = 0.0
     clip: bool = True
     on: Names = None
 
@@ -495,7 +499,8 @@ def applied_bounds(models: Sequence[mujoco.MjModel], control_spec: int,
     model = models[0]
     ncontrol = mujoco.mj_stateSize(model, control_spec)
     if ctrlrange is None:
-        ctrlrange = np.stack([m.actuator_ctrlrange for m in models]).reshape(-1, model.nu, 2)
+        ctrlrange = np.stack([m.actuator_ctrlrange for m in models]).reshape(
+            len(models), model.nu, 2)
         limited = np.stack([_clamped(m) for m in models])
     else:
         limited = _clamped(model)[None]

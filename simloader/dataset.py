@@ -8,7 +8,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import layout, resume, sharding
+from simloader import handoff, layout, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
@@ -64,12 +64,14 @@ class SimDataset(torch.utils.data.IterableDataset):
                  nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
         super().__init__()
         from simloader import backends
-        backends.prepare(backend, backend_options)
+        if backend != "auto":  # "auto" prepares only where it starts JAX (resolve_backend)
+            backends.prepare(backend, backend_options)
         self.config: SimConfig = build_config(
             model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
             control_spec=control_spec, initial_state=initial_state, randomize=randomize,
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
+            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
+            options=backend_options)
         self.backend_options = backends.check_options(self.config, backend_options)
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
@@ -162,7 +164,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                                 self.config.prefetch)
         try:
             for index, produced in prefetcher:
-                batch = backend.deliver(produced)
+                batch = handoff.Batch(backend.deliver(produced))
                 self._progress = (shard, index + shard.num_workers, backend, produced)
                 yield batch
         finally:

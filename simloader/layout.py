@@ -45,6 +45,27 @@ INTEGRATION = int(S.mjSTATE_INTEGRATION)
 COMPONENT_NAMES = tuple(c[0] for c in _USER_COMPONENTS)
 
 
+def parse_control_spec(text: str) -> int:
+    """A control_spec from its names, as `ctrl|xfrc_applied` (any case, spaces allowed), or
+    an integer bitmask written in digits; the Python API and the command line share it.
+
+    Raises:
+      ValueError: an unknown component name.
+    """
+    if text.strip().isdigit():
+        return int(text)
+    spec = 0
+    for part in text.split("|"):
+        name = part.strip().lower()
+        if name not in COMPONENT_NAMES:
+            close = difflib.get_close_matches(name, COMPONENT_NAMES, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(f"control_spec: unknown component {part.strip()!r}{hint}; known: "
+                             f"{list(COMPONENT_NAMES)}")
+        spec |= int(next(bit for n, bit, _, _ in _USER_COMPONENTS if n == name))
+    return spec
+
+
 @dataclasses.dataclass(frozen=True)
 class Component:
     """One component of a state or control vector.

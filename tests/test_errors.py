@@ -48,7 +48,7 @@ CASES = [
     (dict(seed="x"), TypeError, "seed: expected an integer, got str 'x'"),
     (dict(backend="gpu"), ValueError, "backend: expected one of ('auto', 'rollout', 'mjx'), got 'gpu'"),
     (dict(continue_episodes=1), TypeError, "continue_episodes: expected a bool, got int"),
-    (dict(dtype="int8"), ValueError, "dtype: expected None or a floating torch dtype"),
+    (dict(dtype="int8"), ValueError, "dtype: expected None, torch.float32 or torch.float64, got 'int8'"),
     (dict(device="tpu"), ValueError, "device: expected None, 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
     (dict(randomize=[]), ValueError, "randomize: expected nbatch=4 models (one per trajectory), got 0"),
     (dict(randomize="models"), TypeError, "randomize: expected None, a sequence of MjModel (one per trajectory)"),

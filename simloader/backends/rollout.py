@@ -43,7 +43,7 @@ class RolloutBackend(Backend):
     def __init__(self, config, shard, stats):
         super().__init__(config, shard, stats)
         c = config
-        self.nthread = sharding.threads_per_worker(shard, c.nthread)
+        self.nthread = sharding.threads_per_worker(shard, c.nthread, c.torch_threads)
         self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
         if c.models is not None:
             self.batch.set_models(c.models)
