@@ -51,8 +51,7 @@ def quickstart(args: argparse.Namespace) -> None:
 
 
 def info(args: argparse.Namespace) -> None:
-    model = simloader.load_model(args.model)
-    print(simloader.describe(model, args.control_spec))
+    print(simloader.describe(args.model, args.control_spec))
 
 
 def bench(args: argparse.Namespace) -> None:

@@ -8,7 +8,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import handoff, layout, resume, sharding
+from simloader import handoff, layout, models, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
@@ -27,7 +27,9 @@ class SimDataset(torch.utils.data.IterableDataset):
       diverged       (nbatch,) bool                MuJoCo warning or NaN/Inf in this batch
 
     Args:
-      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a built-in model name.
+      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a model name
+        (`simloader.named_models()`: the built-in `cartpole` and `humanoid`, Gymnasium's
+        `gymnasium/hopper` and the like where gymnasium is installed).
       backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (JAX) or "auto" (mjx when JAX
         sees a GPU, else rollout).
       nbatch: trajectories per batch.
@@ -73,6 +75,7 @@ class SimDataset(torch.utils.data.IterableDataset):
             device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
             options=backend_options)
         self.backend_options = backends.check_options(self.config, backend_options)
+        self.source = models.source(model)  # where the model came from, for describe()
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
@@ -95,8 +98,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         return self._stats.as_dict()
 
     def describe(self) -> str:
-        """Which columns of state and control mean what, by object name."""
-        return layout.describe(self.config.model, self.config.control_spec)
+        """Where the model came from and which columns of state and control mean what."""
+        return layout.describe(self.config.model, self.config.control_spec, self.source)
 
     def __len__(self) -> int:
         if self.config.num_batches is None:

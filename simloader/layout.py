@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 from collections.abc import Sequence
+from typing import Optional
 
 import mujoco
 import numpy as np
@@ -205,9 +206,12 @@ def reset_rows(models: Sequence[mujoco.MjModel], spec: int) -> np.ndarray:
     return np.stack([reset_state(m, spec) for m in models])
 
 
-def describe(model: mujoco.MjModel, control_spec: int = int(S.mjSTATE_CTRL)) -> str:
-    """A human-readable table of the state and control columns, by object name."""
-    lines = [f"state (mjSTATE_FULLPHYSICS), nstate = {mujoco.mj_stateSize(model, FULLPHYSICS)}"]
+def describe(model: mujoco.MjModel, control_spec: int = int(S.mjSTATE_CTRL),
+             source: Optional[str] = None) -> str:
+    """A human-readable table of the state and control columns, by object name (after where
+    the model comes from, when `source` says)."""
+    lines = [f"model: {source}"] if source else []
+    lines.append(f"state (mjSTATE_FULLPHYSICS), nstate = {mujoco.mj_stateSize(model, FULLPHYSICS)}")
     for c in state_layout(model):
         if c.size:
             lines.append(f"  [{c.start}:{c.start + c.size}] {c.name}: {', '.join(c.objects)}")
