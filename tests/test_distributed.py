@@ -90,12 +90,12 @@ print(json.dumps({
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2,
                     reason="needs 2 GPUs")
-def test_torchrun_ranks_simulate_on_their_own_gpu(tmp_path):
+def test_torchrun_ranks_simulate_on_their_own_gpu(tmp_path, checkout_env):
     script = tmp_path / "rank.py"
     script.write_text(_RANK_DEVICE_SCRIPT)
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-         str(script)], capture_output=True, text=True, timeout=300)
+         str(script)], capture_output=True, text=True, timeout=300, env=checkout_env())
     assert proc.returncode == 0, proc.stderr[-4000:]
     results = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
     assert len(results) == 2
