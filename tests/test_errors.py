@@ -33,7 +33,8 @@ CASES = [
     (dict(control="uniform"), TypeError, "control: expected None, an array"),
     (dict(control_spec=int(S.mjSTATE_QPOS)), ValueError,
      "control_spec: expected bits within mjSTATE_USER (8128), got 2 (bits 2 are outside)"),
-    (dict(control_spec=1.5), TypeError, "control_spec: expected an mjtState bitmask (int), got float"),
+    (dict(control_spec=1.5), TypeError, "control_spec: expected an mjtState bitmask (int) or "
+     "component names ('ctrl|xfrc_applied'), got float"),
     (dict(initial_state="nope"), ValueError,
      "initial_state: unknown keyframe 'nope'; the model's keyframes are ['upright', 'hanging']"),
     (dict(initial_state=np.full((1, 5), np.nan)), ValueError,
