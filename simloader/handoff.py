@@ -7,6 +7,7 @@ arrays reach torch through DLPack, sharing device memory.
 
 from __future__ import annotations
 
+import collections
 from typing import Any, Optional
 
 import numpy as np
@@ -44,6 +45,12 @@ class Batch(dict):
     """A delivered batch: a `dict` of tensors (nested for `params`) that torch's default
     collation refuses, because a `DataLoader` with its default `batch_size=1` would stack
     single batches into tensors with an extra leading dimension of 1."""
+
+    def __reduce__(self):
+        # pickled (torch.save, from a DataLoader worker) as an OrderedDict, so that loading
+        # needs no simloader: torch.load's weights_only accepts OrderedDict but no other
+        # dict type (not even dict's constructor)
+        return collections.OrderedDict, (list(self.items()),)
 
 
 def _refuse_collation(batch: Any, *, collate_fn_map: Any = None) -> Any:

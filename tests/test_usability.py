@@ -43,6 +43,12 @@ def test_dataloader_without_batch_size_none_says_what_to_write(workers):
     assert batch["state"].shape == (2, 3, 5) and isinstance(batch, dict)
 
 
+def test_a_saved_batch_loads_without_simloader_types(tmp_path):
+    torch.save(next(iter(cartpole())), tmp_path / "batch.pt")
+    loaded = torch.load(tmp_path / "batch.pt", weights_only=True)
+    assert isinstance(loaded, dict) and loaded["state"].shape == (2, 3, 5)
+
+
 def test_control_spec_by_names_in_python_as_on_the_command_line():
     ds = cartpole(control=None, control_spec="ctrl|xfrc_applied")
     assert ds.config.control_spec == int(S.mjSTATE_CTRL | S.mjSTATE_XFRC_APPLIED)
