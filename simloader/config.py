@@ -8,9 +8,6 @@ thread, worker or compilation starts.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import os
-import pathlib
 import warnings
 from collections.abc import Sequence
 from typing import Any, Optional
@@ -22,9 +19,6 @@ import torch
 from simloader import controls, initial, layout, models
 from simloader import randomize as dr
 
-BACKENDS = ("auto", "rollout", "mjx")
-
-
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
     """Everything a backend needs to simulate one batch, validated.
@@ -34,7 +28,9 @@ class SimConfig:
       models: one MjModel per trajectory (`randomize` as a list), or None.
       randomization: per-trajectory model parameters drawn every batch, or None.
       variants: the pool of compiled structural variants sampled per trajectory, or None.
-      backend: "rollout" or "mjx" ("auto" is resolved).
+      backend: "rollout" or "mjx" ("auto" is resolved by `backends.resolve`).
+      options: the backend's own options, resolved (`backends.check_options`; the MJX backend's
+        `MjxOptions`: implementation, buffer sizes, caches), None for "rollout".
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
@@ -68,6 +64,7 @@ class SimConfig:
     dtype: Optional[torch.dtype]
     nthread: Optional[int]
     prefetch: int
+    options: Any = None
     torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
 
     def variant_defaults(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
@@ -89,35 +86,6 @@ def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[
     if value < low:
         raise ValueError(f"{name}: expected an integer >= {low}, got {value}")
     return int(value)
-
-
-def gpu_visible() -> bool:
-    """Whether this machine shows a GPU JAX could use, decided without starting JAX: NVIDIA's
-    driver lists its GPUs under /proc/driver/nvidia/gpus (AMD's ROCm has /dev/kfd), and a
-    CUDA build of torch asks the driver (CUDA_VISIBLE_DEVICES respected)."""
-    gpus = pathlib.Path("/proc/driver/nvidia/gpus")
-    if (gpus.is_dir() and any(gpus.iterdir())) or os.path.exists("/dev/kfd"):
-        return True
-    return torch.version.cuda is not None and torch.cuda.is_available()
-
-
-def resolve_backend(backend: str, options: Optional[dict[str, Any]] = None) -> str:
-    """"auto" is "mjx" when JAX is installed and sees a GPU, else "rollout". Without a visible
-    GPU it is "rollout" at once: JAX is neither imported nor started."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
-    if backend != "auto":
-        return backend
-    if not gpu_visible() or importlib.util.find_spec("jax") is None:
-        return "rollout"
-    # asking JAX for its devices starts it: with simloader's settings (no GPU preallocation)
-    from simloader import backends
-    backends.prepare(backend, options or {})
-    try:
-        import jax
-        return "mjx" if any(d.platform == "gpu" for d in jax.devices()) else "rollout"
-    except Exception:  # JAX without a usable platform
-        return "rollout"
 
 
 def _check_same_sizes(model: mujoco.MjModel, models: Sequence[mujoco.MjModel], what: str,
@@ -201,8 +169,9 @@ def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
-                 prefetch: Any, options: Optional[dict[str, Any]] = None) -> SimConfig:
-    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`."""
+                 prefetch: Any) -> SimConfig:
+    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`, for a
+    resolved `backend` (its options are validated next, by the backend)."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
     num_batches = _int("num_batches", num_batches, 0, allow_none=True)
@@ -221,9 +190,6 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     if control_spec & ~layout.USER or control_spec < 0:
         raise ValueError(f"control_spec: expected bits within mjSTATE_USER ({layout.USER}), got "
                          f"{control_spec} (bits {control_spec & ~layout.USER} are outside)")
-    backend_ = resolve_backend(backend, options) if isinstance(backend, str) else None
-    if backend_ is None:
-        raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__}")
     base = models.load_model(model)
     models_, randomization, variants = _randomization(model, base, randomize, nbatch,
                                                       control_spec, seed)
@@ -234,10 +200,10 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     return SimConfig(
-        model=base, models=models_, backend=backend_, nbatch=nbatch, nstep=nstep,
+        model=base, models=models_, backend=backend, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
         variants=variants, control=plan, initial=init,
         continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-        device=_torch_device(device), dtype=_torch_dtype(dtype, backend_), nthread=nthread,
+        device=_torch_device(device), dtype=_torch_dtype(dtype, backend), nthread=nthread,
         prefetch=prefetch, torch_threads=torch.get_num_threads())

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from typing import Any, Optional
 
 import mujoco
 import torch
 
-from simloader import handoff, layout, models, resume, sharding
+from simloader import backends, handoff, layout, models, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
@@ -65,16 +66,15 @@ class SimDataset(torch.utils.data.IterableDataset):
                  seed: int = 0, device: Any = None, dtype: Any = None,
                  nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
         super().__init__()
-        from simloader import backends
-        if backend != "auto":  # "auto" prepares only where it starts JAX (resolve_backend)
-            backends.prepare(backend, backend_options)
-        self.config: SimConfig = build_config(
-            model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
-            control_spec=control_spec, initial_state=initial_state, randomize=randomize,
-            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
-            options=backend_options)
-        self.backend_options = backends.check_options(self.config, backend_options)
+        backends.prepare(backend, backend_options)
+        config = build_config(
+            model, backend=backends.resolve(backend), nbatch=nbatch, nstep=nstep,
+            control=control, control_spec=control_spec, initial_state=initial_state,
+            randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
+            seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
+        # one route for every backend option: validated by the backend, kept in the config
+        self.config: SimConfig = dataclasses.replace(
+            config, options=backends.check_options(config, backend, backend_options))
         self.source = models.source(model)  # where the model came from, for describe()
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
@@ -93,13 +93,24 @@ class SimDataset(torch.utils.data.IterableDataset):
         return self.config.model
 
     @property
-    def stats(self) -> dict[str, float]:
-        """Counters of the iterators run in this process (workers keep their own)."""
-        return self._stats.as_dict()
+    def stats(self) -> dict[str, Any]:
+        """Counters of the iterators run in this process (workers keep their own), and the
+        implementation that simulates (`impl`: "jax" or "warp" on MJX, "c" on rollout)."""
+        out = self._stats.as_dict()
+        out["impl"] = self.config.options.impl if self.config.options is not None else "c"
+        return out
 
     def describe(self) -> str:
-        """Where the model came from and which columns of state and control mean what."""
-        return layout.describe(self.config.model, self.config.control_spec, self.source)
+        """Where the model came from, which columns of state and control mean what (by object
+        name), and what simulates."""
+        c = self.config
+        text = layout.describe(c.model, c.control_spec, self.source)
+        if c.options is not None:
+            text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
+                     f"({c.options.implementation().describe()}; chosen: {c.options.impl_reason})")
+        else:
+            text += "\nsimulated by: backend='rollout' (mujoco.batch on CPU threads)"
+        return text
 
     def __len__(self) -> int:
         if self.config.num_batches is None:
@@ -108,9 +119,8 @@ class SimDataset(torch.utils.data.IterableDataset):
 
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
-        from simloader import backends
         shard = shard or sharding.current_shard(self._rank)
-        return backends.create(self.config, shard, self._stats, self.backend_options)
+        return backends.create(self.config, shard, self._stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Where this iterator (this DataLoader worker, or this process) is in the stream.
@@ -121,11 +131,11 @@ class SimDataset(torch.utils.data.IterableDataset):
         if self._progress is None:  # nothing delivered since the last load or iter()
             return self._loaded or self._pending or {
                 "version": resume.VERSION,
-                "config": resume.fingerprint(self.config, self.backend_options),
+                "config": resume.fingerprint(self.config),
                 "shard": None, "next_index": None, "trajectories": None}
         shard, next_index, backend, produced = self._progress
         return {"version": resume.VERSION,
-                "config": resume.fingerprint(self.config, self.backend_options),
+                "config": resume.fingerprint(self.config),
                 "shard": [shard.worker, shard.num_workers, shard.rank],
                 "next_index": next_index, "trajectories": backend.checkpoint(produced)}
 
@@ -135,7 +145,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         Raises:
           ValueError: the state belongs to a stream of another configuration.
         """
-        resume.check(self.config, self.backend_options, state)
+        resume.check(self.config, state)
         self._loaded, self._pending, self._progress = state, None, None
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:

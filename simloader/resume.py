@@ -10,7 +10,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import hashlib
-from typing import Any, Optional
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -20,8 +20,9 @@ from simloader.config import SimConfig
 VERSION = 3  # 3: the configuration covers control, initial state, randomization, dtype, options
 # 2: continuing checkpoints carry the randomized values and variants
 
-# backend options that do not change the stream (where JAX caches, how much memory it takes)
-_SETUP_OPTIONS = ("compilation_cache", "memory_fraction")
+# backend options that do not change the stream (where JAX caches, how much memory it takes,
+# why an implementation was chosen)
+_SETUP_OPTIONS = ("compilation_cache", "memory_fraction", "impl_reason")
 
 
 def encode_array(array: np.ndarray) -> dict[str, Any]:
@@ -42,10 +43,11 @@ def _model_digest(model: mujoco.MjModel) -> str:
     return hashlib.sha256(buffer.tobytes()).hexdigest()[:16]
 
 
-def fingerprint(config: SimConfig, options: Optional[dict[str, Any]] = None) -> dict[str, Any]:
+def fingerprint(config: SimConfig) -> dict[str, Any]:
     """What must match for a saved stream to resume: everything that changes the stream (sizes,
-    seed, backend and its options, the models, controls, initial states, randomization, dtype),
-    as JSON values that are the same in every process (arrays and models by digest)."""
+    seed, backend and its resolved options, the models, controls, initial states,
+    randomization, dtype), as JSON values that are the same in every process (arrays and
+    models by digest)."""
     models = config.models or (config.model,)
     plan = config.control
     control = (None if plan.fixed is None and not plan.drivers else
@@ -70,9 +72,18 @@ def fingerprint(config: SimConfig, options: Optional[dict[str, Any]] = None) -> 
                           _describe(init.fixed)),
         "randomize": randomize,
         "dtype": None if config.dtype is None else str(config.dtype),
-        "backend_options": {k: _describe(v) for k, v in sorted((options or {}).items())
+        "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())
                             if k not in _SETUP_OPTIONS},
     }
+
+
+def _options(options: Any) -> dict[str, Any]:
+    """A backend's resolved options (`SimConfig.options`: None, or a dataclass) by name."""
+    if options is None:
+        return {}
+    if dataclasses.is_dataclass(options):
+        return {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+    return dict(vars(options))
 
 
 def _describe(value: Any) -> Any:
@@ -128,13 +139,13 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def check(config: SimConfig, options: Optional[dict[str, Any]], state: Any) -> None:
-    """Raises ValueError unless `state` is a state_dict of a stream with this configuration
-    (and these backend options), naming the differences."""
+def check(config: SimConfig, state: Any) -> None:
+    """Raises ValueError unless `state` is a state_dict of a stream with this configuration,
+    naming the differences."""
     if not isinstance(state, dict) or state.get("version") != VERSION:
         raise ValueError(f"state_dict: expected a simloader state of version {VERSION}, got "
                          f"{state if not isinstance(state, dict) else state.get('version')!r}")
-    expected, saved = fingerprint(config, options), state.get("config", {})
+    expected, saved = fingerprint(config), state.get("config", {})
     diff = []
     for key in expected:
         here, there = _leaves(expected[key], key), _leaves(saved.get(key), key)

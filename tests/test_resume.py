@@ -181,15 +181,23 @@ def test_variant_pools_of_other_functions_differ():
 
 
 def test_fingerprint_covers_stream_changing_backend_options_only():
+    import dataclasses
     from simloader import resume
+
+    @dataclasses.dataclass(frozen=True)
+    class Options:  # as a backend resolves its options (the MJX backend's MjxOptions)
+        impl: str
+        impl_reason: str = "asked"
+        compilation_cache: str = "/a"
+        memory_fraction: float = None
+
     config = configured().config
-    jax_impl = resume.fingerprint(config, {"impl": "jax", "compilation_cache": "/a"})
-    state = {"version": resume.VERSION, "config": jax_impl}
-    # where JAX caches compilations and how much memory it takes do not change the stream
-    resume.check(config, {"impl": "jax", "compilation_cache": "/b", "memory_fraction": 0.5},
-                 state)
+    state = {"version": resume.VERSION,
+             "config": resume.fingerprint(dataclasses.replace(config, options=Options("jax")))}
+    # where JAX caches, how much memory it takes and why an impl was chosen: same stream
+    resume.check(dataclasses.replace(config, options=Options("jax", "auto", "/b", 0.5)), state)
     with pytest.raises(ValueError, match=r"backend_options.impl is 'warp' here but 'jax'"):
-        resume.check(config, {"impl": "warp"}, state)
+        resume.check(dataclasses.replace(config, options=Options("warp")), state)
 
 
 def test_fingerprint_is_the_same_in_fresh_processes(fresh_python):
