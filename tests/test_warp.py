@@ -194,7 +194,7 @@ def test_auto_takes_jax_where_warp_cannot_run_and_says_why(rich, cache_dir, monk
 # --- on the GPU machine ------------------------------------------------------------------------
 
 def humanoid():
-    """The dm_control humanoid, built in (the same file as ../shared/models/dm_control's)."""
+    """The dm_control humanoid, built in (../shared/models/dm_control's, includes inlined)."""
     return simloader.load_model("humanoid")
 
 
