@@ -6,10 +6,9 @@
         batch["state"]  # (4096, 200, nstate)
 """
 
-from simloader import controls, initial, layout
+from simloader import controls, initial, layout, randomize
 from simloader.dataset import SimDataset
-from simloader.layout import describe
-from simloader.models import builtin_models, builtin_path, load_model
+from simloader.models import builtin_models, builtin_path, describe, load_model, named_models
 
 __version__ = "0.1.0"
 
@@ -22,4 +21,6 @@ __all__ = [
     "initial",
     "layout",
     "load_model",
+    "named_models",
+    "randomize",
 ]

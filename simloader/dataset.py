@@ -9,7 +9,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import backends, layout, resume, sharding
+from simloader import backends, handoff, layout, models, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
@@ -28,7 +28,9 @@ class SimDataset(torch.utils.data.IterableDataset):
       diverged       (nbatch,) bool                MuJoCo warning or NaN/Inf in this batch
 
     Args:
-      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a built-in model name.
+      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a model name
+        (`simloader.named_models()`: the built-in `cartpole` and `humanoid`, Gymnasium's
+        `gymnasium/hopper` and the like where gymnasium is installed).
       backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (JAX) or "auto" (mjx when JAX
         sees a GPU, else rollout).
       nbatch: trajectories per batch.
@@ -73,10 +75,12 @@ class SimDataset(torch.utils.data.IterableDataset):
         # one route for every backend option: validated by the backend, kept in the config
         self.config: SimConfig = dataclasses.replace(
             config, options=backends.check_options(config, backend, backend_options))
+        self.source = models.source(model)  # where the model came from, for describe()
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
+        self._pending: Optional[dict] = None  # the one the current iterator resumes from
         self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -97,9 +101,10 @@ class SimDataset(torch.utils.data.IterableDataset):
         return out
 
     def describe(self) -> str:
-        """Which columns of state and control mean what, by object name, and what simulates."""
+        """Where the model came from, which columns of state and control mean what (by object
+        name), and what simulates."""
         c = self.config
-        text = layout.describe(c.model, c.control_spec)
+        text = layout.describe(c.model, c.control_spec, self.source)
         if c.options is not None:
             text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
                      f"({c.options.implementation().describe()}; chosen: {c.options.impl_reason})")
@@ -123,12 +128,14 @@ class SimDataset(torch.utils.data.IterableDataset):
         Small and JSON-serializable; usable by torchdata's `StatefulDataLoader`. Loading it into
         a dataset of the same configuration resumes exactly after the last delivered batch.
         """
-        if self._progress is None:
-            return self._loaded or {"version": resume.VERSION,
-                                    "config": resume.fingerprint(self.config),
-                                    "shard": None, "next_index": None, "trajectories": None}
+        if self._progress is None:  # nothing delivered since the last load or iter()
+            return self._loaded or self._pending or {
+                "version": resume.VERSION,
+                "config": resume.fingerprint(self.config),
+                "shard": None, "next_index": None, "trajectories": None}
         shard, next_index, backend, produced = self._progress
-        return {"version": resume.VERSION, "config": resume.fingerprint(self.config),
+        return {"version": resume.VERSION,
+                "config": resume.fingerprint(self.config),
                 "shard": [shard.worker, shard.num_workers, shard.rank],
                 "next_index": next_index, "trajectories": backend.checkpoint(produced)}
 
@@ -139,18 +146,29 @@ class SimDataset(torch.utils.data.IterableDataset):
           ValueError: the state belongs to a stream of another configuration.
         """
         resume.check(self.config, state)
-        self._loaded, self._progress = state, None
+        self._loaded, self._pending, self._progress = state, None, None
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        # the loaded position is taken by iter(), not by the first next(): a loader may make an
+        # iterator and drop it unstarted (StatefulDataLoader does when it resumes from the end
+        # of an epoch), and the next iterator must start the next epoch, not find it again
         shard = sharding.current_shard(self._rank)
         loaded, self._loaded = self._loaded, None
-        start = None
-        backend = self.make_backend(shard)
+        self._pending, self._progress = loaded, None
         if loaded is not None and loaded["next_index"] is not None:
             saved = [shard.worker, shard.num_workers, shard.rank]
             if loaded["shard"] != saved:
                 raise ValueError(f"state_dict: saved by worker/num_workers/rank "
                                  f"{loaded['shard']}, resumed as {saved}")
+        else:
+            loaded = None
+        return self._batches(shard, loaded)
+
+    def _batches(self, shard: sharding.Shard,
+                 loaded: Optional[dict]) -> Iterator[dict[str, torch.Tensor]]:
+        backend = self.make_backend(shard)
+        start = None
+        if loaded is not None:
             start = loaded["next_index"]
             if loaded["trajectories"] is not None:
                 backend.restore(loaded["trajectories"])
@@ -159,7 +177,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                                 self.config.prefetch)
         try:
             for index, produced in prefetcher:
-                batch = backend.deliver(produced)
+                batch = handoff.Batch(backend.deliver(produced))
                 self._progress = (shard, index + shard.num_workers, backend, produced)
                 yield batch
         finally:
