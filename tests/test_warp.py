@@ -24,6 +24,7 @@ from simloader import controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 from conftest import RICH_XML  # noqa: E402
 from test_mjx import CONTACT_FREE_TOL, ONE_STEP_TOL  # noqa: E402
+from test_randomize import pole_variant  # noqa: E402
 
 S = mujoco.mjtState
 EVERY_INPUT = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED | S.mjSTATE_XFRC_APPLIED
@@ -244,3 +245,54 @@ def test_spawned_dataloader_worker_streams_the_same_batches(cache_dir):
     assert len(got) == 2
     for want, have in zip(expected, got):
         np.testing.assert_array_equal(have.numpy(), want.numpy())
+
+
+def test_a_model_list_runs_each_trajectory_on_its_model(cache_dir):
+    models = []
+    for damping in (0.0, 2.0, 8.0):
+        m = simloader.load_model("cartpole")
+        m.dof_damping[:] = damping
+        models.append(m)
+    ds = dataset(models[0], cache_dir, nbatch=3, nstep=40, control=controls.Uniform(),
+                 randomize=models, num_batches=1)
+    batch = next(iter(ds))
+    state, _ = rollout.rollout(models, mujoco.MjData(models[0]),
+                               batch["initial_state"].cpu().numpy().astype(np.float64),
+                               batch["control"].cpu().numpy().astype(np.float64))
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
+
+
+def damped_hinge(spec, rng):
+    spec.joint("hinge").damping = [rng.uniform(0.0, 5.0), 0, 0]
+    return spec
+
+
+def test_variants_run_on_their_own_models(cache_dir):
+    ds = dataset("cartpole", cache_dir, nbatch=4, nstep=30, control=controls.Uniform(),
+                 randomize=dr.Variants(damped_hinge, count=3), num_batches=1)
+    batch = next(iter(ds))
+    pool = ds.config.variants
+    models = [pool[i] for i in batch["params"]["variant"].cpu().numpy()]
+    state, _ = rollout.rollout(models, mujoco.MjData(models[0]),
+                               batch["initial_state"].cpu().numpy().astype(np.float64),
+                               batch["control"].cpu().numpy().astype(np.float64))
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
+
+
+def heavier_pole(spec, rng):
+    spec.geom("pole").mass = rng.uniform(0.05, 0.5)
+    return spec
+
+
+@pytest.mark.parametrize("variant, message", [
+    (pole_variant, r"randomize: variant\[1\]: model\._impl\.dof_length differs from randomize: "
+                   r"variant\[0\], but MJX compiles it into the simulation"),
+    (heavier_pole, r"randomize: variant\[1\]: stat\.meaninertia differs from randomize: "
+                   r"variant\[0\], but with impl='warp' it cannot differ per trajectory \(MuJoCo "
+                   r"Warp shares it across all trajectories of a batch\)"),
+])
+def test_variants_differing_in_what_warp_shares_are_refused_by_name(cache_dir, variant,
+                                                                     message):
+    with pytest.raises(ValueError, match=message):
+        dataset("cartpole", cache_dir, nbatch=4, nstep=30,
+                randomize=dr.Variants(variant, count=3))
