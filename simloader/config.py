@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import controls, initial, layout, models
+from simloader import controls, initial, layout, models, observe
 from simloader import randomize as dr
 
 BACKENDS = ("auto", "rollout", "mjx")
@@ -35,6 +35,8 @@ class SimConfig:
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
       initial: how each batch's initial states are made.
+      observations: what each batch records (`record=`), in the order given.
+      record_every: frames are recorded after every `record_every`-th step.
       continue_episodes: batches continue the previous batch's trajectories.
       num_batches: batches per rank in total, or None for endless.
       seed: root of all randomness.
@@ -56,6 +58,8 @@ class SimConfig:
     variants: Optional[tuple[mujoco.MjModel, ...]]
     control: controls.ControlPlan
     initial: initial.InitialPlan
+    observations: tuple[observe.Observation, ...]
+    record_every: int
     continue_episodes: bool
     num_batches: Optional[int]
     seed: int
@@ -63,6 +67,11 @@ class SimConfig:
     dtype: Optional[torch.dtype]
     nthread: Optional[int]
     prefetch: int
+
+    @property
+    def nframes(self) -> int:
+        """Recorded frames per trajectory per batch: `nstep // record_every`."""
+        return self.nstep // self.record_every
 
     def variant_defaults(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
         """With variants, what each variant starts from: its undriven control columns
@@ -167,10 +176,42 @@ def _torch_dtype(dtype: Any) -> Optional[torch.dtype]:
                          f"torch.float64, ...), got {dtype!r}") from None
 
 
+def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
+            backend: str) -> tuple[tuple[observe.Observation, ...], int]:
+    """The observations `record` names and the validated `record_every`."""
+    observations = observe.parse(model, record)
+    record_every = _int("record_every", record_every, 1)
+    if nstep % record_every:
+        raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "
+                         f"record_every={record_every} (frame j holds the values after step "
+                         f"(j + 1) * record_every)")
+    if backend == "mjx" and (tuple(o.key for o in observations) != observe.DEFAULT
+                             or record_every != 1):
+        observe.check_mjx(observations, model, "jax")
+        # the MJX scan records the default observations until it loops over them
+        raise ValueError(f"record, record_every: backend='mjx' records only "
+                         f"record={observe.DEFAULT} with record_every=1 so far, got "
+                         f"record={tuple(o.key for o in observations)}, record_every="
+                         f"{record_every}; use backend='rollout'")
+    return observations, record_every
+
+
+def _check_memory(c: SimConfig) -> None:
+    """Refuses a CPU batch that cannot fit in host memory, before anything runs (the MJX
+    backend checks its device's memory when it has the device)."""
+    if c.backend != "rollout":
+        return
+    nbytes = observe.batch_nbytes(c.observations, c.nbatch, c.nframes, c.nstep, c.ncontrol,
+                                  c.nstate)
+    # the prefetched batches and the one being simulated
+    observe.check_fits(nbytes, observe.host_available(), "host memory", nbatch=c.nbatch,
+                       record_every=c.record_every, count=c.prefetch + 1)
+
+
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
-                 prefetch: Any) -> SimConfig:
+                 prefetch: Any, record: Any, record_every: Any) -> SimConfig:
     """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
@@ -200,11 +241,14 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         base = variants[0]
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
-    return SimConfig(
+    observations, record_every = _record(base, record, record_every, nstep, backend_)
+    config = SimConfig(
         model=base, models=models_, backend=backend_, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
-        variants=variants, control=plan, initial=init,
-        continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-        device=_torch_device(device), dtype=_torch_dtype(dtype), nthread=nthread,
-        prefetch=prefetch)
+        variants=variants, control=plan, initial=init, observations=observations,
+        record_every=record_every, continue_episodes=continue_episodes,
+        num_batches=num_batches, seed=seed, device=_torch_device(device),
+        dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch)
+    _check_memory(config)
+    return config

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any, Optional
 
 import mujoco
 import torch
 
-from simloader import layout, resume, sharding
+from simloader import layout, observe, resume, sharding
 from simloader.backends.base import Backend, Stats
+from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
 
@@ -18,13 +19,18 @@ class SimDataset(torch.utils.data.IterableDataset):
     """Streams batches of `nbatch` trajectories of `nstep` steps, simulated on the fly.
 
     Use it with `torch.utils.data.DataLoader(ds, batch_size=None)` (each item is already a
-    batch) or iterate it directly. Each item is a dict of tensors:
+    batch) or iterate it directly. Each item is a `simloader.batch.Batch`, a dict of tensors
+    with named views (`batch.view("qpos")`, `batch.view("xpos", "hand")`); with the default
+    `record`:
 
-      state          (nbatch, nstep, nstate)       mjSTATE_FULLPHYSICS state after each step
-      sensordata     (nbatch, nstep, nsensordata)  sensor values after each step
-      control        (nbatch, nstep, ncontrol)     control rows applied before each step
-      initial_state  (nbatch, nstate)              state each trajectory started from
-      diverged       (nbatch,) bool                MuJoCo warning or NaN/Inf in this batch
+      state          (nbatch, nframes, nstate)       mjSTATE_FULLPHYSICS state after each frame
+      sensordata     (nbatch, nframes, nsensordata)  sensor values after each frame
+      control        (nbatch, nstep, ncontrol)       control rows applied before each step
+      initial_state  (nbatch, nstate)                state each trajectory started from
+      diverged       (nbatch,) bool                  MuJoCo warning or NaN/Inf in this batch
+
+    where `nframes = nstep // record_every` (`nstep` by default). Every name of `record` is a
+    key `(nbatch, nframes, *trailing shape)`.
 
     Args:
       model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a built-in model name.
@@ -51,9 +57,17 @@ class SimDataset(torch.utils.data.IterableDataset):
       nthread: CPU threads of the rollout backend per worker (None: the cores split among
         workers and local ranks).
       prefetch: batches simulated ahead of the consumer.
+      record: the names to record, each a batch key: "state", "sensordata", a lowercase
+        mjtState component ("qpos", "qvel", "act", "time", "ctrl", "xfrc_applied", ...), any
+        other MjData array field mj_step computes ("xpos", "xquat", "actuator_force", "qacc",
+        "site_xpos", "ncon", ...; "cfrc_ext" where a sensor makes MuJoCo compute it), or
+        "sensor:NAME". Each keeps MuJoCo's dtype (int32 and bool fields stay so).
+      record_every: record after every k-th step: frame j holds the values after step
+        (j + 1) * k; `nstep` must be a multiple of k. `control` still holds every step's row.
 
     Raises:
-      TypeError, ValueError: bad arguments, naming the argument, the expectation and the value.
+      TypeError, ValueError: bad arguments, naming the argument, the expectation and the value;
+        a batch that cannot fit in host memory (rollout backend), with its size.
     """
 
     def __init__(self, model: Any, *, backend: str = "auto", nbatch: int, nstep: int,
@@ -61,7 +75,9 @@ class SimDataset(torch.utils.data.IterableDataset):
                  initial_state: Any = None, randomize: Any = None,
                  continue_episodes: bool = False, num_batches: Optional[int] = None,
                  seed: int = 0, device: Any = None, dtype: Any = None,
-                 nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
+                 nthread: Optional[int] = None, prefetch: int = 2,
+                 record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
+                 **backend_options: Any):
         super().__init__()
         from simloader import backends
         backends.prepare(backend, backend_options)
@@ -69,7 +85,10 @@ class SimDataset(torch.utils.data.IterableDataset):
             model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
             control_spec=control_spec, initial_state=initial_state, randomize=randomize,
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
+            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
+            record_every=record_every)
+        self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
+                                         self.config.observations)
         self.backend_options = backends.check_options(self.config, backend_options)
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
@@ -92,8 +111,12 @@ class SimDataset(torch.utils.data.IterableDataset):
         return self._stats.as_dict()
 
     def describe(self) -> str:
-        """Which columns of state and control mean what, by object name."""
-        return layout.describe(self.config.model, self.config.control_spec)
+        """Which columns of state, control and sensors mean what, by object name, and the
+        recorded keys with the named parts `Batch.view` finds in them."""
+        c = self.config
+        return (layout.describe(c.model, c.control_spec)
+                + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
+                  f"{c.record_every} step(s):\n" + self.layout.describe())
 
     def __len__(self) -> int:
         if self.config.num_batches is None:
@@ -130,7 +153,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         resume.check(self.config, state)
         self._loaded, self._progress = state, None
 
-    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+    def __iter__(self) -> Iterator[Batch]:
         shard = sharding.current_shard(self._rank)
         loaded, self._loaded = self._loaded, None
         start = None
@@ -150,7 +173,7 @@ class SimDataset(torch.utils.data.IterableDataset):
             for index, produced in prefetcher:
                 batch = backend.deliver(produced)
                 self._progress = (shard, index + shard.num_workers, backend, produced)
-                yield batch
+                yield Batch(batch, layout=self.layout)
         finally:
             prefetcher.close()
             backend.close()

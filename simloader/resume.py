@@ -44,6 +44,7 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
         "backend": config.backend, "nbatch": config.nbatch, "nstep": config.nstep,
         "control_spec": config.control_spec, "seed": config.seed,
         "continue_episodes": config.continue_episodes, "num_batches": config.num_batches,
+        "record": [o.key for o in config.observations], "record_every": config.record_every,
         "model": hashlib.sha256("".join(_model_digest(m) for m in models).encode()).hexdigest()[:16],
     }
 
