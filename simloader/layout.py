@@ -84,10 +84,9 @@ class Component:
         cols = []
         for name in [names] if isinstance(names, str) else names:
             if name not in self.objects:
-                close = difflib.get_close_matches(str(name), self.objects, n=3)
-                hint = f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
                 raise ValueError(
-                    f"on: {self.name} has no object {name!r}{hint}; its objects are "
+                    f"on: {self.name} has no object {name!r}{did_you_mean(name, self.objects)}; "
+                    f"its objects are "
                     f"{list(self.objects)}")
             i = self.objects.index(name)
             cols.extend(range(i * self.width, (i + 1) * self.width))
@@ -322,7 +321,7 @@ class BatchLayout:
         if of is None or of not in self.keys:
             held = sorted(set(self.keys) | set(self.within))
             raise KeyError(f"{name!r}{' in ' + repr(of) if of else ''}: the batch holds no such "
-                           f"part{_did_you_mean(name, held)}; it holds {held}")
+                           f"part{did_you_mean(name, held)}; it holds {held}")
         if of == name:
             start, stop, shape = 0, int(np.prod(self.keys[of])), self.keys[of]
         elif name in self.within and of in self.within[name]:
@@ -334,8 +333,8 @@ class BatchLayout:
             return Part(of, start, stop, tuple(shape))
         objects = self.objects.get("sensordata" if name.startswith("sensor:") else name, {})
         if obj not in objects:
-            raise KeyError(f"{name!r} has no object {obj!r}{_did_you_mean(obj, objects)}; its "
-                           f"objects: {list(objects) or '(none)'}")
+            raise KeyError(f"{name!r} has no object {obj!r}{did_you_mean(obj, objects)}; "
+                           f"its objects: {list(objects) or '(none)'}")
         a, b, part_shape = objects[obj]
         return Part(of, start + a, start + b, tuple(part_shape))
 
@@ -353,6 +352,7 @@ class BatchLayout:
         return "\n".join(lines)
 
 
-def _did_you_mean(name: str, names) -> str:
+def did_you_mean(name: Any, names) -> str:
+    """' (did you mean ...?)' with the names closest to `name`, or ''."""
     close = difflib.get_close_matches(str(name), list(names), n=3)
     return f" (did you mean {', '.join(map(repr, close))}?)" if close else ""

@@ -16,7 +16,6 @@ Kinds of names:
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 from collections.abc import Sequence
 from typing import Any, Optional, Union
@@ -134,6 +133,13 @@ class Sensor(Observation):
         return d.sensordata[self.columns[0]:self.columns[1]]
 
 
+def jax_frame(observations: Sequence[Observation], m: Any, d: Any) -> dict[str, Any]:
+    """One frame of every observation, `{key: (*shape)}`, from one trajectory's `mjx.Model` and
+    `mjx.Data` (pure: for `jax.vmap` inside the scan body, whose stacked outputs are then
+    `(nframes, nbatch, *shape)`)."""
+    return {o.key: o.jax_value(m, d) for o in observations}
+
+
 def _mjx_field(d: Any, name: str) -> Any:
     """MjData field `name` of an mjx.Data: a public field, or one the implementation keeps
     under `d._impl` (cfrc_ext, cacc, subtree_linvel, ... differ per implementation); None if
@@ -193,8 +199,9 @@ def _observation(model: mujoco.MjModel, data: mujoco.MjData, name: str) -> Obser
         i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, sensor)
         if i < 0:
             names = [n for n in valid_names(model) if n.startswith(SENSOR_PREFIX)]
-            raise ValueError(f"record: the model has no sensor {sensor!r}{_hint(name, names)}; "
-                             f"its sensors: {names or '(none)'}")
+            hint = layout.did_you_mean(name, names)
+            raise ValueError(f"record: the model has no sensor {sensor!r}{hint}; its sensors: "
+                             f"{names or '(none)'}")
         adr, dim = int(model.sensor_adr[i]), int(model.sensor_dim[i])
         return Sensor(name, (dim,), f64, "sensordata", (model.nsensordata,), (adr, adr + dim))
     if name in _NOT_VALUES:
@@ -219,14 +226,10 @@ def _unknown(model: mujoco.MjModel, data: mujoco.MjData, name: str) -> str:
     if isinstance(value, np.ndarray):
         return (f"{name} is in MjData's arena, whose size changes from step to step, and "
                 f"cannot be recorded")
-    return (f"unknown name {name!r}{_hint(name, valid_names(model))}; valid names: 'state', "
-            f"'sensordata', 'sensor:NAME' for a sensor of the model, and the MjData fields "
+    hint = layout.did_you_mean(name, valid_names(model))
+    return (f"unknown name {name!r}{hint}; valid names: 'state', 'sensordata', 'sensor:NAME' "
+            f"for a sensor of the model, and the MjData fields "
             f"{', '.join(recordable_fields())}")
-
-
-def _hint(name: str, names: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, list(names), n=3)
-    return f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
 
 
 def _check_computed(model: mujoco.MjModel, data: mujoco.MjData, fields: Sequence[Field]) -> None:
@@ -304,13 +307,14 @@ def check_fits(nbytes: int, available: int, where: str, *, nbatch: int, record_e
     """
     if nbytes * count <= available:
         return
+    fits = max(1, nbatch * available // (nbytes * count))
     needed = f"{_gib(nbytes)}" + (f" each, {count} in flight ({_gib(nbytes * count)})"
                                   if count > 1 else "")
     raise ValueError(
         f"nbatch, record: a batch needs {needed}, more than the {_gib(available)} of {where} "
-        f"available; use a smaller nbatch (at most {max(1, nbatch * available // (nbytes * count))} "
-        f"fits), a larger record_every (now {record_every}), fewer or smaller record fields, or "
-        f"fewer batches in flight (prefetch)")
+        f"available; use a smaller nbatch (at most {fits} fits), a larger record_every (now "
+        f"{record_every}), fewer or smaller record fields, or fewer batches in flight "
+        f"(prefetch)")
 
 
 def _gib(n: int) -> str:

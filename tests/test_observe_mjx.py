@@ -55,9 +55,10 @@ def test_jax_values_under_vmap_have_the_frame_shape():
     observations = observe.parse(model, ("xpos", "sensor:tip_force", "state", "time"))
     m = mjx.put_model(model, impl="jax")
     d = jax.vmap(lambda _: mjx.make_data(model, impl="jax"))(np.arange(3))
-    values = jax.vmap(lambda d: [o.jax_value(m, d) for o in observations])(d)
-    for o, v in zip(observations, values):
-        assert v.shape == (3, *o.shape), o.key
+    values = jax.vmap(lambda d: observe.jax_frame(observations, m, d))(d)
+    assert list(values) == [o.key for o in observations]
+    for o in observations:
+        assert values[o.key].shape == (3, *o.shape), o.key
 
 
 def test_check_mjx_refuses_by_name_with_the_reason():
