@@ -10,13 +10,20 @@ batch-major. simloader is timed as delivered: torch tensors in hand on the devic
 repetitions. A single-environment Python `mj_step` loop gives the speed-up column; `--cpu` adds
 raw `mujoco.rollout` and simloader's rollout backend on all cores (bench_rollout.py's code).
 
+`--impl` picks MJX's implementation for both (simloader's `impl=`; the raw baseline runs the
+implementation simloader resolved, with the same MuJoCo Warp buffer sizes). On `warp` a second
+raw row steps with no controls at all: the upper bound (MuJoCo Warp's own `testspeed` setting).
+A regression in how per-step inputs reach Warp (its CUDA graph re-captured every step) shows as
+simloader far below the raw rows.
+
 Compilation is reported apart: in this process (persistent cache off), and as the time to the
-first batch of a fresh process with an empty persistent compilation cache (cold) and of a second
-process reusing that cache (cached).
+first batch of a fresh process with empty persistent caches (cold: JAX's compilation cache and,
+on Warp, its kernel cache) and of a second process reusing them (cached).
 
     python benchmarks/bench_mjx.py --quick
     python benchmarks/bench_mjx.py --save --results-dir $OUT          # on the GPU machine
     python benchmarks/bench_mjx.py --workloads humanoid:4096x200 humanoid:16384x200 --cpu
+    python benchmarks/bench_mjx.py --impl warp --workloads humanoid:8192x200 --save
 """
 
 from __future__ import annotations
@@ -47,7 +54,6 @@ DEFAULT = [common.Workload("cartpole", n, 1000) for n in (1024, 8192, 65536)] + 
 QUICK = [common.Workload("cartpole", 64, 20)]
 TARGET = 0.97  # simloader / raw MJX throughput (performance.md)
 
-RAW, SIMLOADER = bench.RAW_MJX, bench.SIMLOADER_MJX
 
 
 def jax_device() -> str:
@@ -65,20 +71,21 @@ RawMjx = bench.RawMjx  # the package's baseline (it backs `simloader bench` too)
 
 
 def simloader_dataset(model: mujoco.MjModel, w: common.Workload, seed: int,
-                      cache: Any) -> simloader.SimDataset:
+                      cache: Any, impl: str) -> simloader.SimDataset:
     """The dataset measured; `cache`: its `compilation_cache` option (False: JAX's setting)."""
     return simloader.SimDataset(model, backend="mjx", nbatch=w.nbatch, nstep=w.nstep,
                                 control=simloader.controls.Uniform(), seed=seed,
-                                compilation_cache=cache)
+                                compilation_cache=cache, impl=impl)
 
 
 class SimloaderMjx(bench.SimloaderMeasure):
     """simloader's MJX backend, warmed up by one pass (which compiles), then measured."""
 
-    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int):
+    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int, impl: str):
         import torch
         # compilation_cache=False: JAX's setting, which main() turns off in this process
-        super().__init__(model, w, "mjx", seed, compilation_cache=False)
+        super().__init__(model, w, "mjx", seed, compilation_cache=False, impl=impl)
+        self.options = self.ds.config.options  # the implementation resolved, buffer sizes
         if torch.cuda.is_available() and self.device.type != "cuda":
             raise RuntimeError(f"simloader mjx delivered on {self.device}, not on the GPU")
 
@@ -93,7 +100,7 @@ def first_batch_child(args: argparse.Namespace) -> None:
     w = args.workloads[0]
     model = common.load_model(w.name, args.model_dir)
     start = time.perf_counter()
-    ds = simloader_dataset(model, w, args.seed, cache=args.cache_dir)
+    ds = simloader_dataset(model, w, args.seed, cache=args.cache_dir, impl=args.impl)
     common.time_stream(ds, 0)
     print(json.dumps({"first_batch_s": time.perf_counter() - start,
                       "compile_s": ds.stats.get("compile_s", 0.0),
@@ -102,14 +109,16 @@ def first_batch_child(args: argparse.Namespace) -> None:
 
 def cold_and_cached(w: common.Workload, args: argparse.Namespace) -> list[str]:
     """Time to first batch of two fresh processes sharing a new persistent cache."""
-    with tempfile.TemporaryDirectory(prefix="simloader-jax-cache-") as cache:
+    with tempfile.TemporaryDirectory(prefix="simloader-jax-cache-") as cache, \
+            tempfile.TemporaryDirectory(prefix="simloader-warp-cache-") as warp_cache:
         command = [sys.executable, __file__, "--first-batch", "--cache-dir", cache,
                    "--workloads", str(w), "--model-dir", str(common.model_dir(args.model_dir)),
-                   "--seed", str(args.seed)]
+                   "--seed", str(args.seed), "--impl", args.impl]
+        env = dict(os.environ, WARP_CACHE_PATH=warp_cache)
         row = [w.name, f"{w.nbatch} x {w.nstep}"]
         for run in ("cold", "cached"):
             start = time.perf_counter()
-            result = common.run_child(command, f"{run} first batch of {w}")
+            result = common.run_child(command, f"{run} first batch of {w}", env=env)
             wall = time.perf_counter() - start
             if result is None:
                 return row + ["failed"] * (len(COMPILE_HEADERS) - len(row))
@@ -126,11 +135,11 @@ COMPILE_HEADERS = ["workload", "nbatch x nstep", "cold: first batch s", "cold: c
                    "cached: process s"]
 
 
-def try_simloader(model: mujoco.MjModel, w: common.Workload,
-                  seed: int) -> tuple[Optional[SimloaderMjx], str]:
+def try_simloader(model: mujoco.MjModel, w: common.Workload, seed: int,
+                  impl: str) -> tuple[Optional[SimloaderMjx], str]:
     """simloader's MJX measure, or None and why (the backend may be missing or failing)."""
     try:
-        return SimloaderMjx(model, w, seed), ""
+        return SimloaderMjx(model, w, seed, impl), ""
     except Exception as e:  # report and go on with the raw numbers
         traceback.print_exc()
         return None, f"{type(e).__name__}: {e}".splitlines()[0][:200]
@@ -138,6 +147,8 @@ def try_simloader(model: mujoco.MjModel, w: common.Workload,
 
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
+    p.add_argument("--impl", choices=("auto", "jax", "warp"), default="auto",
+                   help="MJX's implementation (simloader's impl=; raw runs the one it resolved)")
     p.add_argument("--cpu", action="store_true",
                    help="also raw mujoco.rollout and simloader's rollout backend on all cores")
     p.add_argument("--no-compile", action="store_true",
@@ -169,12 +180,24 @@ def main() -> None:
     gpu = jax_device()
     for w in run:
         model = common.load_model(w.name, args.model_dir)
-        raw = RawMjx(model, w, args.seed)
-        sim, why = try_simloader(model, w, args.seed)
+        sim, why = try_simloader(model, w, args.seed, args.impl)
+        impl = sim.options.impl if sim is not None else ("jax" if args.impl == "auto"
+                                                         else args.impl)
+        sizes = dict(naconmax=sim.options.naconmax, njmax=sim.options.njmax) if sim else {}
+        RAW, SIMLOADER = f"raw MJX-{impl} vmap+scan", f"simloader mjx ({impl})"
+        raw = RawMjx(model, w, args.seed, impl=impl, **sizes)
         nbatches = common.batches_for(args, raw.batch_s)
         counts.append(f"{nbatches} for {w}")
         measures: dict[str, Callable[[], float]] = {RAW: lambda: raw.measure(nbatches)}
         runs_on = {RAW: gpu, SIMLOADER: gpu, bench_rollout.PYTHON: "1 core"}
+        bare = None
+        if impl == "warp":
+            BARE = f"raw MJX-{impl}, no controls"
+            bare = RawMjx(model, w, args.seed, impl=impl, controls=False, **sizes)
+            measures[BARE] = lambda: bare.measure(nbatches)
+            runs_on[BARE] = gpu
+            notes.append(f"{w}: simloader chose {sim.options.impl} ({sim.options.impl_reason}), "
+                         f"naconmax={sim.options.naconmax}, njmax={sim.options.njmax}")
         if sim is not None:
             measures[SIMLOADER] = lambda: sim.measure(nbatches)
             differ = {k: (sim.shapes[k], v) for k, v in raw.shapes.items() if sim.shapes[k] != v}
@@ -195,6 +218,11 @@ def main() -> None:
             notes.append(f"{w}: simloader compiled again for later iterators "
                          f"(compile_s {sim.ds.stats['compile_s']:.1f} s in total)")
         compiled = {RAW: raw, SIMLOADER: sim}
+        if bare is not None:
+            compiled[BARE] = bare
+            rate_ = results[BARE] / results.get(SIMLOADER, float("inf"))
+            notes.append(f"{w}: simloader with per-step controls / raw with no controls: "
+                         f"{rate_:.3f}")
         for row in common.method_rows(w, results, runs_on,
                                       {SIMLOADER: RAW, bench_rollout.SIMLOADER: bench_rollout.RAW},
                                       bench_rollout.PYTHON):
@@ -206,7 +234,7 @@ def main() -> None:
                 xs, ys = plot.setdefault(f"{method}, {w.name}", ([], []))
                 xs.append(w.nbatch)
                 ys.append(results[method] * 1e9)
-        del raw, sim, measures, compiled
+        del raw, sim, measures, compiled, bare
 
     headers = common.HEADERS + ["compile s", "first batch s", "GB/batch"]
     text = common.markdown_table(headers, table)

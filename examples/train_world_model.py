@@ -81,7 +81,7 @@ def setup(args, device):
     Returns:
       (backend, training SimDataset, held-out batch, model, the state's physics columns).
     """
-    backend = simloader.config.resolve_backend(args.backend)
+    backend = simloader.backends.resolve(args.backend)
     common = dict(backend=backend, device=device, dtype=torch.float32,
                   control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.2),
                   initial_state=simloader.initial.Perturbed(qpos_std=0.3, qvel_std=0.3))

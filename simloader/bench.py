@@ -244,31 +244,48 @@ def raw_rollout(model: Any, w: Workload, nthread: int,
 class RawMjx:
     """The raw MJX baseline: one jitted function per workload, `f(key, index) -> arrays`.
 
+    Args:
+      impl: MJX's implementation, "jax" or "warp" (MuJoCo Warp; `naconmax`/`njmax` size its
+        buffers, as simloader sizes them).
+      controls: draw uniform controls for every step (True), or step with none (the upper
+        bound MuJoCo Warp's own `testspeed` measures).
+
     Attributes:
       compile_s: seconds to trace and compile; first_s: to the first batch in hand;
       batch_s: seconds of one (warm) batch; shapes: the output shapes.
     """
 
-    def __init__(self, model: mujoco.MjModel, w: Workload, seed: int):
+    def __init__(self, model: mujoco.MjModel, w: Workload, seed: int, impl: str = "jax",
+                 naconmax: Optional[int] = None, njmax: Optional[int] = None,
+                 controls: bool = True):
         import jax
         import jax.numpy as jnp
-        from mujoco import mjx
+        from simloader.backends.mjx.runtime import mjx  # (imports MJX without its warp print)
 
         self.w = w
-        self.mx = mjx.put_model(model, impl="jax")
-        self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
+        self.mx = mjx.put_model(model, impl=impl)
         self.key = jax.random.key(seed)
         low, high = (jnp.asarray(b, jnp.float32) for b in ctrl_bounds(model))
         step = jax.vmap(mjx.step, in_axes=(None, 0))
         nbatch, nstep, nu = w.nbatch, w.nstep, model.nu
+        if impl == "warp":
+            # make_data under vmap, as MuJoCo Warp's testspeed: the contact pool stays shared
+            self.d0 = jax.jit(jax.vmap(lambda _: mjx.make_data(
+                model, impl="warp", naconmax=naconmax, njmax=njmax)))(jnp.arange(nbatch))
+        else:
+            self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
 
         def batch(mx, d0, key, index):
             ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
                                       minval=low, maxval=high)
-            d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
+            d = d0 if impl == "warp" else jax.tree.map(
+                lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
 
             def body(d, u):
-                d = step(mx, d.replace(ctrl=u))
+                if controls:
+                    # Warp: a buffer of its own, or its CUDA graph is captured anew each step
+                    d = d.replace(ctrl=u + 0 * d.ctrl if impl == "warp" else u)
+                d = step(mx, d)
                 state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
                 return d, (state, d.sensordata)
 
@@ -434,8 +451,10 @@ def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repe
             runs_on[RAW_ROLLOUT] = runs_on[SIMLOADER_ROLLOUT] = f"{cpu_count()} cores"
         elif backend == "mjx":
             import jax
-            raw_mjx = RawMjx(model, w, seed)
             sim = SimloaderMeasure(model, w, "mjx", seed)
+            o = sim.ds.config.options  # the raw baseline runs the implementation simloader chose
+            raw_mjx = RawMjx(model, w, seed, impl=o.impl, naconmax=o.naconmax, njmax=o.njmax)
+            notes.append(f"mjx: impl={o.impl} ({o.impl_reason})")
             n = batches_for(raw_mjx.batch_s, min_batches, min_seconds)
             measures[RAW_MJX] = lambda raw_mjx=raw_mjx, n=n: raw_mjx.measure(n)
             measures[SIMLOADER_MJX] = lambda sim=sim, n=n: sim.measure(n)

@@ -18,9 +18,6 @@ import torch
 from simloader import controls, initial, layout, models, observe
 from simloader import randomize as dr
 
-BACKENDS = ("auto", "rollout", "mjx")
-
-
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
     """Everything a backend needs to simulate one batch, validated.
@@ -30,7 +27,9 @@ class SimConfig:
       models: one MjModel per trajectory (`randomize` as a list), or None.
       randomization: per-trajectory model parameters drawn every batch, or None.
       variants: the pool of compiled structural variants sampled per trajectory, or None.
-      backend: "rollout" or "mjx" ("auto" is resolved).
+      backend: "rollout" or "mjx" ("auto" is resolved by `backends.resolve`).
+      options: the backend's own options, resolved (`backends.check_options`; the MJX backend's
+        `MjxOptions`: implementation, buffer sizes, caches), None for "rollout".
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
@@ -67,6 +66,7 @@ class SimConfig:
     dtype: Optional[torch.dtype]
     nthread: Optional[int]
     prefetch: int
+    options: Any = None
 
     @property
     def nframes(self) -> int:
@@ -92,22 +92,6 @@ def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[
     if value < low:
         raise ValueError(f"{name}: expected an integer >= {low}, got {value}")
     return int(value)
-
-
-def resolve_backend(backend: str) -> str:
-    """"auto" is "mjx" when JAX is installed and sees a GPU, else "rollout"."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
-    if backend != "auto":
-        return backend
-    # asking JAX for its devices starts it: with simloader's settings (no GPU preallocation)
-    from simloader import backends
-    backends.prepare(backend, {})
-    try:
-        import jax
-        return "mjx" if any(d.platform == "gpu" for d in jax.devices()) else "rollout"
-    except Exception:  # JAX missing or without a usable platform
-        return "rollout"
 
 
 def _check_same_sizes(model: mujoco.MjModel, models: Sequence[mujoco.MjModel], what: str,
@@ -212,7 +196,8 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
                  prefetch: Any, record: Any, record_every: Any) -> SimConfig:
-    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`."""
+    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`, for a
+    resolved `backend` (its options are validated next, by the backend)."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
     num_batches = _int("num_batches", num_batches, 0, allow_none=True)
@@ -229,9 +214,6 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     if control_spec & ~layout.USER or control_spec < 0:
         raise ValueError(f"control_spec: expected bits within mjSTATE_USER ({layout.USER}), got "
                          f"{control_spec} (bits {control_spec & ~layout.USER} are outside)")
-    backend_ = resolve_backend(backend) if isinstance(backend, str) else None
-    if backend_ is None:
-        raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__}")
     base = models.load_model(model)
     models_, randomization, variants = _randomization(model, base, randomize, nbatch,
                                                       control_spec, seed)
@@ -241,9 +223,9 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         base = variants[0]
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
-    observations, record_every = _record(base, record, record_every, nstep, backend_)
+    observations, record_every = _record(base, record, record_every, nstep, backend)
     config = SimConfig(
-        model=base, models=models_, backend=backend_, nbatch=nbatch, nstep=nstep,
+        model=base, models=models_, backend=backend, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
         variants=variants, control=plan, initial=init, observations=observations,

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 from typing import Any, Optional
 
 import mujoco
 import torch
 
-from simloader import layout, observe, resume, sharding
+from simloader import backends, layout, observe, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
@@ -79,17 +80,18 @@ class SimDataset(torch.utils.data.IterableDataset):
                  record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
                  **backend_options: Any):
         super().__init__()
-        from simloader import backends
         backends.prepare(backend, backend_options)
-        self.config: SimConfig = build_config(
-            model, backend=backend, nbatch=nbatch, nstep=nstep, control=control,
-            control_spec=control_spec, initial_state=initial_state, randomize=randomize,
-            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
-            record_every=record_every)
+        config = build_config(
+            model, backend=backends.resolve(backend), nbatch=nbatch, nstep=nstep,
+            control=control, control_spec=control_spec, initial_state=initial_state,
+            randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
+            seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
+            record=record, record_every=record_every)
+        # one route for every backend option: validated by the backend, kept in the config
+        self.config: SimConfig = dataclasses.replace(
+            config, options=backends.check_options(config, backend, backend_options))
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations)
-        self.backend_options = backends.check_options(self.config, backend_options)
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
@@ -106,17 +108,26 @@ class SimDataset(torch.utils.data.IterableDataset):
         return self.config.model
 
     @property
-    def stats(self) -> dict[str, float]:
-        """Counters of the iterators run in this process (workers keep their own)."""
-        return self._stats.as_dict()
+    def stats(self) -> dict[str, Any]:
+        """Counters of the iterators run in this process (workers keep their own), and the
+        implementation that simulates (`impl`: "jax" or "warp" on MJX, "c" on rollout)."""
+        out = self._stats.as_dict()
+        out["impl"] = self.config.options.impl if self.config.options is not None else "c"
+        return out
 
     def describe(self) -> str:
-        """Which columns of state, control and sensors mean what, by object name, and the
-        recorded keys with the named parts `Batch.view` finds in them."""
+        """Which columns of state, control and sensors mean what, by object name, the recorded
+        keys with the named parts `Batch.view` finds in them, and what simulates."""
         c = self.config
-        return (layout.describe(c.model, c.control_spec)
+        text = (layout.describe(c.model, c.control_spec)
                 + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
                   f"{c.record_every} step(s):\n" + self.layout.describe())
+        if c.options is not None:
+            text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
+                     f"({c.options.implementation().describe()}; chosen: {c.options.impl_reason})")
+        else:
+            text += "\nsimulated by: backend='rollout' (mujoco.batch on CPU threads)"
+        return text
 
     def __len__(self) -> int:
         if self.config.num_batches is None:
@@ -125,9 +136,8 @@ class SimDataset(torch.utils.data.IterableDataset):
 
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
-        from simloader import backends
         shard = shard or sharding.current_shard(self._rank)
-        return backends.create(self.config, shard, self._stats, self.backend_options)
+        return backends.create(self.config, shard, self._stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Where this iterator (this DataLoader worker, or this process) is in the stream.

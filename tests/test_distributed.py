@@ -75,8 +75,8 @@ def test_ddp_example_under_torchrun(tmp_path):
 _RANK_DEVICE_SCRIPT = """
 import json, os
 import simloader
-# resolve_backend starts JAX: it must do so with simloader's settings (no preallocation)
-backend = simloader.config.resolve_backend("auto")
+# backends.resolve starts JAX: it must do so with simloader's settings (no preallocation)
+backend = simloader.backends.resolve("auto")
 ds = simloader.SimDataset("cartpole", backend=backend, nbatch=4, nstep=3, num_batches=1, seed=0)
 import jax
 batch = next(iter(ds))

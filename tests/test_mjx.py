@@ -22,7 +22,7 @@ import jax  # noqa: E402  (after the skip: JAX comes with MJX)
 
 import simloader  # noqa: E402
 from simloader import controls  # noqa: E402
-from simloader.backends import mjx as mjx_backend  # noqa: E402
+from simloader.backends.mjx import pool as mjx_pool  # noqa: E402
 
 # float32 MJX against float64 MuJoCo C
 CONTACT_FREE_TOL = 2e-3  # a contact-free trajectory of NSTEP steps, absolute
@@ -264,7 +264,7 @@ def test_diverged_trajectory_restarts_from_a_fresh_initial_state(continued):
 
 def test_model_list_batches_only_the_fields_that_differ(pole_masses, continued):
     ds, _ = continued
-    _, axes = mjx_backend._put_models(ds.config, jax.devices()[0])
+    _, axes = mjx_pool.put_models(ds.config, ds.config.options.implementation(), jax.devices()[0])
     batched = {jax.tree_util.keystr(path) for path, axis in
                jax.tree_util.tree_flatten_with_path(axes)[0] if axis == 0}
     assert {".body_mass", ".body_inertia"} <= batched
@@ -324,11 +324,11 @@ def test_physics_state_is_fullphysics_column_for_column():
         np.arange(1, mujoco.mj_stateSize(model, FULLPHYSICS) + 1)) / 8.0
     mujoco.mj_setState(model, data, expected, FULLPHYSICS)
     mx = mjx.put_model(model, impl="jax")
-    got = mjx.get_state(mx, mjx.put_data(model, data, impl="jax"), mjx_backend.PHYSICS)
+    got = mjx.get_state(mx, mjx.put_data(model, data, impl="jax"), mjx_pool.PHYSICS)
     np.testing.assert_array_equal(np.asarray(got), expected)  # exact in float32 too
     # and back: the backend sets initial states with the same spec
-    fresh = mjx.set_state(mx, mjx.make_data(model, impl="jax"), got, mjx_backend.PHYSICS)
-    np.testing.assert_array_equal(np.asarray(mjx.get_state(mx, fresh, mjx_backend.PHYSICS)),
+    fresh = mjx.set_state(mx, mjx.make_data(model, impl="jax"), got, mjx_pool.PHYSICS)
+    np.testing.assert_array_equal(np.asarray(mjx.get_state(mx, fresh, mjx_pool.PHYSICS)),
                                   np.asarray(got))
 
 
@@ -358,7 +358,14 @@ IMPLICIT_XML = """
      "JAX's setting), got bool True"),
     (dict(jit=True, donate=False), TypeError,
      "SimDataset: unexpected keyword argument(s) ['donate', 'jit'] for backend='mjx' (its "
-     "options are ['compilation_cache', 'memory_fraction'])"),
+     "options are ['impl', 'naconmax', 'njmax', 'compilation_cache', 'memory_fraction'])"),
+    (dict(impl="cuda"), ValueError, "impl: expected one of ('auto', 'jax', 'warp'), got 'cuda'"),
+    (dict(impl=None), TypeError, "impl: expected one of ('auto', 'jax', 'warp'), got NoneType None"),
+    (dict(impl="jax", naconmax=1000), ValueError,
+     "naconmax, njmax: size MuJoCo Warp's buffers and need impl='warp', but impl resolved to "
+     "'jax' (asked)"),
+    (dict(impl="warp", naconmax=0), ValueError,
+     "naconmax: expected None or a positive integer, got 0"),
 ])
 def test_bad_input_fails_at_construction(cartpole, kwargs, error, message):
     kwargs = {"model": cartpole, **kwargs}
@@ -479,20 +486,54 @@ def test_gpu_jax_leaves_memory_to_torch(gpu_dataset):
     assert float(out.stdout.split()[-1]) > 0.5, out.stderr
 
 
-def test_resolving_auto_backend_starts_jax_without_preallocation():
-    # resolve_backend("auto") asks JAX for its devices, which starts JAX: simloader's memory
-    # setting must be in place before, or JAX takes 75% of every GPU it sees
+def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_preallocation():
+    # backends.resolve("auto") asks JAX for its devices where a GPU may be, which starts JAX:
+    # simloader's memory setting must be in place before, or JAX takes 75% of every GPU it
+    # sees; where no GPU is visible it decides without importing JAX at all
     script = textwrap.dedent("""
-        import os, simloader
-        simloader.config.resolve_backend("auto")
-        from jax._src import xla_bridge
-        print(xla_bridge.backends_are_initialized(), os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"])
+        import os, sys, simloader
+        from simloader import backends
+        print(backends.resolve("auto"), backends._gpu_visible(), "jax" in sys.modules)
+        if "jax" in sys.modules:
+            from jax._src import xla_bridge
+            print(xla_bridge.backends_are_initialized(),
+                  os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"])
     """)
     env = {k: v for k, v in os.environ.items()
            if k != "XLA_PYTHON_CLIENT_PREALLOCATE"}
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          check=True, timeout=300, env=env)
-    assert out.stdout.split()[-2:] == ["True", "false"], out.stderr
+    lines = [line.split() for line in out.stdout.splitlines()]
+    resolved, gpu, imported = lines[0]
+    if gpu == "False":
+        assert (resolved, imported) == ("rollout", "False"), out.stdout
+    else:
+        assert lines[1] == ["True", "false"], out.stderr
+
+
+def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing():
+    # MJX prints "Failed to import warp" when it is imported without warp-lang: only a user who
+    # asks for impl="warp" hears of it, inside the error
+    script = textwrap.dedent("""
+        import sys
+        sys.modules["warp"] = None  # as if warp-lang were not installed
+        import simloader
+        ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=2, nstep=2)
+        print("impl", ds.config.options.impl)
+        try:
+            simloader.SimDataset("cartpole", backend="mjx", impl="warp", nbatch=2, nstep=2)
+        except ValueError as e:
+            print("error", e)
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True, timeout=300)
+    lines = out.stdout.splitlines()
+    assert lines[0] == "impl jax", out.stdout
+    assert lines[1].startswith(
+        "error impl: 'warp' cannot run here: the warp-lang package is not installed (pip "
+        "install 'simloader[warp]') [Failed to import warp: import of warp halted; None in "
+        "sys.modules"), lines[1]
+    assert len(lines) == 2 and "Failed to import" not in out.stderr
 
 
 def test_iterator_left_open_at_exit_exits_quietly():

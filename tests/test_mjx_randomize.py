@@ -23,7 +23,8 @@ import jax.numpy as jnp  # noqa: E402
 import simloader  # noqa: E402
 from simloader import controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
-from simloader.backends import mjx_randomize, mjx_setconst  # noqa: E402
+from simloader.backends.mjx import randomize as mjx_randomize  # noqa: E402
+from simloader.backends.mjx import setconst as mjx_setconst  # noqa: E402
 from test_mjx import (RUNAWAY, CONTACT_FREE_TOL, WithRunaway, c_rollout, host,  # noqa: E402
                       traces)
 from test_randomize import SPEC, equivalent_models, pole_variant  # noqa: E402
@@ -221,7 +222,7 @@ def test_chunks_match_mujoco_on_the_equivalent_models(randomized, cartpole):
 
 def test_only_the_randomized_and_derived_fields_are_batched(randomized):
     ds, _, _ = randomized
-    from simloader.backends import mjx as mjx_backend
+    from simloader.backends.mjx import backend as mjx_backend
     program, = mjx_backend._PROGRAMS[ds.config].values()
     batched = {jax.tree_util.keystr(path) for path, axis in
                jax.tree_util.tree_flatten_with_path(program.randomizer.axes)[0] if axis == 0}

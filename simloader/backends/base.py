@@ -32,6 +32,10 @@ class Stats:
       simulate_s: seconds spent simulating (CPU backend: in MuJoCo; MJX: until results ready).
       compile_s: seconds spent compiling (MJX backend).
       compiles: compilations (MJX backend): one per configuration, never per batch.
+      overflow: trajectories that lost contacts or constraint rows to MuJoCo Warp's buffer
+        sizes (impl="warp"; flagged in the batch's `overflow`).
+      solver_limit: trajectories whose constraint solver stopped at its iteration limit in a
+        batch (impl="warp"; MuJoCo C stops there too, silently).
     """
 
     batches: int = 0
@@ -40,6 +44,8 @@ class Stats:
     simulate_s: float = 0.0
     compile_s: float = 0.0
     compiles: int = 0
+    overflow: int = 0
+    solver_limit: int = 0
     lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
 
     def add(self, **values: float) -> None:

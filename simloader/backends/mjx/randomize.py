@@ -4,7 +4,7 @@ Parameter values are drawn inside the jitted batch function (`RandomizationPlan.
 keyed by the batch's RANDOMIZE seed) and written into the randomized fields, which alone carry
 a batch axis (`in_axes` 0; every other field stays shared, `in_axes` None). When a field is an
 input of `mj_setConst` the constants MJX reads are recomputed per trajectory in the same
-function (`mjx_setconst`). Values change, shapes do not: nothing recompiles.
+function (`setconst.py`). Values change, shapes do not: nothing recompiles.
 
 MJX compiles some facts about a model into the simulation when the model is put on the device
 (which dofs have friction loss, whether fluid forces exist, geometry bounds, ...), and has no
@@ -20,10 +20,11 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from simloader import randomize as dr
-from simloader.backends import mjx_setconst
+from simloader.backends.mjx.impls import Implementation
+from simloader.backends.mjx.runtime import mjx
+from simloader.backends.mjx import setconst as mjx_setconst
 
 # Fields MJX reads during a step and MuJoCo derives nothing from (mj_setConst), so a new value
 # is all it takes; grouped for the README.
@@ -55,15 +56,28 @@ _DERIVED = mjx_setconst.OUTPUTS + (
     "light_dir0")
 
 
-def check(model: mujoco.MjModel, mx: mjx.Model, plan: dr.RandomizationPlan) -> None:
+def check(model: mujoco.MjModel, mx: mjx.Model, plan: dr.RandomizationPlan,
+          impl: Implementation) -> None:
     """Refuses, by name, the parameters the MJX backend cannot randomize faithfully.
 
     Raises:
-      ValueError: a field outside `FIELDS`, a friction loss the model has at zero, or a fluid
-        option of a model without fluid forces; the message lists what can be randomized.
+      ValueError: a field outside `FIELDS`, or one the implementation shares across
+        trajectories, a friction loss the model has at zero, or a fluid option of a model
+        without fluid forces; the message lists what can be randomized.
     """
     for r in plan.resolved:
         field, key = r.field, r.param.key
+        why = impl.cannot_randomize(field) or (
+            None if impl.recomputes_constants or field not in mjx_setconst.INPUTS else
+            "MuJoCo derives constants from it (mj_setConst) that simloader recomputes only "
+            "with impl='jax'")
+        if field in FIELDS and why:
+            allowed = [f for f in FIELDS if not impl.cannot_randomize(f) and (
+                impl.recomputes_constants or f not in mjx_setconst.INPUTS)]
+            raise ValueError(
+                f"randomize: {key}: impl={impl.name!r} cannot randomize {field} ({why}); it "
+                f"can randomize {', '.join(allowed)} (impl='jax' randomizes {len(FIELDS)} "
+                f"fields, backend='rollout' any floating-point field)")
         if field not in FIELDS:
             raise ValueError(
                 f"randomize: {key}: backend='mjx' cannot randomize {field} ({_why(field, mx)}); "

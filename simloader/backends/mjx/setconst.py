@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+
+from simloader.backends.mjx.runtime import mjx
 
 # mj_setConst inputs handled here: changing them changes only the OUTPUTS (among what MJX reads)
 INPUTS = ("body_mass", "body_inertia", "dof_armature", "actuator_gear")

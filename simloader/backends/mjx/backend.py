@@ -1,0 +1,286 @@
+"""The MJX backend: a configuration's program on the device, and its hand-off to torch.
+
+`produce` only dispatches (JAX runs asynchronously); `deliver` waits for the results and hands
+every output to torch through DLPack: the delivered tensors are the JAX buffers, on the torch
+device of the JAX device (`cuda:k` for JAX GPU k). They are fresh buffers for every batch, but
+shared with JAX: treat them as read-only (clone before editing in place). In a (spawned)
+DataLoader worker, GPU tensors are copied once into torch's memory, the only GPU memory torch
+can pass to the main process; `num_workers=0` needs no worker and no copy.
+
+Process-wide JAX settings (`runtime.py`): unless told otherwise, JAX does not preallocate GPU
+memory (so that a torch model can train on the same GPU) and compilations are kept in a
+persistent cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+import warnings
+import weakref
+from collections.abc import Callable
+from typing import Any, Optional
+
+import jax
+import numpy as np
+import torch
+
+from simloader import handoff, resume, sharding
+from simloader import randomize as dr
+from simloader.backends.base import Backend, Stats
+from simloader.backends.mjx import randomize as mjx_randomize
+from simloader.backends.mjx import runtime, warp_impl
+from simloader.backends.mjx.impls import Implementation, choose
+from simloader.backends.mjx.pool import put_models
+from simloader.backends.mjx.program import Program
+from simloader.config import SimConfig
+
+OPTIONS = ("impl", "naconmax", "njmax", "compilation_cache", "memory_fraction")
+
+
+@dataclasses.dataclass(frozen=True)
+class MjxOptions:
+    """The MJX backend's options, validated and resolved at construction.
+
+    Attributes:
+      impl: "jax" or "warp" (`impl="auto"` resolved), and `impl_reason`: why.
+      naconmax, njmax: Warp's contact pool (whole batch) and constraint rows (per trajectory).
+      compilation_cache: JAX's persistent compilation cache directory, or False.
+      memory_fraction: GPU memory JAX preallocates, or None.
+    """
+
+    impl: str
+    impl_reason: str
+    naconmax: Optional[int]
+    njmax: Optional[int]
+    compilation_cache: Any
+    memory_fraction: Optional[float]
+
+    def implementation(self) -> Implementation:
+        if self.impl == "warp":
+            return warp_impl.WarpImpl(self.naconmax, self.njmax)
+        return Implementation()
+
+
+def _positive(name: str, value: Any) -> Optional[int]:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name}: expected None or a positive integer, got "
+                        f"{type(value).__name__} {value!r}")
+    if value < 1:
+        raise ValueError(f"{name}: expected None or a positive integer, got {value}")
+    return int(value)
+
+
+def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
+    """Validates the mjx options and the model(s), in the constructing process.
+
+    Args:
+      config: the validated dataset configuration.
+      options: keyword options of `SimDataset` beyond its own:
+        impl: "auto" (default: MuJoCo Warp for a model with contacts where Warp and a GPU are
+          available, else MJX-JAX), "jax" or "warp".
+        naconmax, njmax: with impl "warp", the contacts of a whole batch and the constraint
+          rows of one trajectory; None (default): sized from the model (`warp_impl`).
+        compilation_cache: directory of JAX's persistent compilation cache; None (default):
+          JAX's configured one, else `~/.cache/simloader/jax`; False: leave JAX's setting.
+        memory_fraction: fraction of GPU memory JAX preallocates; None (default): none, JAX
+          allocates as it goes (effective only if JAX has not started yet).
+
+    Returns:
+      The options, defaults resolved.
+
+    Raises:
+      TypeError: an unknown option or a value of the wrong type.
+      ValueError: a bad option value, `impl="warp"` where Warp cannot run (saying what is
+        missing), a model MJX cannot simulate, models or variants that differ in what MJX
+        compiles in, or a parameter MJX cannot randomize (`randomize.py`).
+    """
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
+                        f"backend='mjx' (its options are {list(OPTIONS)})")
+    asked = options.get("impl", "auto")
+    if not isinstance(asked, str):
+        raise TypeError(f"impl: expected one of {('auto', 'jax', 'warp')}, got "
+                        f"{type(asked).__name__} {asked!r}")
+    naconmax = _positive("naconmax", options.get("naconmax"))
+    njmax = _positive("njmax", options.get("njmax"))
+    cache = runtime.cache_dir(options.get("compilation_cache"))
+    fraction = runtime.configure_memory(options.get("memory_fraction"))
+    runtime.configure_cache(cache)
+    device = runtime.jax_device(config.device)
+    choice = choose(asked, config.model, runtime.warp_missing(device))
+    if choice.impl != "warp" and (naconmax is not None or njmax is not None):
+        raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need impl='warp', "
+                         f"but impl resolved to {choice.impl!r} ({choice.reason})")
+    if choice.impl == "warp":
+        x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
+        naconmax, njmax = warp_impl.buffer_sizes(config.model, config.nbatch, x0, naconmax,
+                                                 njmax)
+    resolved = MjxOptions(choice.impl, choice.reason, naconmax, njmax, cache, fraction)
+    impl = resolved.implementation()
+    mx, _ = put_models(config, impl, device)
+    if config.randomization is not None:
+        mjx_randomize.check(config.model, mx, config.randomization, impl)
+    return resolved
+
+
+# programs by configuration and device; each epoch's iterator reuses its dataset's program,
+# which goes away with the dataset's configuration
+_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+@dataclasses.dataclass
+class _Produced:
+    outputs: dict[str, Any]  # arrays (and the `params` dict), dispatched, maybe not ready yet
+    dispatched: float  # time.perf_counter() at dispatch
+    carry: Any = None  # continue_episodes: what the next batch continues from
+
+
+class MjxBackend(Backend):
+    """`backend="mjx"`.
+
+    Args:
+      config, shard, stats: as every backend.
+      options: as resolved by `check_options`.
+
+    Raises:
+      RuntimeError: in a forked DataLoader worker, where JAX would deadlock.
+    """
+
+    def __init__(self, config: SimConfig, shard: sharding.Shard, stats: Stats,
+                 options: MjxOptions):
+        runtime.refuse_forked_worker()
+        super().__init__(config, shard, stats)
+        # again here: a spawned worker inherits the environment but not JAX's configuration
+        runtime.configure_memory(options.memory_fraction)
+        runtime.configure_cache(options.compilation_cache)
+        device = runtime.jax_device(config.device)
+        programs = _PROGRAMS.setdefault(config, {})
+        self.program = programs.get((device, options))
+        if self.program is None:
+            self.program = programs[device, options] = Program(
+                config, options.implementation(), device)
+        self.options = options
+        self.device = device
+        self.first = True  # the first batch runs Warp's kernels, compiled on first use
+        self.carry: Any = None
+        self.restart: Any = None
+        if config.continue_episodes:
+            # the first batch starts every row from x0, so any carry of the right shapes will do
+            self.carry = jax.device_put(self.program.initial_carry(config), device)
+            self.restart = np.ones(config.nbatch, dtype=bool)
+        self.last_ready = 0.0
+        self.warned_overflow = False
+        self.last_dispatched: Any = None  # outputs of the newest dispatched batch
+        self.in_worker = torch.utils.data.get_worker_info() is not None
+
+    def produce(self, index: int) -> _Produced:
+        c, p = self.config, self.program
+        x0 = p.x0 if p.x0 is not None else c.initial.sample(
+            self.seed(index, sharding.INITIAL), c.nbatch).astype(p.dtype)
+        randomize_seed = self.seed(index, sharding.RANDOMIZE)
+        seeds = np.stack([self.seed(index, sharding.CONTROL).generate_state(2, np.uint32),
+                          randomize_seed.generate_state(2, np.uint32)])
+        variant = None if c.variants is None else dr.draw_variants(
+            randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
+        args = (p.model, p.data0, p.inputs0, x0, p.control, seeds, variant, self.carry,
+                self.restart)
+        simulate = p.compile(args, self.stats)
+        dispatched = time.perf_counter()
+        outputs, carry = simulate(*args)
+        self.last_dispatched = outputs
+        if c.continue_episodes:
+            # diverged rows restart in the next batch, decided on the device without waiting
+            self.carry, self.restart = carry, outputs["diverged"]
+        return _Produced(outputs, dispatched, carry)
+
+    def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
+        c = self.config
+        # waiting here also orders the hand-off before any torch stream reads the buffers
+        if self.first and self.options.impl == "warp":
+            with runtime.slow_notice(
+                    "running the first batch", hint="MuJoCo Warp compiles its kernels for this "
+                    "model on first use on a machine (about a minute for a humanoid on an H200, "
+                    "into ~/.cache/warp; later processes load them in seconds). `simloader "
+                    "warmup` does it ahead of time."):
+                outputs = jax.block_until_ready(produced.outputs)
+        else:
+            outputs = jax.block_until_ready(produced.outputs)
+        self.first = False
+        ready = time.perf_counter()
+        # the device runs batches in order: this one started at its dispatch or when the
+        # previous one was ready, whichever is later (when the consumer is slower than the
+        # simulation, results wait and this over-counts)
+        self.stats.add(simulate_s=ready - max(produced.dispatched, self.last_ready),
+                       batches=1, steps=c.nbatch * c.nstep,
+                       diverged=int(np.count_nonzero(outputs["diverged"])))
+        self.last_ready = ready
+        batch = {key: self._tensor(array, None if key == "diverged" else c.dtype)
+                 for key, array in outputs.items() if key not in ("params", "overflow")}
+        if "overflow" in outputs:
+            batch["overflow"] = handoff.to_target(
+                torch.from_numpy(self._overflow(outputs["overflow"])), c.device, None)
+        if "params" in outputs:
+            # variant indices as the rollout backend gives them (JAX has no int64 without x64)
+            batch["params"] = {key: self._tensor(outputs["params"][key],
+                                                 torch.int64 if key == "variant" else c.dtype)
+                               for key in self.program.param_keys}
+        return batch
+
+    def _overflow(self, bits: jax.Array) -> np.ndarray:
+        """Warp's overflow bits of a batch: counted in `stats` (solver iteration limits
+        apart), warned about once with what to raise; the per-trajectory flag delivered."""
+        host = np.asarray(bits)
+        dropped = warp_impl.dropped(host)
+        self.stats.add(overflow=int(dropped.sum()),
+                       solver_limit=int(warp_impl.solver_notices(host).sum()))
+        if dropped.any() and not self.warned_overflow:
+            self.warned_overflow = True
+            warnings.warn(
+                f"simloader: {int(dropped.sum())} of {len(host)} trajectories lost contacts or "
+                f"constraints to MuJoCo Warp's buffer sizes (flagged in batch['overflow']): "
+                f"{warp_impl.overflow_message(int(np.bitwise_or.reduce(host)), self.options.naconmax, self.options.njmax)}",
+                RuntimeWarning, stacklevel=2)
+        return dropped
+
+    def _tensor(self, array: jax.Array, dtype: Optional[torch.dtype]) -> torch.Tensor:
+        tensor = handoff.to_target(handoff.from_jax(array), self.config.device, dtype)
+        if (self.in_worker and tensor.is_cuda
+                and tensor.data_ptr() == array.unsafe_buffer_pointer()):
+            # CUDA IPC, which carries a worker's tensors to the main process, shares only
+            # torch's own allocations, not JAX's: a worker hands over a copy
+            tensor = tensor.clone()
+        return tensor
+
+    def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
+        if not self.config.continue_episodes:
+            return None
+        carry = produced.carry
+        return {"state": resume.encode_array(np.asarray(carry["state"])),
+                "qacc_warmstart": resume.encode_array(np.asarray(carry["qacc_warmstart"])),
+                "restart": resume.encode_array(np.asarray(produced.outputs["diverged"])),
+                "params": {k: resume.encode_array(np.asarray(v))
+                           for k, v in carry["params"].items()}}
+
+    def restore(self, trajectories: dict[str, Any]) -> None:
+        carry = {"state": resume.decode_array(trajectories["state"]),
+                 "qacc_warmstart": resume.decode_array(trajectories["qacc_warmstart"]),
+                 "params": {k: resume.decode_array(v)
+                            for k, v in trajectories["params"].items()}}
+        self.carry = jax.device_put(carry, self.device)
+        self.restart = resume.decode_array(trajectories["restart"])
+
+    def close(self, _finalizing: Callable[[], bool] = sys.is_finalizing) -> None:
+        # (`_finalizing` is bound at definition: at exit this module's globals may be gone)
+        # batches already dispatched but never delivered would otherwise keep the GPU busy
+        # (and their memory held) after the iterator is gone; the device runs them in order,
+        # so waiting for the last one waits for all. Not at interpreter exit (an iterator left
+        # open): the process and its device work end anyway, and modules are being torn down
+        if self.last_dispatched is not None and not _finalizing():
+            jax.block_until_ready(self.last_dispatched)
+        # the carry is this iterator's; the program stays for the dataset's next iterator
+        self.carry = self.restart = self.last_dispatched = None

@@ -1,0 +1,264 @@
+"""One batch of a configuration as a pure JAX function, and its compilation.
+
+A batch is one call of a jitted function: `lax.scan` over `nstep` of `vmap(step)` over `nbatch`
+trajectories. The function takes the model, the initial states, the controls and a seed as
+arguments, so it is traced and compiled once per configuration (and device) and reused by every
+batch and every iterator of the dataset. Random controls are drawn inside it with `jax.random`;
+initial states are drawn on the host (they are small) and transferred.
+
+It is written once for every MJX implementation (`impls.py`): reset, set the inputs, step and
+check each trajectory the same way; the implementation supplies what differs.
+
+Each trajectory starts as `mujoco.rollout` starts it: `mj_resetData` defaults (zero inputs,
+mocap bodies at their model poses, `eq_active0`, zero warmstart) with the `mjSTATE_FULLPHYSICS`
+part from the initial state. Before every step the `control_spec` components are set from the
+control row, as `mj_setState` does. MJX never checks for instability, so every step is checked
+here as MuJoCo checks it (|qpos|, |qvel|, |qacc| within mjMAXVAL, all finite) plus the sensors;
+a trajectory that fails is flagged in `diverged` and, as in MuJoCo, continues from the state
+`mj_resetData` leaves: no NaN is delivered, and the others are bit-identical to a run without it.
+
+A model list or a variant pool is one mjx.Model batched only where the models differ; a
+randomization spec is drawn and applied inside the batch function (`randomize.py`). With
+`continue_episodes` a batch hands the next only what a step reads of the previous one (physics
+state, solver warmstart) and the randomized values: the next batch resets its rows and sets
+these back, which is exact and keeps checkpoints small.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from simloader import layout
+from simloader.backends.base import Stats
+from simloader.backends.mjx import randomize as mjx_randomize
+from simloader.backends.mjx import runtime
+from simloader.backends.mjx.impls import Implementation
+from simloader.backends.mjx.pool import PHYSICS, pool, pooled, put_models
+from simloader.backends.mjx.runtime import mjx
+from simloader.config import SimConfig
+
+S = mujoco.mjtState
+# The user inputs mj_resetData takes from the model (all others it zeroes).
+MODEL_INPUTS = int(S.mjSTATE_EQ_ACTIVE | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT)
+# mjMAXVAL: beyond it MuJoCo's own checks call qpos, qvel and qacc unstable.
+_MAXVAL = 1e10
+
+
+def _rows(mask: jax.Array, x: jax.Array) -> jax.Array:
+    """A (nbatch,) mask shaped to select rows of the batched array `x`."""
+    return mask.reshape((-1,) + (1,) * (x.ndim - 1))
+
+
+def _restarted(restart: jax.Array, fresh: jax.Array, kept: jax.Array) -> jax.Array:
+    """Per row: `fresh` where the (nbatch,) `restart` is set, else `kept`."""
+    return jnp.where(_rows(restart, fresh), fresh, kept)
+
+
+def _key(seed: jax.Array) -> jax.Array:
+    """A JAX key from a (2,) uint32 row of a batch's SeedSequence."""
+    return jax.random.fold_in(jax.random.key(seed[0]), seed[1])
+
+
+def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axes: Any,
+                   randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype) -> Callable:
+    """The pure function that simulates one batch of configuration `c`.
+
+    The returned `simulate(model, data0, inputs0, x0, control, seeds, variant, carry,
+    restart)` takes:
+      model: the mjx.Model; a model list or variant pool is batched along `pool_axes`.
+      data0: one trajectory's mjx.Data as `make_data` leaves it.
+      inputs0: `MODEL_INPUTS` rows as mj_resetData leaves them, (ninputs,) or per model of
+        the pool (npool, ninputs).
+      x0: (nbatch, nstate) initial states, or per variant (nvariant, nstate) when they come
+        from the model.
+      control: the fixed controls (nbatch, nstep, ncontrol), or the default rows
+        ([nbatch or 1 or nvariant], ncontrol) of undriven columns.
+      seeds: (2, 2) uint32, this batch's CONTROL and RANDOMIZE seeds.
+      variant: with variants, (nbatch,) int32 each trajectory's variant (drawn on the host as
+        the rollout backend draws it); None otherwise.
+      carry, restart: with `continue_episodes`, what the previous batch left ({"state":
+        (nbatch, nstate) after its last step, "qacc_warmstart": (nbatch, nv), "params": the
+        randomized values and variants}) and the (nbatch,) bool rows to restart from `x0`
+        with fresh values instead; None otherwise.
+
+    It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
+    the carry for the next batch.
+    """
+    # only plain values are captured: the program that holds this function is cached per
+    # configuration and must not keep the configuration alive
+    nbatch, nstep, control_spec, drivers = c.nbatch, c.nstep, c.control_spec, c.control.drivers
+    inputs = tuple(component.name for component in c.control.components)
+    given = c.control.fixed is not None or bool(drivers)  # control=None leaves inputs alone
+    shape = (nbatch, nstep, c.ncontrol)
+    per_model, continuing = pooled(c), c.continue_episodes
+    variants, fixed_control = c.variants is not None, c.control.fixed is not None
+    x0_per_variant = variants and c.initial.from_model
+
+    def reset(m, d0, inputs0, x0):
+        d = mjx.set_state(m, d0, inputs0, MODEL_INPUTS)
+        return mjx.set_state(m, d, x0, PHYSICS)
+
+    def step(m, d, u):
+        if given:
+            d = impl.refresh(mjx.set_state(m, d, u, control_spec), d, inputs)
+        return mjx.step(m, d)
+
+    def restart_unstable(m, d):
+        """Flags the trajectories (of batched `d`) that went unstable, and restarts them as
+        mj_resetData leaves them, as MuJoCo does: their NaNs are never delivered, and the
+        solver loops of the whole batch, which run until every trajectory converges, do not
+        keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
+        # NaN compares False, so `<=` catches NaN, Inf and huge values at once
+        stable = (jnp.all(jnp.abs(physics(m, d)) <= _MAXVAL, axis=-1)
+                  & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
+                  & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
+
+        def keep(x, reset):
+            return jnp.where(_rows(stable, x), x, reset)
+
+        # a step reads only these of the previous one (besides the inputs, which are not
+        # simulated); mj_resetData zeroes all but qpos
+        d = d.replace(time=keep(d.time, 0.0), qpos=keep(d.qpos, m.qpos0),
+                      qvel=keep(d.qvel, 0.0), act=keep(d.act, 0.0),
+                      qacc_warmstart=keep(d.qacc_warmstart, 0.0),
+                      sensordata=keep(d.sensordata, 0.0))
+        return d, ~stable
+
+    def physics(m, d):
+        return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (model_axes, 0))(m, d)
+
+    def draw(defaults, seed):
+        control = jnp.broadcast_to(defaults[:, None, :], shape)
+        for driver, k in zip(drivers, jax.random.split(_key(seed), len(drivers))):
+            params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
+            sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
+            control = control.at[..., driver.columns].set(sample.astype(dtype))
+        return control
+
+    def simulate(m, d0, inputs0, x0, control, seeds, variant, carry, restart):
+        params = {}  # the values each trajectory runs with, delivered in `params`
+        if variants:
+            if continuing:
+                variant = _restarted(restart, variant, carry["params"]["variant"])
+            m = mjx_randomize.gather(m, pool_axes, variant)
+            inputs0 = inputs0[variant]
+            control = control if fixed_control else control[variant]
+            x0 = x0[variant] if x0_per_variant else x0
+            params["variant"] = variant
+        if randomizer is not None:
+            values = randomizer.plan.sample_jax(_key(seeds[1]), nbatch, dtype)
+            if continuing:
+                values = {k: _restarted(restart, v, carry["params"][k])
+                          for k, v in values.items()}
+            m = randomizer(m, d0, values, nbatch)
+            params.update(values)
+        if continuing:
+            # a step reads no more of the previous one than its physics state and the solver
+            # warmstart (inputs are set before every step): carrying only these restores the
+            # trajectory exactly, and makes a small checkpoint
+            x0 = _restarted(restart, x0, carry["state"])
+        data = jax.vmap(reset, (model_axes, None, 0 if per_model else None, 0))(
+            m, d0, inputs0, x0)
+        if continuing:
+            data = data.replace(qacc_warmstart=_restarted(
+                restart, jnp.zeros_like(data.qacc_warmstart), carry["qacc_warmstart"]))
+        initial = physics(m, data)
+        if drivers:
+            control = draw(control, seeds[0])
+        elif not given:
+            control = jnp.broadcast_to(control[:, None, :], shape)
+
+        def body(loop, u):
+            d, diverged = loop
+            d = jax.vmap(step, (model_axes, 0, 0 if given else None))(m, d, u)
+            d, unstable = restart_unstable(m, d)
+            return (d, diverged | unstable), (physics(m, d), d.sensordata)
+
+        xs = jnp.swapaxes(control, 0, 1) if given else None
+        (data, diverged), (state, sensordata) = jax.lax.scan(
+            body, (data, jnp.zeros(nbatch, bool)), xs, length=nstep)
+        outputs = {
+            "state": jnp.swapaxes(state, 0, 1),
+            "sensordata": jnp.swapaxes(sensordata, 0, 1),
+            "control": control,
+            "initial_state": initial,
+            "diverged": diverged,
+        }
+        if params:
+            outputs["params"] = params
+        overflow = impl.overflow(data)  # sticky bits since the reset: the whole batch's
+        if overflow is not None:
+            outputs["overflow"] = overflow
+        if not continuing:
+            return outputs, None
+        return outputs, {"state": state[-1], "qacc_warmstart": data.qacc_warmstart,
+                         "params": params}
+
+    return simulate
+
+
+class Program:
+    """A configuration's simulation on one device: the model and constant inputs on the
+    device and the compiled batch function, shared by every iterator of the dataset."""
+
+    def __init__(self, config: SimConfig, impl: Implementation, device: jax.Device):
+        c = config
+        self.impl = impl
+        self.model, pool_axes = put_models(c, impl, device)
+        self.data0 = impl.make_data(c.model, device)
+        self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
+        # per model of the pool (variants too): the inputs and states mj_resetData leaves
+        inputs0 = layout.reset_rows(pool(c), MODEL_INPUTS).astype(self.dtype)
+        self.inputs0 = jax.device_put(inputs0 if pooled(c) else inputs0[0], device)
+        control_defaults, variant_states = (
+            (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
+        constant = c.control.fixed if c.control.fixed is not None else control_defaults
+        self.control = jax.device_put(constant.astype(self.dtype), device)
+        # fixed initial states go to the device once; generated ones with every batch
+        if c.initial.generator is not None:
+            x0 = None
+        else:
+            x0 = variant_states if variant_states is not None else c.initial.fixed
+        self.x0 = None if x0 is None else jax.device_put(x0.astype(self.dtype), device)
+        self.randomizer = (None if c.randomization is None else mjx_randomize.Randomizer(
+            c.model, c.randomization, pool_axes, self.model))
+        model_axes = pool_axes if self.randomizer is None else self.randomizer.axes
+        # `params` keys in the order of the spec, as the rollout backend gives them (JAX
+        # returns dicts sorted)
+        self.param_keys = (("variant",) if c.variants is not None else
+                           () if c.randomization is None else
+                           tuple(r.param.key for r in c.randomization.resolved))
+        self.jitted = jax.jit(batch_function(c, impl, model_axes, pool_axes, self.randomizer,
+                                             self.dtype))
+        self.compiled: Optional[Callable] = None
+        self.lock = threading.Lock()
+
+    def initial_carry(self, c: SimConfig) -> Any:
+        """A carry of the right shapes for the first batch, which restarts every row."""
+        zeros = lambda *shape: np.zeros((c.nbatch, *shape), self.dtype)  # noqa: E731
+        params = ({} if self.randomizer is None else
+                  {r.param.key: zeros(len(r.elements)) for r in self.randomizer.plan.resolved})
+        if c.variants is not None:
+            params["variant"] = np.zeros(c.nbatch, np.int32)
+        return {"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv), "params": params}
+
+    def compile(self, args: tuple, stats: Stats) -> Callable:
+        """The compiled batch function, compiled (or loaded from JAX's cache) on first use."""
+        with self.lock:
+            if self.compiled is None:
+                start = time.perf_counter()
+                # true float32 dot products: on GPUs JAX defaults to TF32, whose 10-bit
+                # mantissa puts 4e-4 errors into one step of the humanoid's velocities
+                with runtime.slow_notice(f"compiling the batch function ({self.impl.name})"), \
+                        jax.default_matmul_precision("float32"):
+                    self.compiled = self.jitted.lower(*args).compile()
+                stats.add(compile_s=time.perf_counter() - start, compiles=1)
+            return self.compiled

@@ -1,0 +1,172 @@
+"""Process-wide concerns of the MJX backend: importing MJX, JAX's GPU memory and compilation
+cache, Warp's kernel cache, the device to simulate on, and the fork guard.
+
+Importing `mujoco.mjx` without the `warp-lang` package prints "Failed to import warp" to stdout:
+MJX is imported here, once, with that print captured, so it reaches only a user who asks for
+`impl="warp"` (inside the error that says what is missing).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import multiprocessing
+import os
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Iterator
+from typing import Any, Optional
+
+import jax
+import numpy as np
+import torch
+from jax._src import xla_bridge
+
+_import_log = io.StringIO()
+with contextlib.redirect_stdout(_import_log):
+    from mujoco import mjx  # noqa: F401  (re-exported: the backend's modules import it from here)
+    from mujoco.mjx import warp as _mjx_warp
+WARP_IMPORT_LOG = "; ".join(_import_log.getvalue().split("\n")).strip("; ")
+
+_PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
+_FRACTION = "XLA_CLIENT_MEM_FRACTION"
+_FRACTION_DEPRECATED = "XLA_PYTHON_CLIENT_MEM_FRACTION"  # jaxlib rejects both being set
+# MuJoCo Warp on the CPU (Warp's LLVM backend) is slow and not offered to users; the test suite
+# sets this to run the Warp implementation for real on machines without a GPU
+WARP_ON_CPU = "SIMLOADER_WARP_ON_CPU"
+
+
+def warp_missing(device: jax.Device) -> Optional[str]:
+    """Why `impl="warp"` cannot run on `device` (short), or None when it can."""
+    if not _mjx_warp.WARP_INSTALLED:
+        return "the warp-lang package is not installed (pip install 'simloader[warp]')"
+    if device.platform == "gpu" or (device.platform == "cpu"
+                                    and os.environ.get(WARP_ON_CPU) == "1"):
+        return None
+    return f"MuJoCo Warp needs a CUDA GPU, and JAX simulates on {device.platform} here"
+
+
+def configure_memory(memory_fraction: Any) -> Optional[float]:
+    """Sets how JAX takes GPU memory; effective only before JAX starts its backends.
+
+    Args:
+      memory_fraction: None: no preallocation; a number in (0, 1]: preallocate that fraction.
+
+    Returns:
+      The validated fraction.
+
+    Raises:
+      TypeError, ValueError: `memory_fraction` is not None or a number in (0, 1].
+    """
+    if memory_fraction is not None and (isinstance(memory_fraction, bool) or not isinstance(
+            memory_fraction, (int, float, np.floating, np.integer))):
+        raise TypeError(f"memory_fraction: expected None or a number in (0, 1], got "
+                        f"{type(memory_fraction).__name__} {memory_fraction!r}")
+    if memory_fraction is not None and not 0 < memory_fraction <= 1:
+        raise ValueError(f"memory_fraction: expected None or a number in (0, 1], got "
+                         f"{memory_fraction}")
+    fraction = None if memory_fraction is None else float(memory_fraction)
+    if not xla_bridge.backends_are_initialized():  # JAX has no public "started" query
+        if fraction is None:
+            os.environ.setdefault(_PREALLOCATE, "false")  # a user's explicit choice stands
+        else:
+            os.environ[_PREALLOCATE] = "true"
+            os.environ.pop(_FRACTION_DEPRECATED, None)
+            os.environ[_FRACTION] = str(fraction)
+        return fraction
+    if not any(d.platform == "gpu" for d in jax.devices()):
+        return fraction
+    # the same test jaxlib applies when it creates the GPU client
+    preallocating = os.environ.get(_PREALLOCATE, "true") not in ("false", "False", "0")
+    current = os.environ.get(_FRACTION) or os.environ.get(_FRACTION_DEPRECATED)
+    if fraction is None and preallocating:
+        warnings.warn(
+            "simloader: JAX was started before simloader could turn off its GPU memory "
+            "preallocation, so JAX may hold 75% of the GPU and leave little to torch. Set "
+            f"{_PREALLOCATE}=false before JAX starts (or create the SimDataset first).",
+            RuntimeWarning, stacklevel=3)
+    elif fraction is not None and current != str(fraction):
+        warnings.warn(
+            f"simloader: memory_fraction={fraction} has no effect: JAX was already started "
+            f"(with {_FRACTION}={current}). Create the SimDataset before anything starts JAX, "
+            f"or set {_FRACTION} yourself.", RuntimeWarning, stacklevel=3)
+    return fraction
+
+
+def cache_dir(value: Any) -> Any:
+    if value is False:
+        return False
+    if value is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+        return jax.config.jax_compilation_cache_dir or os.path.join(base, "simloader", "jax")
+    if isinstance(value, (str, os.PathLike)):
+        return os.fspath(value)
+    raise TypeError(f"compilation_cache: expected a directory path, None (default cache) or "
+                    f"False (leave JAX's setting), got {type(value).__name__} {value!r}")
+
+
+def configure_cache(path: Any) -> None:
+    # JAX reads these at its first compilation in the process; later changes are ignored
+    if path is not False:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def refuse_forked_worker() -> None:
+    """JAX is multithreaded and deadlocks in a forked child (its parent already ran JAX)."""
+    if torch.utils.data.get_worker_info() is None:
+        return
+    # a DataLoader started with a context uses its Process class, which names its start
+    # method; a plain Process uses the global one, which a forked child inherits
+    method = (getattr(multiprocessing.current_process(), "_start_method", None)
+              or multiprocessing.get_start_method())
+    if method == "fork":
+        raise RuntimeError(
+            "backend='mjx' cannot run in a forked DataLoader worker: JAX is multithreaded and "
+            "deadlocks after fork. Use num_workers=0 (an MJX batch already runs in parallel on "
+            "the device) or DataLoader(..., multiprocessing_context='spawn').")
+
+
+def jax_device(target: Optional[torch.device]) -> jax.Device:
+    """Where to simulate: JAX GPU k for a `cuda:k` target (no copy at delivery), else JAX's
+    GPU of this local rank (torchrun's LOCAL_RANK), else JAX's default device."""
+    gpus = [d for d in jax.local_devices() if d.platform == "gpu"]
+    if not gpus:
+        return jax.local_devices()[0]
+    if target is not None and target.type == "cuda":
+        index = target.index if target.index is not None else torch.cuda.current_device()
+    else:
+        index = int(os.environ.get("LOCAL_RANK", "0"))
+    # by CUDA ordinal, not by position (JAX may see fewer GPUs than torch)
+    for gpu in gpus:
+        if gpu.local_hardware_id == index:
+            return gpu
+    if target is not None and target.type == "cuda":
+        raise ValueError(f"device: {target} requested but JAX sees only the GPU(s) "
+                         f"{[g.local_hardware_id for g in gpus]}")
+    return gpus[index % len(gpus)]
+
+
+@contextlib.contextmanager
+def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Iterator[None]:
+    """Says on stderr what is happening when `what` takes longer than `after` seconds (a cold
+    compilation can take a minute and must not look like a hang), and how long it took."""
+    start = time.perf_counter()
+    said = threading.Event()
+
+    def say() -> None:
+        said.set()
+        print(f"simloader: {what}...{' ' + hint if hint else ''}", file=sys.stderr, flush=True)
+
+    timer = threading.Timer(after, say)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        if said.is_set():
+            print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
+                  file=sys.stderr, flush=True)

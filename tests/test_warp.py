@@ -1,0 +1,231 @@
+"""MJX on MuJoCo Warp (`impl="warp"`): float32 parity with MuJoCo C for every control_spec
+component, overflow flags, buffer sizing, continuation, resume, randomization and its refusals.
+
+Without a GPU these run MuJoCo Warp's CPU kernels for real (`SIMLOADER_WARP_ON_CPU=1`, set for
+this module only): slow, so sizes are small. Warp compiles its kernels once per machine into
+its cache (about a minute on a CPU for the first model). Tests marked `gpu` run the humanoid on
+the GPU machine.
+"""
+
+import os
+import pathlib
+import warnings
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from mujoco import rollout
+
+pytest.importorskip("mujoco.mjx")
+pytest.importorskip("warp")
+
+import simloader  # noqa: E402
+from simloader import controls  # noqa: E402
+from simloader import randomize as dr  # noqa: E402
+from conftest import RICH_XML, SHARED_MODELS  # noqa: E402
+from test_mjx import CONTACT_FREE_TOL, ONE_STEP_TOL  # noqa: E402
+
+S = mujoco.mjtState
+EVERY_INPUT = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED | S.mjSTATE_XFRC_APPLIED
+                  | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT | S.mjSTATE_EQ_ACTIVE)
+HAS_GPU = torch.cuda.is_available()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def warp_on_cpu(cache_dir):
+    """MuJoCo Warp on the CPU where no GPU is (on a GPU the variable changes nothing)."""
+    before = os.environ.get("SIMLOADER_WARP_ON_CPU")
+    os.environ["SIMLOADER_WARP_ON_CPU"] = "1"
+    yield
+    if before is None:
+        del os.environ["SIMLOADER_WARP_ON_CPU"]
+    else:
+        os.environ["SIMLOADER_WARP_ON_CPU"] = before
+
+
+@pytest.fixture(scope="module")
+def rich():
+    return mujoco.MjModel.from_xml_string(RICH_XML)
+
+
+def dataset(model, cache_dir, **kwargs):
+    kwargs = {"backend": "mjx", "impl": "warp", "compilation_cache": cache_dir, **kwargs}
+    return simloader.SimDataset(model, **kwargs)
+
+
+def c_rollout(model, batch, spec=int(S.mjSTATE_CTRL)):
+    """MuJoCo C from the delivered float32 initial states and controls (as float64)."""
+    x0 = batch["initial_state"].cpu().numpy().astype(np.float64)
+    u = batch["control"].cpu().numpy().astype(np.float64)
+    return rollout.rollout(model, mujoco.MjData(model), x0, u, control_spec=spec)
+
+
+def test_contact_free_trajectories_match_mujoco_c(cache_dir):
+    model = simloader.load_model("cartpole")
+    ds = dataset(model, cache_dir, nbatch=4, nstep=60, control=controls.Uniform(),
+                 num_batches=1)
+    batch = next(iter(ds))
+    assert batch["state"].dtype == torch.float32 and not batch["diverged"].any()
+    state, sensordata = c_rollout(model, batch)
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
+    np.testing.assert_allclose(batch["sensordata"].cpu().numpy(), sensordata,
+                               atol=CONTACT_FREE_TOL)
+    assert ds.stats["impl"] == "warp"
+    assert "impl='warp'" in ds.describe()
+
+
+def test_every_control_spec_component_matches_mujoco_c_over_one_contact_step(rich, cache_dir):
+    # the ball rests on the floor (contacts), the mocap target is welded when eq_active is 1
+    control = {"ctrl": controls.Uniform(), "qfrc_applied": controls.Normal(std=1.0),
+               "xfrc_applied": controls.Normal(std=3.0, on="ball"),
+               "mocap_pos": controls.Normal(std=0.1), "mocap_quat": controls.Normal(std=0.1),
+               "eq_active": controls.Constant(1.0)}
+    ds = dataset(rich, cache_dir, nbatch=8, nstep=1, control_spec=EVERY_INPUT, control=control,
+                 initial_state="raised", num_batches=1)
+    batch = next(iter(ds))
+    state, sensordata = c_rollout(rich, batch, EVERY_INPUT)
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=ONE_STEP_TOL)
+    np.testing.assert_allclose(batch["sensordata"].cpu().numpy(), sensordata, atol=ONE_STEP_TOL)
+    assert not batch["overflow"].any()
+
+
+def test_default_buffers_hold_a_contact_rich_batch(rich, cache_dir):
+    # balls dropped on the floor: contacts appear during the batch
+    ds = dataset(rich, cache_dir, nbatch=16, nstep=100, control=controls.Uniform(),
+                 num_batches=1)
+    options = ds.config.options
+    assert options.naconmax >= 16 * 2 and options.njmax >= 4
+    batch = next(iter(ds))
+    assert batch["overflow"].dtype == torch.bool and batch["overflow"].shape == (16,)
+    assert not batch["overflow"].any() and ds.stats["overflow"] == 0
+    assert f"naconmax={options.naconmax}" in ds.describe()
+
+
+def test_overflow_is_flagged_per_trajectory_counted_and_said_once(rich, cache_dir):
+    ds = dataset(rich, cache_dir, nbatch=4, nstep=60, naconmax=1, njmax=1, num_batches=2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        batches = list(ds)
+    assert all(b["overflow"].all() for b in batches)
+    assert ds.stats["overflow"] == 8
+    said = [str(w.message) for w in caught if "MuJoCo Warp's buffer sizes" in str(w.message)]
+    assert len(said) == 1, said
+    assert "contacts exceeded naconmax=1 (the pool of the whole batch): pass a larger " \
+           "naconmax=" in said[0]
+
+
+def test_continued_chunks_concatenate_to_one_long_rollout(cache_dir):
+    model = simloader.load_model("cartpole")
+    ds = dataset(model, cache_dir, nbatch=3, nstep=20, continue_episodes=True, num_batches=2,
+                 control=controls.Uniform())
+    first, second = list(ds)
+    np.testing.assert_array_equal(second["initial_state"].numpy(), first["state"][:, -1].numpy())
+    c_state, _ = rollout.rollout(
+        model, mujoco.MjData(model), first["initial_state"].numpy().astype(np.float64),
+        np.concatenate([first["control"], second["control"]], axis=1).astype(np.float64))
+    got = np.concatenate([first["state"], second["state"]], axis=1)
+    np.testing.assert_allclose(got, c_state, atol=CONTACT_FREE_TOL)
+
+
+def test_resume_continues_the_stream(cache_dir):
+    model = simloader.load_model("cartpole")
+    kwargs = dict(nbatch=3, nstep=10, continue_episodes=True, control=controls.Uniform(),
+                  num_batches=3)
+    ds = dataset(model, cache_dir, **kwargs)
+    it = iter(ds)
+    next(it)
+    state = ds.state_dict()
+    expected = [b["state"].clone() for b in it]
+    resumed = dataset(model, cache_dir, **kwargs)
+    resumed.load_state_dict(state)
+    for want, got in zip(expected, resumed, strict=True):
+        np.testing.assert_array_equal(got["state"].numpy(), want.numpy())
+
+
+def test_randomized_parameters_match_mujoco_c_on_the_equivalent_models(cache_dir):
+    model = simloader.load_model("cartpole")
+    ds = dataset(model, cache_dir, nbatch=3, nstep=40, control=controls.Uniform(),
+                 randomize=[dr.scale("dof_damping", dr.Uniform(50.0, 200.0))], num_batches=1)
+    batch = next(iter(ds))
+    damping = batch["params"]["dof_damping"].numpy()
+    models = []
+    for row in damping:
+        m = simloader.load_model("cartpole")
+        m.dof_damping[:] = row
+        models.append(m)
+    state, _ = rollout.rollout(models, mujoco.MjData(model),
+                               batch["initial_state"].numpy().astype(np.float64),
+                               batch["control"].numpy().astype(np.float64))
+    np.testing.assert_allclose(batch["state"].numpy(), state, atol=CONTACT_FREE_TOL)
+    plain = next(iter(dataset(model, cache_dir, nbatch=3, nstep=40, control=controls.Uniform(),
+                              num_batches=1)))
+    assert np.abs(plain["state"].numpy() - batch["state"].numpy()).max() > 10 * CONTACT_FREE_TOL
+
+
+@pytest.mark.parametrize("spec, why", [
+    (dr.scale("body_mass", dr.Uniform(0.5, 2.0)),
+     "MuJoCo derives constants from it (mj_setConst) that simloader recomputes only with "
+     "impl='jax'"),
+    (dr.scale("opt.impratio", dr.Uniform(0.5, 2.0)),
+     "MuJoCo Warp keeps only a derived 1/sqrt(impratio)"),
+])
+def test_what_warp_cannot_randomize_is_refused_by_name(cache_dir, spec, why):
+    with pytest.raises(ValueError) as info:
+        dataset(simloader.load_model("cartpole"), cache_dir, nbatch=2, nstep=2,
+                randomize=[spec])
+    assert f"impl='warp' cannot randomize {spec.field} ({why})" in str(info.value)
+    assert "dof_damping" in str(info.value)  # the list of what it can randomize
+
+
+def test_auto_takes_jax_where_warp_cannot_run_and_says_why(rich, cache_dir, monkeypatch):
+    monkeypatch.delenv("SIMLOADER_WARP_ON_CPU")
+    if HAS_GPU:
+        pytest.skip("on a GPU, auto takes Warp for a model with contacts (test_gpu_*)")
+    ds = simloader.SimDataset(rich, backend="mjx", nbatch=2, nstep=2,
+                              compilation_cache=cache_dir)
+    assert ds.config.options.impl == "jax"
+    assert "chosen: auto: MuJoCo Warp needs a CUDA GPU, and JAX simulates on cpu here" \
+        in ds.describe()
+    with pytest.raises(ValueError, match="impl: 'warp' cannot run here: MuJoCo Warp needs a "
+                                         "CUDA GPU, and JAX simulates on cpu here"):
+        simloader.SimDataset(rich, backend="mjx", impl="warp", nbatch=2, nstep=2)
+
+
+# --- on the GPU machine ------------------------------------------------------------------------
+
+def humanoid():
+    for folder in (pathlib.Path(__file__).resolve().parents[1] / ".models" / "dm_control",
+                   SHARED_MODELS):
+        if (folder / "humanoid.xml").is_file():
+            return mujoco.MjModel.from_xml_path(str(folder / "humanoid.xml"))
+    pytest.skip("the dm_control humanoid is not here (.models/ or ../shared/models)")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason="needs a CUDA GPU")
+def test_gpu_humanoid_one_step_matches_mujoco_c_and_auto_takes_warp(cache_dir):
+    model = humanoid()
+    ds = simloader.SimDataset(model, backend="mjx", nbatch=64, nstep=1,
+                              control=controls.Uniform(), compilation_cache=cache_dir,
+                              num_batches=1)
+    assert ds.config.options.impl == "warp", ds.describe()
+    batch = next(iter(ds))
+    assert batch["state"].is_cuda
+    state, sensordata = c_rollout(model, batch)
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=ONE_STEP_TOL)
+    assert not batch["overflow"].any()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason="needs a CUDA GPU")
+def test_gpu_humanoid_batch_flags_overflow_and_keeps_the_rest(cache_dir):
+    model = humanoid()
+    ds = simloader.SimDataset(model, backend="mjx", impl="warp", nbatch=256, nstep=100,
+                              control=controls.Uniform(), naconmax=256, num_batches=1,
+                              compilation_cache=cache_dir)
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        batch = next(iter(ds))
+    assert batch["overflow"].any()
+    assert ds.stats["overflow"] == int(batch["overflow"].sum())
