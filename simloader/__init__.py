@@ -6,7 +6,8 @@
         batch["state"]  # (4096, 200, nstate)
 """
 
-from simloader import controls, initial, layout
+from simloader import controls, initial, layout, observe
+from simloader.batch import Batch
 from simloader.dataset import SimDataset
 from simloader.layout import describe
 from simloader.models import builtin_models, builtin_path, load_model
@@ -14,6 +15,7 @@ from simloader.models import builtin_models, builtin_path, load_model
 __version__ = "0.1.0"
 
 __all__ = [
+    "Batch",
     "SimDataset",
     "builtin_models",
     "builtin_path",
@@ -22,4 +24,5 @@ __all__ = [
     "initial",
     "layout",
     "load_model",
+    "observe",
 ]

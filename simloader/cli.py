@@ -11,6 +11,7 @@ import torch
 from tqdm import tqdm
 
 import simloader
+from simloader import observe
 
 _SPEC_NAMES = {c.lower(): int(getattr(mujoco.mjtState, f"mjSTATE_{c}"))
                for c in ("CTRL", "QFRC_APPLIED", "XFRC_APPLIED", "EQ_ACTIVE", "MOCAP_POS",
@@ -58,6 +59,10 @@ def quickstart(args: argparse.Namespace) -> None:
 def info(args: argparse.Namespace) -> None:
     model = simloader.load_model(args.model)
     print(simloader.describe(model, args.control_spec))
+    if args.record:
+        observations = observe.parse(model, [name.strip() for name in args.record.split(",")])
+        print("recorded keys (nbatch, nframes, ...) and their named parts:")
+        print(simloader.layout.BatchLayout(model, args.control_spec, observations).describe())
 
 
 def bench(args: argparse.Namespace) -> None:
@@ -97,6 +102,8 @@ def main(argv: list[str] | None = None) -> None:
     i.add_argument("model", help="built-in model name or MJCF/MJB path")
     i.add_argument("--control-spec", type=parse_control_spec, default=_SPEC_NAMES["ctrl"],
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")
+    i.add_argument("--record", default="",
+                   help="names to record, e.g. 'qpos,xpos,sensor:tip_pos': what each key holds")
     i.set_defaults(run=info)
 
     b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")

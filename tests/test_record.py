@@ -285,3 +285,23 @@ def test_describe_lists_recorded_keys(rich_model):
     text = ds.describe()
     assert "recorded keys (nbatch, nframes=2, ...), every 2 step(s):" in text
     assert "xpos (5, 3): rows of world, target, ball, arm, hand" in text
+
+
+@pytest.mark.parametrize("case", ["none", "broadcast", "models", "randomized"])
+def test_every_kth_frame_of_the_full_record(rich_model, case):
+    """record_every=5 gives every fifth frame of record_every=1, for every way of giving
+    controls and models, across continuing batches."""
+    from simloader import randomize as dr
+    kw = {"none": dict(control=None),
+          "broadcast": dict(control=np.full((1, 1, 2), 0.3)),
+          "models": dict(randomize=[rich_model] * 3, control=simloader.controls.Uniform()),
+          "randomized": dict(randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2), on="ball")],
+                             control=simloader.controls.Uniform())}[case]
+    common = dict(backend="rollout", nbatch=3, nstep=10, record=("qpos", "xpos", "ncon"),
+                  num_batches=2, continue_episodes=True, **kw)
+    every = list(simloader.SimDataset(rich_model, record_every=5, **common))
+    full = list(simloader.SimDataset(rich_model, **common))
+    for a, b in zip(every, full):
+        for key in ("qpos", "xpos", "ncon"):
+            assert torch.equal(a[key], b[key][:, 4::5]), key
+        assert torch.equal(a["control"], b["control"])
