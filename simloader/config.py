@@ -183,13 +183,9 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
 def _check_memory(c: SimConfig) -> None:
     """Refuses a CPU batch that cannot fit in host memory, before anything runs (the MJX
     backend checks its device's memory when it has the device)."""
-    if c.backend != "rollout":
-        return
-    nbytes = observe.batch_nbytes(c.observations, c.nbatch, c.nframes, c.nstep, c.ncontrol,
-                                  c.nstate)
-    # the prefetched batches and the one being simulated
-    observe.check_fits(nbytes, observe.host_available(), "host memory", nbatch=c.nbatch,
-                       record_every=c.record_every, count=c.prefetch + 1)
+    if c.backend == "rollout":  # the prefetched batches and the one being simulated
+        observe.check_batch_fits(c, observe.host_available(), "host memory",
+                                 count=c.prefetch + 1)
 
 
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,

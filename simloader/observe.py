@@ -140,6 +140,20 @@ def jax_frame(observations: Sequence[Observation], m: Any, d: Any) -> dict[str, 
     return {o.key: o.jax_value(m, d) for o in observations}
 
 
+def jax_finite(observations: Sequence[Observation], frame: dict[str, Any]) -> Any:
+    """`(nbatch,)` bool: every floating value of a batched frame (`jax_frame` under `vmap`)
+    is finite, for the divergence flag."""
+    import jax.numpy as jnp
+    finite = None
+    for o in observations:
+        if not o.floating:
+            continue
+        value = frame[o.key]
+        ok = jnp.all(jnp.isfinite(value.reshape(value.shape[0], -1)), axis=1)
+        finite = ok if finite is None else finite & ok
+    return finite
+
+
 def _mjx_field(d: Any, name: str) -> Any:
     """MjData field `name` of an mjx.Data: a public field, or one the implementation keeps
     under `d._impl` (cfrc_ext, cacc, subtree_linvel, ... differ per implementation); None if
@@ -298,9 +312,26 @@ def batch_nbytes(observations: Sequence[Observation], nbatch: int, nframes: int,
             + nbatch)
 
 
+def check_batch_fits(config: Any, available: int, where: str, *, count: int,
+                     itemsize: Optional[int] = None) -> None:
+    """Refuses a batch of `config` (a `SimConfig`) whose `count` copies in flight need more than
+    `available` bytes of `where` ("host memory", "GPU memory"); `itemsize` as `batch_nbytes`.
+
+    Raises:
+      ValueError: naming `nbatch` and `record`, with the size, what is available and what to
+        reduce.
+    """
+    c = config
+    nbytes = batch_nbytes(c.observations, c.nbatch, c.nframes, c.nstep, c.ncontrol, c.nstate,
+                          itemsize)
+    check_fits(nbytes, available, where, nbatch=c.nbatch, record_every=c.record_every,
+               count=count)
+
+
 def check_fits(nbytes: int, available: int, where: str, *, nbatch: int, record_every: int,
                count: int = 1) -> None:
-    """Refuses a batch whose `count` copies in flight need more than `available` bytes.
+    """Refuses a batch of `nbytes` whose `count` copies in flight need more than `available`
+    bytes.
 
     Raises:
       ValueError: with the size, what is available and what to reduce.

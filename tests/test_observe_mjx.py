@@ -59,6 +59,22 @@ def test_jax_values_under_vmap_have_the_frame_shape():
     assert sorted(values) == sorted(o.key for o in observations)  # (JAX sorts dict keys)
     for o in observations:
         assert values[o.key].shape == (3, *o.shape), o.key
+    assert observe.jax_finite(observations, values).tolist() == [True] * 3
+    values["xpos"] = values["xpos"].at[1, 2, 0].set(np.nan)
+    values["time"] = values["time"].at[2].set(np.inf)
+    assert observe.jax_finite(observations, values).tolist() == [True, False, False]
+
+
+def test_a_batch_too_large_for_the_gpu_is_refused(rich_model):
+    import simloader
+    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=1024, nstep=1000,
+                              record=("state", "xpos"), record_every=2)
+    # what the MJX backend calls with its device's free memory, floats as float32
+    with pytest.raises(ValueError, match=r"nbatch, record: a batch needs 72.3 MiB, more than "
+                                         r"the 10.0 MiB of GPU memory available; use a smaller "
+                                         r"nbatch \(at most 141 fits\), a larger record_every "
+                                         r"\(now 2\)"):
+        observe.check_batch_fits(ds.config, 10 * 2**20, "GPU memory", count=1, itemsize=4)
 
 
 def test_check_mjx_refuses_by_name_with_the_reason():
