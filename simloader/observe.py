@@ -249,9 +249,10 @@ def _unknown(model: mujoco.MjModel, data: mujoco.MjData, name: str) -> str:
 def _check_computed(model: mujoco.MjModel, data: mujoco.MjData, fields: Sequence[Field]) -> None:
     """Refuses floating fields `mj_step` leaves unset for this model: a step from the model's
     defaults must overwrite every value (probed with NaN)."""
-    state_fields = set(layout.STATE_FIELDS)
-    probed = [f for f in fields if f.floating and f.key not in state_fields
-              and math.prod(f.shape)]
+    # state components hold the state; sensordata is the sensors' (user sensors without a
+    # callback included: the contract's default record)
+    unprobed = {*layout.STATE_FIELDS, "sensordata"}
+    probed = [f for f in fields if f.floating and f.key not in unprobed and math.prod(f.shape)]
     if not probed:
         return
     mujoco.mj_resetData(model, data)
