@@ -107,16 +107,19 @@ class Field(Observation):
     """An MjData field, by its name."""
 
     def jax_value(self, m, d):
-        return _mjx_field(d, self.key)
+        # rotation matrices are (n, 3, 3) in MJX, (n, 9) in MuJoCo: the same values, row-major
+        return _mjx_field(d, self.key).reshape(self.shape)
 
     def mjx_refusal(self, data, impl):
+        import jax
         value = _mjx_field(data, self.key)
         if value is None:
             return f"MJX (impl={impl!r}) has no field {self.key}"
-        if not hasattr(value, "shape"):
-            return (f"MJX (impl={impl!r}) holds {self.key} as one number for the whole batch "
-                    f"(a size fixed at compilation), not per trajectory")
-        if tuple(value.shape) != self.shape:
+        if not isinstance(value, jax.Array):
+            return (f"MJX (impl={impl!r}) holds {self.key} as a constant of the compiled "
+                    f"model (a size fixed at compilation), not per trajectory")
+        if tuple(value.shape) != self.shape and not (
+                self.key.endswith("mat") and value.size == math.prod(self.shape)):
             return (f"MJX (impl={impl!r}) stores {self.key} with shape {tuple(value.shape)}, "
                     f"MuJoCo with shape {self.shape} (another layout, e.g. dense instead of "
                     f"sparse)")

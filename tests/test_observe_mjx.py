@@ -15,7 +15,7 @@ mjx = pytest.importorskip("mujoco.mjx")
 # numbers, compared relative to their scale
 ONE_STEP_ATOL = 1e-4
 FORCE_RTOL = 2e-3
-NAMES = ("state", "qpos", "qvel", "xpos", "xquat", "site_xpos", "actuator_force", "cfrc_ext",
+NAMES = ("state", "qpos", "qvel", "xpos", "xquat", "xmat", "geom_xmat", "site_xpos", "actuator_force", "cfrc_ext",
          "sensor:tip_acc", "sensor:wrist", "sensordata", "time")
 
 
@@ -79,13 +79,17 @@ def test_a_batch_too_large_for_the_gpu_is_refused(rich_model):
 
 def test_check_mjx_refuses_by_name_with_the_reason():
     model = mujoco.MjModel.from_xml_string(PILE_XML)
-    observations = observe.parse(model, ("qpos", "M", "ncon", "geom_xquat", "qfrc_spring"))
+    observations = observe.parse(model, ("qpos", "M", "ncon", "geom_xquat", "qfrc_spring",
+                                         "nefc", "xmat"))
     with pytest.raises(ValueError) as info:
         observe.check_mjx(observations, model, "jax")
     message = str(info.value)
     assert message.startswith("record: backend='mjx' cannot record M: MJX (impl='jax') stores M "
                               "with shape (")
-    assert "ncon: MJX (impl='jax') holds ncon as one number for the whole batch" in message
+    assert ("ncon: MJX (impl='jax') holds ncon as a constant of the compiled model (a size "
+            "fixed at compilation), not per trajectory") in message
+    assert "nefc: MJX (impl='jax') holds nefc as a constant" in message
+    assert "xmat:" not in message  # (n, 3, 3) in MJX: the same values, reshaped
     assert "geom_xquat: MJX (impl='jax') has no field geom_xquat" in message
     assert "qfrc_spring: MJX (impl='jax') has no field qfrc_spring" in message
     assert "qpos:" not in message
