@@ -149,6 +149,9 @@ def main() -> None:
     p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
     p.add_argument("--impl", choices=("auto", "jax", "warp"), default="auto",
                    help="MJX's implementation (simloader's impl=; raw runs the one it resolved)")
+    p.add_argument("--trap", action="store_true",
+                   help="impl warp: also raw MJX-Warp with controls set straight from the "
+                        "scanned array (its CUDA graph re-captured every step)")
     p.add_argument("--cpu", action="store_true",
                    help="also raw mujoco.rollout and simloader's rollout backend on all cores")
     p.add_argument("--no-compile", action="store_true",
@@ -196,6 +199,11 @@ def main() -> None:
             bare = RawMjx(model, w, args.seed, impl=impl, controls=False, **sizes)
             measures[BARE] = lambda: bare.measure(nbatches)
             runs_on[BARE] = gpu
+            if args.trap:
+                TRAP = f"raw MJX-{impl}, controls not refreshed"
+                trap = RawMjx(model, w, args.seed, impl=impl, refresh=False, **sizes)
+                measures[TRAP] = lambda: trap.measure(1)
+                runs_on[TRAP] = gpu
             notes.append(f"{w}: simloader chose {sim.options.impl} ({sim.options.impl_reason}), "
                          f"naconmax={sim.options.naconmax}, njmax={sim.options.njmax}")
         if sim is not None:

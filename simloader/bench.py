@@ -241,6 +241,10 @@ def raw_rollout(model: Any, w: Workload, nthread: int,
     return measure, measure(1) * w.steps
 
 
+# what a step reads of the previous one
+_READ = ("time", "qpos", "qvel", "act", "qacc_warmstart")
+
+
 class RawMjx:
     """The raw MJX baseline: one jitted function per workload, `f(key, index) -> arrays`.
 
@@ -249,6 +253,11 @@ class RawMjx:
         buffers, as simloader sizes them).
       controls: draw uniform controls for every step (True), or step with none (the upper
         bound MuJoCo Warp's own `testspeed` measures).
+      refresh: Warp only: give the controls a buffer of their own before each step (False:
+        set them straight from the scanned array, which re-captures Warp's CUDA graph every
+        step; kept to show what that costs).
+      check: after each step, put back rows whose state is not finite (a per-row select over
+        what a step reads, as simloader's divergence check does).
 
     Attributes:
       compile_s: seconds to trace and compile; first_s: to the first batch in hand;
@@ -257,13 +266,18 @@ class RawMjx:
 
     def __init__(self, model: mujoco.MjModel, w: Workload, seed: int, impl: str = "jax",
                  naconmax: Optional[int] = None, njmax: Optional[int] = None,
-                 controls: bool = True):
+                 controls: bool = True, refresh: bool = True, check: bool = False):
         import jax
         import jax.numpy as jnp
         from simloader.backends.mjx.runtime import mjx  # (imports MJX without its warp print)
 
         self.w = w
         self.mx = mjx.put_model(model, impl=impl)
+        if impl == "warp":
+            # no printf from the kernels (MuJoCo Warp's default prints a notice every step the
+            # humanoid's solver hits its iteration limit, which slows it down): as simloader
+            self.mx = self.mx.replace(opt=self.mx.opt.replace(
+                _impl=self.mx.opt._impl.replace(warn_overflow=0)))
         self.key = jax.random.key(seed)
         low, high = (jnp.asarray(b, jnp.float32) for b in ctrl_bounds(model))
         step = jax.vmap(mjx.step, in_axes=(None, 0))
@@ -282,10 +296,21 @@ class RawMjx:
                 lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
 
             def body(d, u):
+                if impl == "warp":
+                    # Warp's CUDA graph is captured anew whenever an input buffer moves: every
+                    # input the step reads gets a buffer of its own, as MuJoCo Warp's testspeed
+                    # does for qpos (the fastest raw recipe measured)
+                    d = d.replace(**{n: getattr(d, n) + 0 * getattr(d, n) for n in _READ})
                 if controls:
-                    # Warp: a buffer of its own, or its CUDA graph is captured anew each step
-                    d = d.replace(ctrl=u + 0 * d.ctrl if impl == "warp" else u)
+                    d = d.replace(ctrl=u + 0 * d.ctrl if impl == "warp" and refresh else u)
                 d = step(mx, d)
+                if check:
+                    ok = jnp.all(jnp.isfinite(d.qpos), axis=-1) & jnp.all(jnp.isfinite(d.qvel),
+                                                                          axis=-1)
+                    d = d.replace(**{n: jnp.where(ok.reshape((-1,) + (1,) * (getattr(d, n).ndim
+                                                                             - 1)),
+                                                  getattr(d, n), 0 * getattr(d, n))
+                                     for n in _READ})
                 state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
                 return d, (state, d.sensordata)
 
@@ -336,13 +361,13 @@ class SimloaderMeasure:
                  **options: Any):
         import simloader  # imported late: benchmarks/ put their checkout first on sys.path
         self.w = w
+        options = {"control": simloader.controls.Uniform(), **options}
         self.ds = simloader.SimDataset(model, backend=backend, nbatch=w.nbatch, nstep=w.nstep,
-                                       control=simloader.controls.Uniform(), seed=seed,
-                                       **options)
+                                       seed=seed, **options)
         first = time_stream(self.ds, 0, keep_last=True)
         self.first_s = first.first_s
         self.compile_s = self.ds.stats.get("compile_s", 0.0)
-        self.shapes = {k: tuple(v.shape) for k, v in first.last.items()}
+        self.shapes = {k: tuple(v.shape) for k, v in first.last.items() if k != "params"}
         self.device = first.last["state"].device
         del first
 

@@ -1,5 +1,6 @@
 """The `simloader` command line: `quickstart` (stream batches, print throughput), `info` (what
-the columns mean) and `bench` (simloader next to the raw simulators)."""
+the columns mean), `bench` (simloader next to the raw simulators) and `warmup` (compile ahead of
+time: JAX's persistent compilation cache and MuJoCo Warp's kernel cache)."""
 
 from __future__ import annotations
 
@@ -84,6 +85,21 @@ def bench(args: argparse.Namespace) -> None:
         print(f"plot saved to {args.plot}")
 
 
+def warmup(args: argparse.Namespace) -> None:
+    """Simulates one batch of the configuration, which fills the persistent caches (JAX's
+    compiled batch function for these sizes; MuJoCo Warp's kernels for this model, which take
+    about a minute to compile the first time on a machine), so that later processes start in
+    seconds."""
+    start = time.perf_counter()
+    ds = simloader.SimDataset(args.model, backend="mjx", impl=args.impl, nbatch=args.nbatch,
+                              nstep=args.nstep, control=simloader.controls.Uniform(),
+                              num_batches=1)
+    print(ds.describe().splitlines()[-1])
+    next(iter(ds))
+    print(f"warm: compiled in {ds.stats['compile_s']:.1f} s, first batch after "
+          f"{time.perf_counter() - start:.1f} s; later processes reuse the caches")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="simloader", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -122,6 +138,14 @@ def main(argv: list[str] | None = None) -> None:
     b.add_argument("--plot", default="simloader-bench.png",
                    help="where to save the bar chart ('' for none)")
     b.set_defaults(run=bench)
+
+    w = sub.add_parser("warmup", help="compile the MJX backend for a model ahead of time")
+    w.add_argument("model", help="built-in model name or MJCF/MJB path")
+    w.add_argument("--impl", default="auto", choices=("auto", "jax", "warp"))
+    w.add_argument("--nbatch", type=int, default=1024,
+                   help="trajectories per batch, as the training run will use them")
+    w.add_argument("--nstep", type=int, default=200, help="steps per batch, as in training")
+    w.set_defaults(run=warmup)
 
     args = parser.parse_args(argv)
     args.run(args)

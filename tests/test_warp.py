@@ -120,11 +120,11 @@ def test_continued_chunks_concatenate_to_one_long_rollout(cache_dir):
     ds = dataset(model, cache_dir, nbatch=3, nstep=20, continue_episodes=True, num_batches=2,
                  control=controls.Uniform())
     first, second = list(ds)
-    np.testing.assert_array_equal(second["initial_state"].numpy(), first["state"][:, -1].numpy())
+    np.testing.assert_array_equal(second["initial_state"].cpu().numpy(), first["state"][:, -1].cpu().numpy())
     c_state, _ = rollout.rollout(
-        model, mujoco.MjData(model), first["initial_state"].numpy().astype(np.float64),
-        np.concatenate([first["control"], second["control"]], axis=1).astype(np.float64))
-    got = np.concatenate([first["state"], second["state"]], axis=1)
+        model, mujoco.MjData(model), first["initial_state"].cpu().numpy().astype(np.float64),
+        np.concatenate([first["control"].cpu(), second["control"].cpu()], axis=1).astype(np.float64))
+    got = np.concatenate([first["state"].cpu(), second["state"].cpu()], axis=1)
     np.testing.assert_allclose(got, c_state, atol=CONTACT_FREE_TOL)
 
 
@@ -140,7 +140,7 @@ def test_resume_continues_the_stream(cache_dir):
     resumed = dataset(model, cache_dir, **kwargs)
     resumed.load_state_dict(state)
     for want, got in zip(expected, resumed, strict=True):
-        np.testing.assert_array_equal(got["state"].numpy(), want.numpy())
+        np.testing.assert_array_equal(got["state"].cpu().numpy(), want.cpu().numpy())
 
 
 def test_randomized_parameters_match_mujoco_c_on_the_equivalent_models(cache_dir):
@@ -148,19 +148,19 @@ def test_randomized_parameters_match_mujoco_c_on_the_equivalent_models(cache_dir
     ds = dataset(model, cache_dir, nbatch=3, nstep=40, control=controls.Uniform(),
                  randomize=[dr.scale("dof_damping", dr.Uniform(50.0, 200.0))], num_batches=1)
     batch = next(iter(ds))
-    damping = batch["params"]["dof_damping"].numpy()
+    damping = batch["params"]["dof_damping"].cpu().numpy()
     models = []
     for row in damping:
         m = simloader.load_model("cartpole")
         m.dof_damping[:] = row
         models.append(m)
     state, _ = rollout.rollout(models, mujoco.MjData(model),
-                               batch["initial_state"].numpy().astype(np.float64),
-                               batch["control"].numpy().astype(np.float64))
-    np.testing.assert_allclose(batch["state"].numpy(), state, atol=CONTACT_FREE_TOL)
+                               batch["initial_state"].cpu().numpy().astype(np.float64),
+                               batch["control"].cpu().numpy().astype(np.float64))
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
     plain = next(iter(dataset(model, cache_dir, nbatch=3, nstep=40, control=controls.Uniform(),
                               num_batches=1)))
-    assert np.abs(plain["state"].numpy() - batch["state"].numpy()).max() > 10 * CONTACT_FREE_TOL
+    assert np.abs(plain["state"].cpu().numpy() - batch["state"].cpu().numpy()).max() > 10 * CONTACT_FREE_TOL
 
 
 @pytest.mark.parametrize("spec, why", [
@@ -229,3 +229,22 @@ def test_gpu_humanoid_batch_flags_overflow_and_keeps_the_rest(cache_dir):
         batch = next(iter(ds))
     assert batch["overflow"].any()
     assert ds.stats["overflow"] == int(batch["overflow"].sum())
+
+
+def test_warmup_command_compiles_ahead_of_time(capsys):
+    from simloader import cli
+    cli.main(["warmup", "cartpole", "--impl", "warp", "--nbatch", "4", "--nstep", "5"])
+    out = capsys.readouterr().out
+    assert "impl='warp'" in out and "warm: compiled in" in out
+
+
+def test_spawned_dataloader_worker_streams_the_same_batches(cache_dir):
+    model = simloader.load_model("cartpole")
+    kwargs = dict(nbatch=3, nstep=10, control=controls.Uniform(), num_batches=2)
+    expected = [b["state"].cpu() for b in dataset(model, cache_dir, **kwargs)]
+    loader = torch.utils.data.DataLoader(dataset(model, cache_dir, **kwargs), batch_size=None,
+                                         num_workers=1, multiprocessing_context="spawn")
+    got = [b["state"].cpu() for b in loader]
+    assert len(got) == 2
+    for want, have in zip(expected, got):
+        np.testing.assert_array_equal(have.numpy(), want.numpy())
