@@ -57,4 +57,4 @@ def test_compare_mjx_next_to_raw_mjx():
         min_seconds=0, python_steps=50)
     assert set(s_per_step) == {bench.RAW_MJX, bench.SIMLOADER_MJX, bench.PYTHON}
     assert all(s > 0 for s in s_per_step.values())
-    assert "compiled" in notes[0]
+    assert notes[0].startswith("mjx: impl=") and "compiled" in notes[1]
