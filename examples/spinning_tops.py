@@ -4,7 +4,7 @@ Every trajectory starts from the `tilted` keyframe with its own spin rate about 
 (an `initial_state` array, one row per trajectory); fast tops stay up and precess, slow ones
 fall. The plot shows the gyro's readings over time for a few rates.
 
-    python examples/spinning_tops.py [--quick] [--out docs/spinning_tops.png]
+    python examples/spinning_tops.py [--quick] [--out outputs/spinning_tops.png]
 """
 
 import argparse
@@ -40,7 +40,8 @@ TOP_XML = """
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", default="docs/spinning_tops.png")
+    parser.add_argument("--out", default="outputs/spinning_tops.png",
+                        help="where to save the plot (outputs/ is git-ignored)")
     args = parser.parse_args()
     nbatch, nstep = (8, 200) if args.quick else (64, 2000)
 

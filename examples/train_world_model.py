@@ -105,7 +105,9 @@ def main():
     parser.add_argument("--nbatch", type=int, default=1024)
     parser.add_argument("--nstep", type=int, default=100)
     parser.add_argument("--width", type=int, default=256)
-    parser.add_argument("--out", default="docs/world_model.png", help="where to save the plot")
+    parser.add_argument("--out", default="outputs/world_model.png",
+                        help="where to save the plot (outputs/ is git-ignored; the figure in docs/ was "
+                             "made with --out docs/world_model.png)")
     args = parser.parse_args()
     if args.quick:
         args.batches, args.nbatch, args.nstep, args.width = 15, 64, 60, 64

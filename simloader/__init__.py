@@ -6,11 +6,10 @@
         batch["state"]  # (4096, 200, nstate)
 """
 
-from simloader import controls, initial, layout, observe
+from simloader import controls, initial, layout, observe, randomize
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
-from simloader.layout import describe
-from simloader.models import builtin_models, builtin_path, load_model
+from simloader.models import builtin_models, builtin_path, describe, load_model, named_models
 
 __version__ = "0.1.0"
 
@@ -24,5 +23,7 @@ __all__ = [
     "initial",
     "layout",
     "load_model",
+    "named_models",
     "observe",
+    "randomize",
 ]

@@ -1,8 +1,11 @@
 """The delivered batch: a dict of tensors with named views.
 
-`Batch` is a plain `dict[str, torch.Tensor]` (torch's DataLoader, `pin_memory` and
-`default_convert` keep its type: they copy it and update the copy), plus `view()`, which finds
-a named part of a key without index arithmetic and without copying:
+`Batch` is a `dict[str, torch.Tensor]` (the delivered `handoff.Batch`, which torch's default
+collation refuses; `pin_memory` and `default_convert` keep its type: they copy it and update
+the copy), plus `view()`, which finds a named part of a key without index arithmetic and
+without copying. A batch from a DataLoader worker arrives as an `OrderedDict` (it pickles as
+one, so that `torch.load(weights_only=True)` loads it): `Batch(batch, layout=ds.layout)` gives
+it its views back, without copies.
 
     batch.view("qpos")                     # (nbatch, nframes, nq), out of "state"
     batch.view("qpos", of="initial_state") # (nbatch, nq)
@@ -17,10 +20,11 @@ from typing import Any, Optional
 
 import torch
 
+from simloader.handoff import Batch as _Delivered
 from simloader.layout import BatchLayout
 
 
-class Batch(dict):
+class Batch(_Delivered):
     """A batch: `dict[str, torch.Tensor]` with named views.
 
     Attributes:

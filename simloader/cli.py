@@ -12,29 +12,23 @@ import torch
 from tqdm import tqdm
 
 import simloader
-from simloader import observe
-
-_SPEC_NAMES = {c.lower(): int(getattr(mujoco.mjtState, f"mjSTATE_{c}"))
-               for c in ("CTRL", "QFRC_APPLIED", "XFRC_APPLIED", "EQ_ACTIVE", "MOCAP_POS",
-                         "MOCAP_QUAT", "USERDATA")}
-
+from simloader import observe, sharding
 
 def parse_control_spec(text: str) -> int:
-    """`ctrl|xfrc_applied` or an integer bitmask."""
-    if text.isdigit():
-        return int(text)
+    """`ctrl|xfrc_applied` or an integer bitmask (`simloader.layout.parse_control_spec`)."""
     try:
-        return sum(_SPEC_NAMES[part.strip().lower()] for part in text.split("|"))
-    except KeyError as e:
-        raise argparse.ArgumentTypeError(
-            f"unknown control_spec component {e.args[0]!r}; known: {sorted(_SPEC_NAMES)}") from None
+        return simloader.layout.parse_control_spec(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def quickstart(args: argparse.Namespace) -> None:
     ds = simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
                               nstep=args.nstep, control=simloader.controls.Uniform(),
                               initial_state=simloader.initial.Perturbed(),
-                              num_batches=args.batches, seed=args.seed)
+                              num_batches=args.batches, seed=args.seed,
+                              # all cores: nothing here trains alongside the simulation
+                              nthread=sharding.available_cpus())
     loader = torch.utils.data.DataLoader(ds, batch_size=None)
     print(f"simloader {simloader.__version__}: model {args.model!r}, backend "
           f"{ds.config.backend!r}, {args.nbatch} trajectories x {args.nstep} steps per batch")
@@ -58,9 +52,9 @@ def quickstart(args: argparse.Namespace) -> None:
 
 
 def info(args: argparse.Namespace) -> None:
-    model = simloader.load_model(args.model)
-    print(simloader.describe(model, args.control_spec))
+    print(simloader.describe(args.model, args.control_spec))
     if args.record:
+        model = simloader.load_model(args.model)
         observations = observe.parse(model, [name.strip() for name in args.record.split(",")])
         print("recorded keys (nbatch, nframes, ...) and their named parts:")
         print(simloader.layout.BatchLayout(model, args.control_spec, observations).describe())
@@ -116,7 +110,8 @@ def main(argv: list[str] | None = None) -> None:
 
     i = sub.add_parser("info", help="print which state/control/sensor columns mean what")
     i.add_argument("model", help="built-in model name or MJCF/MJB path")
-    i.add_argument("--control-spec", type=parse_control_spec, default=_SPEC_NAMES["ctrl"],
+    i.add_argument("--control-spec", type=parse_control_spec,
+                   default=int(mujoco.mjtState.mjSTATE_CTRL),
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")
     i.add_argument("--record", default="",
                    help="names to record, e.g. 'qpos,xpos,sensor:tip_pos': what each key holds")

@@ -8,6 +8,7 @@ thread, worker or compilation starts.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 from typing import Any, Optional
 
@@ -42,6 +43,7 @@ class SimConfig:
       device, dtype: where and in what the tensors are delivered (None: backend native).
       nthread: CPU threads of the rollout backend (None: the cores split among workers).
       prefetch: batches simulated ahead of the consumer.
+      torch_threads: torch's intra-op threads in the constructing process (the consumer's).
     """
 
     model: mujoco.MjModel
@@ -67,6 +69,7 @@ class SimConfig:
     nthread: Optional[int]
     prefetch: int
     options: Any = None
+    torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
 
     @property
     def nframes(self) -> int:
@@ -146,18 +149,30 @@ def _torch_device(device: Any) -> Optional[torch.device]:
     return dev
 
 
-def _torch_dtype(dtype: Any) -> Optional[torch.dtype]:
+def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
     if dtype is None:
         return None
+    half = (torch.float16, torch.bfloat16, np.float16, "float16", "bfloat16", "half")
+    if any(dtype is h or (isinstance(dtype, str) and dtype == h) for h in half):
+        raise ValueError(f"dtype: {dtype} (half precision) cannot hold simulation states: 3 "
+                         f"significant digits, and float16 overflows above 65504 and rounds "
+                         f"time steps away; use torch.float32 or torch.float64 and convert "
+                         f"in your model")
     allowed = {torch.float64: torch.float64, torch.float32: torch.float32,
-               torch.float16: torch.float16, torch.bfloat16: torch.bfloat16,
                np.float64: torch.float64, np.float32: torch.float32,
                "float64": torch.float64, "float32": torch.float32}
     try:
-        return allowed[dtype]
+        out = allowed[dtype]
     except (KeyError, TypeError):
-        raise ValueError(f"dtype: expected None or a floating torch dtype (torch.float32, "
-                         f"torch.float64, ...), got {dtype!r}") from None
+        raise ValueError(f"dtype: expected None, torch.float32 or torch.float64, got "
+                         f"{dtype!r}") from None
+    if out == torch.float64 and backend == "mjx":
+        import jax
+        if not jax.config.jax_enable_x64:
+            warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
+                          "(JAX without jax_enable_x64), so the tensors are float32 values "
+                          "up-cast to float64", UserWarning, stacklevel=4)
+    return out
 
 
 def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
@@ -202,10 +217,12 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     prefetch = _int("prefetch", prefetch, 1)
     if not isinstance(continue_episodes, bool):
         raise TypeError(f"continue_episodes: expected a bool, got {type(continue_episodes).__name__}")
+    if isinstance(control_spec, str):
+        control_spec = layout.parse_control_spec(control_spec)
     if isinstance(control_spec, bool) or not isinstance(control_spec, (int, np.integer,
                                                                         mujoco.mjtState)):
-        raise TypeError(f"control_spec: expected an mjtState bitmask (int), got "
-                        f"{type(control_spec).__name__}")
+        raise TypeError(f"control_spec: expected an mjtState bitmask (int) or component names "
+                        f"('ctrl|xfrc_applied'), got {type(control_spec).__name__}")
     control_spec = int(control_spec)
     if control_spec & ~layout.USER or control_spec < 0:
         raise ValueError(f"control_spec: expected bits within mjSTATE_USER ({layout.USER}), got "
@@ -227,6 +244,7 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         variants=variants, control=plan, initial=init, observations=observations,
         record_every=record_every, continue_episodes=continue_episodes,
         num_batches=num_batches, seed=seed, device=_torch_device(device),
-        dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch)
+        dtype=_torch_dtype(dtype, backend), nthread=nthread, prefetch=prefetch,
+        torch_threads=torch.get_num_threads())
     _check_memory(config)
     return config

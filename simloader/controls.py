@@ -119,19 +119,22 @@ class Uniform(Generator):
         return jax.random.uniform(key, shape, dtype=low.dtype, minval=low, maxval=high)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Normal(Generator):
     """Independent Gaussian draws `mean + std * N(0, 1)` at every step.
 
+    Keywords only (`Normal(mean=0.0, std=0.5)`): `simloader.randomize.Normal(mean, std)` takes
+    the same two in this order, positionally too.
+
     Args:
-      std, mean: a scalar or one value per column.
+      mean, std: a scalar or one value per column.
       clip: clip `ctrl` columns of limited actuators to their `ctrlrange` (MuJoCo clamps
         them anyway; clipping makes the recorded `control` the value that acted).
       on: the objects to drive; `None` drives the whole component.
     """
 
-    std: Any = 1.0
     mean: Any = 0.0
+    std: Any = 1.0
     clip: bool = True
     on: Names = None
 
@@ -179,7 +182,7 @@ class Constant(Generator):
 
 def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Component,
                      columns: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-column std, mean and clip bounds of a generator with `std`, `mean`, `clip` fields."""
+    """Per-column std, mean and clip bounds of a generator with `mean`, `std`, `clip` fields."""
     name = type(gen).__name__
     std = _per_column(gen.std, component, columns, f"{name}.std")
     mean = _per_column(gen.mean, component, columns, f"{name}.mean")
@@ -199,26 +202,27 @@ def _positive(name: str, value: Any) -> float:
     return float(value)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class OrnsteinUhlenbeck(Generator):
     """Smooth noise: a stationary Ornstein-Uhlenbeck process with correlation time `tau`.
 
     `x[t] = mean + a (x[t-1] - mean) + std sqrt(1 - a^2) eps[t]`, `a = exp(-timestep / tau)`,
     started from the stationary distribution, so every step has standard deviation `std` and
     steps `tau` seconds apart correlate by 1/e. World models need such excitation: white noise
-    at a small timestep barely moves a system. Each batch starts a fresh process.
+    at a small timestep barely moves a system. Each batch starts a fresh process. Keywords
+    only, as `Normal`.
 
     Args:
+      mean: the level the process reverts to.
       std: stationary standard deviation, a scalar or one value per column.
       tau: correlation time in seconds (simulated time, the model's timestep per step).
-      mean: the level the process reverts to.
       clip: clip `ctrl` columns of limited actuators to their `ctrlrange`.
       on: the objects to drive; `None` drives the whole component.
     """
 
+    mean: Any = 0.0
     std: Any = 1.0
     tau: float = 0.1
-    mean: Any = 0.0
     clip: bool = True
     on: Names = None
 
@@ -466,6 +470,73 @@ class ControlPlan:
                 out[...] = draw
             else:
                 out[..., driver.columns] = draw
+
+
+# mjMAXVAL: MuJoCo's bound for a sane value (its checks of qpos, qvel, qacc and ctrl)
+MAXVAL = 1e10
+
+
+def applied_bounds(models: Sequence[mujoco.MjModel], control_spec: int,
+                   ctrlrange: Any = None, xp: Any = np) -> tuple[Any, Any]:
+    """The range MuJoCo clamps each control column to before a step, per model.
+
+    `ctrl` columns of actuators with `actuator_ctrllimited` (the compiled flag, in which
+    `autolimits` is already resolved) get their `ctrlrange`, unless the model disables
+    clamping (`mjDSBL_CLAMPCTRL`); every other column is unbounded. Backend-agnostic: with
+    `ctrlrange` as JAX arrays and `xp=jax.numpy` it runs inside a jitted function.
+
+    Args:
+      models: the models (one per trajectory, one per variant, or just the model); sizes and
+        flags of all but the first matter only without `ctrlrange`.
+      control_spec: the mjtState bits of the control vector.
+      ctrlrange: per-trajectory ranges `(n, nu, 2)` replacing the models' (a randomized
+        `actuator_ctrlrange`), or None.
+      xp: the array module of `ctrlrange` (numpy or jax.numpy).
+
+    Returns:
+      (low, high), each `(len(models) or n, ncontrol)`, -inf / inf where nothing clamps.
+    """
+    model = models[0]
+    ncontrol = mujoco.mj_stateSize(model, control_spec)
+    if ctrlrange is None:
+        ctrlrange = np.stack([m.actuator_ctrlrange for m in models]).reshape(
+            len(models), model.nu, 2)
+        limited = np.stack([_clamped(m) for m in models])
+    else:
+        limited = _clamped(model)[None]
+    n = ctrlrange.shape[0]
+    if not control_spec & int(mujoco.mjtState.mjSTATE_CTRL):
+        unbounded = np.full((n, ncontrol), np.inf)
+        return xp.asarray(-unbounded), xp.asarray(unbounded)
+    # ctrl is the first component of a control row (mjtState order)
+    rest = np.full((n, ncontrol - model.nu), np.inf)
+    low = xp.where(limited, ctrlrange[..., 0], -np.inf)
+    high = xp.where(limited, ctrlrange[..., 1], np.inf)
+    return (xp.concatenate([low, xp.asarray(-rest, low.dtype)], axis=1),
+            xp.concatenate([high, xp.asarray(rest, high.dtype)], axis=1))
+
+
+def _clamped(model: mujoco.MjModel) -> np.ndarray:
+    """(nu,) bool: the actuators whose ctrl MuJoCo clamps to ctrlrange."""
+    if model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL):
+        return np.zeros(model.nu, dtype=bool)
+    return model.actuator_ctrllimited.astype(bool)
+
+
+def clamp_applied(control: Any, low: Any, high: Any, xp: Any = np) -> Any:
+    """The control rows as they act: `control` clamped to `[low, high]` (broadcasting, e.g.
+    `(nbatch, 1, ncontrol)` bounds from `applied_bounds`), NaN kept (a bad control, flagged
+    by `bad_controls`). Works on NumPy and JAX arrays (`xp`: their module)."""
+    return xp.minimum(xp.maximum(control, low), high)
+
+
+def bad_controls(control: Any) -> Any:
+    """(nbatch,) bool: the trajectories of `control` (nbatch, ...) holding a non-finite value
+    or one beyond mjMAXVAL, before clamping (MuJoCo warns only about what is still bad after
+    it clamps, so `inf` on a limited actuator would pass unwarned). Works on NumPy and JAX
+    arrays alike."""
+    bad = ~(abs(control) <= MAXVAL)  # NaN compares False
+    return bad.reshape(bad.shape[0], -1).any(axis=1)
 
 
 def _fixed_control(control: Any, nbatch: int, nstep: int, model: mujoco.MjModel,

@@ -9,7 +9,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import backends, layout, observe, resume, sharding
+from simloader import backends, layout, models, observe, resume, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
@@ -34,7 +34,9 @@ class SimDataset(torch.utils.data.IterableDataset):
     key `(nbatch, nframes, *trailing shape)`.
 
     Args:
-      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a built-in model name.
+      model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a model name
+        (`simloader.named_models()`: the built-in `cartpole` and `humanoid`, Gymnasium's
+        `gymnasium/hopper` and the like where gymnasium is installed).
       backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (JAX) or "auto" (mjx when JAX
         sees a GPU, else rollout).
       nbatch: trajectories per batch.
@@ -92,10 +94,12 @@ class SimDataset(torch.utils.data.IterableDataset):
             config, options=backends.check_options(config, backend, backend_options))
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations)
+        self.source = models.source(model)  # where the model came from, for describe()
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
+        self._pending: Optional[dict] = None  # the one the current iterator resumes from
         self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -116,10 +120,11 @@ class SimDataset(torch.utils.data.IterableDataset):
         return out
 
     def describe(self) -> str:
-        """Which columns of state, control and sensors mean what, by object name, the recorded
-        keys with the named parts `Batch.view` finds in them, and what simulates."""
+        """Where the model came from, which columns of state, control and sensors mean what (by
+        object name), the recorded keys with the named parts `Batch.view` finds in them, and
+        what simulates."""
         c = self.config
-        text = (layout.describe(c.model, c.control_spec)
+        text = (layout.describe(c.model, c.control_spec, self.source)
                 + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
                   f"{c.record_every} step(s):\n" + self.layout.describe())
         if c.options is not None:
@@ -145,12 +150,14 @@ class SimDataset(torch.utils.data.IterableDataset):
         Small and JSON-serializable; usable by torchdata's `StatefulDataLoader`. Loading it into
         a dataset of the same configuration resumes exactly after the last delivered batch.
         """
-        if self._progress is None:
-            return self._loaded or {"version": resume.VERSION,
-                                    "config": resume.fingerprint(self.config),
-                                    "shard": None, "next_index": None, "trajectories": None}
+        if self._progress is None:  # nothing delivered since the last load or iter()
+            return self._loaded or self._pending or {
+                "version": resume.VERSION,
+                "config": resume.fingerprint(self.config),
+                "shard": None, "next_index": None, "trajectories": None}
         shard, next_index, backend, produced = self._progress
-        return {"version": resume.VERSION, "config": resume.fingerprint(self.config),
+        return {"version": resume.VERSION,
+                "config": resume.fingerprint(self.config),
                 "shard": [shard.worker, shard.num_workers, shard.rank],
                 "next_index": next_index, "trajectories": backend.checkpoint(produced)}
 
@@ -161,18 +168,29 @@ class SimDataset(torch.utils.data.IterableDataset):
           ValueError: the state belongs to a stream of another configuration.
         """
         resume.check(self.config, state)
-        self._loaded, self._progress = state, None
+        self._loaded, self._pending, self._progress = state, None, None
 
     def __iter__(self) -> Iterator[Batch]:
+        # the loaded position is taken by iter(), not by the first next(): a loader may make an
+        # iterator and drop it unstarted (StatefulDataLoader does when it resumes from the end
+        # of an epoch), and the next iterator must start the next epoch, not find it again
         shard = sharding.current_shard(self._rank)
         loaded, self._loaded = self._loaded, None
-        start = None
-        backend = self.make_backend(shard)
+        self._pending, self._progress = loaded, None
         if loaded is not None and loaded["next_index"] is not None:
             saved = [shard.worker, shard.num_workers, shard.rank]
             if loaded["shard"] != saved:
                 raise ValueError(f"state_dict: saved by worker/num_workers/rank "
                                  f"{loaded['shard']}, resumed as {saved}")
+        else:
+            loaded = None
+        return self._batches(shard, loaded)
+
+    def _batches(self, shard: sharding.Shard,
+                 loaded: Optional[dict]) -> Iterator[dict[str, torch.Tensor]]:
+        backend = self.make_backend(shard)
+        start = None
+        if loaded is not None:
             start = loaded["next_index"]
             if loaded["trajectories"] is not None:
                 backend.restore(loaded["trajectories"])
@@ -181,9 +199,9 @@ class SimDataset(torch.utils.data.IterableDataset):
                                 self.config.prefetch)
         try:
             for index, produced in prefetcher:
-                batch = backend.deliver(produced)
+                batch = Batch(backend.deliver(produced), layout=self.layout)
                 self._progress = (shard, index + shard.num_workers, backend, produced)
-                yield Batch(batch, layout=self.layout)
+                yield batch
         finally:
             prefetcher.close()
             backend.close()

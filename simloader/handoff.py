@@ -7,10 +7,12 @@ arrays reach torch through DLPack, sharing device memory.
 
 from __future__ import annotations
 
+import collections
 from typing import Any, Optional
 
 import numpy as np
 import torch
+from torch.utils.data._utils.collate import default_collate_fn_map
 
 
 def host_buffer(shape: tuple[int, ...], dtype: torch.dtype = torch.float64,
@@ -42,3 +44,25 @@ def to_target(tensor: torch.Tensor, device: Optional[torch.device],
 def from_jax(array: Any) -> torch.Tensor:
     """A torch tensor over a JAX array's memory, through DLPack (no copy, same device)."""
     return torch.from_dlpack(array)
+
+
+class Batch(dict):
+    """A delivered batch: a `dict` of tensors (nested for `params`) that torch's default
+    collation refuses, because a `DataLoader` with its default `batch_size=1` would stack
+    single batches into tensors with an extra leading dimension of 1."""
+
+    def __reduce__(self):
+        # pickled (torch.save, from a DataLoader worker) as an OrderedDict, so that loading
+        # needs no simloader: torch.load's weights_only accepts OrderedDict but no other
+        # dict type (not even dict's constructor)
+        return collections.OrderedDict, (list(self.items()),)
+
+
+def _refuse_collation(batch: Any, *, collate_fn_map: Any = None) -> Any:
+    raise TypeError("SimDataset yields whole batches (nbatch trajectories each): write "
+                    "DataLoader(ds, batch_size=None); with the default batch_size=1 every "
+                    "tensor would get an extra leading dimension")
+
+
+# torch's documented extension point of default_collate, also used in DataLoader workers
+default_collate_fn_map[Batch] = _refuse_collation

@@ -50,6 +50,27 @@ INTEGRATION = int(S.mjSTATE_INTEGRATION)
 COMPONENT_NAMES = tuple(c[0] for c in _USER_COMPONENTS)
 
 
+def parse_control_spec(text: str) -> int:
+    """A control_spec from its names, as `ctrl|xfrc_applied` (any case, spaces allowed), or
+    an integer bitmask written in digits; the Python API and the command line share it.
+
+    Raises:
+      ValueError: an unknown component name.
+    """
+    if text.strip().isdigit():
+        return int(text)
+    spec = 0
+    for part in text.split("|"):
+        name = part.strip().lower()
+        if name not in COMPONENT_NAMES:
+            close = difflib.get_close_matches(name, COMPONENT_NAMES, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(f"control_spec: unknown component {part.strip()!r}{hint}; known: "
+                             f"{list(COMPONENT_NAMES)}")
+        spec |= int(next(bit for n, bit, _, _ in _USER_COMPONENTS if n == name))
+    return spec
+
+
 @dataclasses.dataclass(frozen=True)
 class Component:
     """One component of a state or control vector.
@@ -188,9 +209,12 @@ def reset_rows(models: Sequence[mujoco.MjModel], spec: int) -> np.ndarray:
     return np.stack([reset_state(m, spec) for m in models])
 
 
-def describe(model: mujoco.MjModel, control_spec: int = int(S.mjSTATE_CTRL)) -> str:
-    """A human-readable table of the state and control columns, by object name."""
-    lines = [f"state (mjSTATE_FULLPHYSICS), nstate = {mujoco.mj_stateSize(model, FULLPHYSICS)}"]
+def describe(model: mujoco.MjModel, control_spec: int = int(S.mjSTATE_CTRL),
+             source: Optional[str] = None) -> str:
+    """A human-readable table of the state and control columns, by object name (after where
+    the model comes from, when `source` says)."""
+    lines = [f"model: {source}"] if source else []
+    lines.append(f"state (mjSTATE_FULLPHYSICS), nstate = {mujoco.mj_stateSize(model, FULLPHYSICS)}")
     for c in state_layout(model):
         if c.size:
             lines.append(f"  [{c.start}:{c.start + c.size}] {c.name}: {', '.join(c.objects)}")

@@ -258,11 +258,14 @@ def _rows(model: mujoco.MjModel, field: str, on: Names, nrows: int) -> np.ndarra
         if i < 0:
             count = getattr(model, _OBJECT_KINDS["jnt_"][1] if field.startswith("dof_")
                             else kind[1])
-            names = [mujoco.mj_id2name(model, objtype, k) or "" for k in range(count)]
+            kind_name = objtype.name[6:].lower()
+            names = [mujoco.mj_id2name(model, objtype, k) or f"{kind_name}#{k}"
+                     for k in range(count)]
             close = difflib.get_close_matches(name, names, n=3)
             hint = f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
-            raise ValueError(f"randomize: {field}: no {objtype.name[6:].lower()} named "
-                             f"{name!r}{hint}")
+            plural = {"body": "bodies", "equality": "equalities"}.get(kind_name, kind_name + "s")
+            raise ValueError(f"randomize: {field}: no {kind_name} named {name!r}{hint}; its "
+                             f"{plural} are {names}")
         if field.startswith("dof_"):  # all dofs of the joint
             adr = int(model.jnt_dofadr[i])
             ndof = {0: 6, 1: 3}.get(int(model.jnt_type[i]), 1)

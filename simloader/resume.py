@@ -8,6 +8,7 @@ warmstart included), stored bit-exactly as base64 so that the state stays JSON-s
 from __future__ import annotations
 
 import base64
+import dataclasses
 import hashlib
 from typing import Any
 
@@ -16,7 +17,12 @@ import numpy as np
 
 from simloader.config import SimConfig
 
-VERSION = 2  # 2: continuing checkpoints carry the randomized values and variants
+VERSION = 3  # 3: the configuration covers control, initial state, randomization, dtype, options
+# 2: continuing checkpoints carry the randomized values and variants
+
+# backend options that do not change the stream (where JAX caches, how much memory it takes,
+# why an implementation was chosen)
+_SETUP_OPTIONS = ("compilation_cache", "memory_fraction", "impl_reason")
 
 
 def encode_array(array: np.ndarray) -> dict[str, Any]:
@@ -38,25 +44,118 @@ def _model_digest(model: mujoco.MjModel) -> str:
 
 
 def fingerprint(config: SimConfig) -> dict[str, Any]:
-    """What must match for a saved stream to resume: sizes, seed, backend and the model."""
+    """What must match for a saved stream to resume: everything that changes the stream (sizes,
+    seed, backend and its resolved options, the models, controls, initial states,
+    randomization, dtype), as JSON values that are the same in every process (arrays and
+    models by digest)."""
     models = config.models or (config.model,)
+    plan = config.control
+    control = (None if plan.fixed is None and not plan.drivers else
+               _describe(plan.fixed) if plan.fixed is not None else
+               [{"generator": _describe(d.generator), "columns": _describe(d.columns)}
+                for d in plan.drivers])
+    init = config.initial
+    randomize = None
+    if config.randomization is not None:
+        randomize = [_describe(r.param) for r in config.randomization.resolved]
+    elif config.variants is not None:
+        randomize = {"variants": [_model_digest(m) for m in config.variants]}
     return {
         "backend": config.backend, "nbatch": config.nbatch, "nstep": config.nstep,
         "control_spec": config.control_spec, "seed": config.seed,
         "continue_episodes": config.continue_episodes, "num_batches": config.num_batches,
+        "model": hashlib.sha256("".join(_model_digest(m) for m in models).encode()
+                                ).hexdigest()[:16],
+        "control": control,
         "record": [o.key for o in config.observations], "record_every": config.record_every,
-        "model": hashlib.sha256("".join(_model_digest(m) for m in models).encode()).hexdigest()[:16],
+        "initial_state": (_describe(init.generator) if init.generator is not None else
+                          {"keyframe": init.keyframe} if init.from_model else
+                          _describe(init.fixed)),
+        "randomize": randomize,
+        "dtype": None if config.dtype is None else str(config.dtype),
+        "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())
+                            if k not in _SETUP_OPTIONS},
     }
 
 
+def _options(options: Any) -> dict[str, Any]:
+    """A backend's resolved options (`SimConfig.options`: None, or a dataclass) by name."""
+    if options is None:
+        return {}
+    if dataclasses.is_dataclass(options):
+        return {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+    return dict(vars(options))
+
+
+def _describe(value: Any) -> Any:
+    """A JSON value that identifies `value` in any process: dataclasses (generators,
+    distributions, parameters) by type and fields, small arrays as lists, large ones and
+    models by digest, functions by qualified name; never an address."""
+    if isinstance(value, float) or isinstance(value, np.floating):
+        return float(value) if np.isfinite(value) else str(float(value))
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, mujoco.MjModel):
+        return {"model": _model_digest(value)}
+    if isinstance(value, (np.ndarray, np.generic)) or hasattr(value, "__array__"):
+        array = np.asarray(value)
+        if array.size <= 16:
+            return _describe(array.tolist())
+        return {"shape": list(array.shape), "dtype": array.dtype.str,
+                "sha256": hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()[:16]}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {"type": _qualname(type(value)),
+                **{f.name: _describe(getattr(value, f.name)) for f in dataclasses.fields(value)}}
+    if isinstance(value, dict):
+        return {str(k): _describe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_describe(v) for v in value]
+    if callable(value) and hasattr(value, "__qualname__"):
+        return _qualname(value)
+    fields = {k: _describe(v) for k, v in sorted(getattr(value, "__dict__", {}).items())}
+    return {"type": _qualname(type(value)), **fields}
+
+
+def _qualname(obj: Any) -> str:
+    return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', type(obj).__name__)}"
+
+
+def _leaves(value: Any, path: str) -> dict[str, Any]:
+    """{dotted path: leaf value} of a nested JSON value, so differences can be named."""
+    if isinstance(value, dict) and value:
+        out = {}
+        for k, v in value.items():
+            out.update(_leaves(v, f"{path}.{k}"))
+        return out
+    if isinstance(value, list) and value and any(isinstance(v, dict) for v in value):
+        out = {f"{path}.length": len(value)}
+        for i, v in enumerate(value):
+            out.update(_leaves(v, f"{path}[{i}]"))
+        return out
+    return {path: value}
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def check(config: SimConfig, state: Any) -> None:
-    """Raises ValueError unless `state` is a state_dict of a stream with this configuration."""
+    """Raises ValueError unless `state` is a state_dict of a stream with this configuration,
+    naming the differences."""
     if not isinstance(state, dict) or state.get("version") != VERSION:
         raise ValueError(f"state_dict: expected a simloader state of version {VERSION}, got "
                          f"{state if not isinstance(state, dict) else state.get('version')!r}")
     expected, saved = fingerprint(config), state.get("config", {})
-    diff = [f"{k} is {expected[k]!r} here but {saved.get(k)!r} in the state"
-            for k in expected if saved.get(k) != expected[k]]
+    diff = []
+    for key in expected:
+        here, there = _leaves(expected[key], key), _leaves(saved.get(key), key)
+        if (key in here) != (key in there) or type(expected[key]) is not type(saved.get(key)):
+            here, there = {key: expected[key]}, {key: saved.get(key)}  # another kind of thing
+        diff += [f"{k} is {_short(here.get(k))} here but {_short(there.get(k))} in the state"
+                 for k in list(here) + [k for k in there if k not in here]
+                 if here.get(k) != there.get(k)]
     if diff:
+        more = f"; and {len(diff) - 6} more" if len(diff) > 6 else ""
         raise ValueError("state_dict: the saved stream has another configuration: "
-                         + "; ".join(diff))
+                         + "; ".join(diff[:6]) + more)

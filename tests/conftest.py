@@ -9,6 +9,8 @@ import sys
 import mujoco
 import pytest
 
+import simloader
+
 # A free ball that lands on a plane (contacts), a two-link arm with a motor and a position
 # actuator, a mocap body welded to the hand by an equality that starts inactive, sensors.
 RICH_XML = """
@@ -50,15 +52,6 @@ RICH_XML = """
 """
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-SHARED_MODELS = REPO.parent / "shared" / "models" / "dm_control"
-
-
-@pytest.fixture(scope="session")
-def cache_dir(tmp_path_factory):
-    """JAX's persistent compilation cache for the MJX tests: process-wide, since JAX takes the
-    directory set before its first compilation; a dataset of a configuration compiled before
-    loads it from there."""
-    return str(tmp_path_factory.mktemp("jax-cache"))
 
 
 @pytest.fixture(scope="session")
@@ -68,10 +61,8 @@ def rich_model():
 
 @pytest.fixture(scope="session")
 def humanoid_path():
-    path = SHARED_MODELS / "humanoid.xml"
-    if not path.is_file():
-        pytest.skip(f"standard models not found at {SHARED_MODELS}")
-    return path
+    """The built-in DeepMind Control Suite humanoid: a contact-rich model every clone has."""
+    return simloader.builtin_path("humanoid")
 
 
 @pytest.fixture(scope="session")
@@ -81,13 +72,25 @@ def cache_dir(tmp_path_factory):
     return str(tmp_path_factory.mktemp("jax-cache"))
 
 
+def _checkout_env(extra=None):
+    """The environment of a child Python that imports this checkout's simloader (not another
+    installed copy), with `extra` variables."""
+    path = os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
+    return {**os.environ, **(extra or {}), "PYTHONPATH": path}
+
+
+@pytest.fixture(scope="session")
+def checkout_env():
+    """`checkout_env(extra=None) -> env` for subprocesses that must import this checkout."""
+    return _checkout_env
+
+
 def _fresh_python(script, runs, timeout=300):
     """Runs `script` once per `(args, env)` of `runs`, each in a fresh interpreter that imports
     this checkout's simloader (not another installed copy), all at once; returns their stdouts.
     A run that fails or outlives `timeout` seconds fails the test (and is killed)."""
-    path = os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
     procs = [subprocess.Popen([sys.executable, "-c", script, *map(str, args)],
-                              env={**os.environ, **env, "PYTHONPATH": path}, text=True,
+                              env=_checkout_env(env), text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
              for args, env in runs]
     outputs = []

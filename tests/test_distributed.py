@@ -57,7 +57,7 @@ def test_two_ranks_draw_distinct_streams():
     assert len(torch.unique(rows, dim=0)) == len(rows) == 2 * 3 * 4
 
 
-def test_ddp_example_under_torchrun(tmp_path):
+def test_ddp_example_under_torchrun(tmp_path, checkout_env):
     """The DDP example as a user launches it: torchrun, two ranks, gloo on the CPU."""
     root = pathlib.Path(__file__).parents[1]
     result_file = tmp_path / "result.json"
@@ -65,7 +65,7 @@ def test_ddp_example_under_torchrun(tmp_path):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
          str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "rollout",
          "--json", str(result_file)],
-        capture_output=True, text=True, timeout=300, cwd=root)
+        capture_output=True, text=True, timeout=300, cwd=root, env=checkout_env())
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     result = json.loads(result_file.read_text())
     assert result["ranks"] == 2 and result["steps_per_s"] > 0
@@ -90,12 +90,12 @@ print(json.dumps({
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2,
                     reason="needs 2 GPUs")
-def test_torchrun_ranks_simulate_on_their_own_gpu(tmp_path):
+def test_torchrun_ranks_simulate_on_their_own_gpu(tmp_path, checkout_env):
     script = tmp_path / "rank.py"
     script.write_text(_RANK_DEVICE_SCRIPT)
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-         str(script)], capture_output=True, text=True, timeout=300)
+         str(script)], capture_output=True, text=True, timeout=300, env=checkout_env())
     assert proc.returncode == 0, proc.stderr[-4000:]
     results = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
     assert len(results) == 2

@@ -33,7 +33,8 @@ CASES = [
     (dict(control="uniform"), TypeError, "control: expected None, an array"),
     (dict(control_spec=int(S.mjSTATE_QPOS)), ValueError,
      "control_spec: expected bits within mjSTATE_USER (8128), got 2 (bits 2 are outside)"),
-    (dict(control_spec=1.5), TypeError, "control_spec: expected an mjtState bitmask (int), got float"),
+    (dict(control_spec=1.5), TypeError, "control_spec: expected an mjtState bitmask (int) or "
+     "component names ('ctrl|xfrc_applied'), got float"),
     (dict(initial_state="nope"), ValueError,
      "initial_state: unknown keyframe 'nope'; the model's keyframes are ['upright', 'hanging']"),
     (dict(initial_state=np.full((1, 5), np.nan)), ValueError,
@@ -48,7 +49,7 @@ CASES = [
     (dict(seed="x"), TypeError, "seed: expected an integer, got str 'x'"),
     (dict(backend="gpu"), ValueError, "backend: expected one of ('auto', 'rollout', 'mjx'), got 'gpu'"),
     (dict(continue_episodes=1), TypeError, "continue_episodes: expected a bool, got int"),
-    (dict(dtype="int8"), ValueError, "dtype: expected None or a floating torch dtype"),
+    (dict(dtype="int8"), ValueError, "dtype: expected None, torch.float32 or torch.float64, got 'int8'"),
     (dict(device="tpu"), ValueError, "device: expected None, 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
     (dict(randomize=[]), ValueError, "randomize: expected nbatch=4 models (one per trajectory), got 0"),
     (dict(randomize="models"), TypeError, "randomize: expected None, a sequence of MjModel (one per trajectory)"),

@@ -10,13 +10,13 @@ EXAMPLES = sorted((pathlib.Path(__file__).parents[1] / "examples").glob("*.py"))
 
 
 @pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
-def test_example_quick(path, tmp_path):
+def test_example_quick(path, tmp_path, checkout_env):
     args = [sys.executable, str(path), "--quick"]
     if "--out" in path.read_text():
         args += ["--out", str(tmp_path / "plot.png")]
     if "--backend" in path.read_text():
         args += ["--backend", "rollout"]
-    result = subprocess.run(args, capture_output=True, text=True, timeout=300,
+    result = subprocess.run(args, capture_output=True, text=True, timeout=300, env=checkout_env(),
                             cwd=pathlib.Path(__file__).parents[1])
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-4000:]
     if "--out" in args:

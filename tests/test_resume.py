@@ -53,6 +53,45 @@ def test_resume_after_k_batches(k, workers, continue_episodes):
         assert torch.equal(a, b)
 
 
+def timeline(loader, epochs, stop_after=None):
+    """What `epochs` passes over `loader` deliver: each batch's state, and None where an epoch
+    ends; stops after `stop_after` of these tokens."""
+    out = []
+    for _ in range(epochs):
+        for batch in loader:
+            out.append(batch["state"].clone())
+            if len(out) == stop_after:
+                return out
+        out.append(None)
+        if len(out) == stop_after:
+            return out
+    return out
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+@pytest.mark.parametrize("position", [2, 4, 5, 10, 12])
+@pytest.mark.parametrize("continue_episodes", [False, True])
+def test_resume_at_any_point_of_any_epoch(position, workers, continue_episodes):
+    # 3 epochs of 4 batches; position 4: after the last batch of epoch 0, before its end was
+    # seen; 5 and 10: at the end of an epoch (before the fix, with 0 workers, the resumed
+    # loader delivered an empty epoch there: the position was read at the first next())
+    def loader():
+        return StatefulDataLoader(make(4, continue_episodes), batch_size=None,
+                                  num_workers=workers)
+
+    full = timeline(loader(), 3)
+    interrupted = loader()
+    first = timeline(interrupted, 3, stop_after=position)
+    saved = json.loads(json.dumps(interrupted.state_dict()))
+    resumed = loader()
+    resumed.load_state_dict(saved)
+    rest = timeline(resumed, 3 - first.count(None))
+    got = first + rest
+    assert [t is None for t in got] == [t is None for t in full]
+    for a, b in zip(got, full):
+        assert a is None or torch.equal(a, b)
+
+
 def test_dataset_state_is_small_json():
     ds = make(None, continue_episodes=True)
     it = iter(ds)
@@ -87,8 +126,90 @@ def test_mismatched_configuration_is_a_clear_error():
     with pytest.raises(ValueError, match="state_dict: the saved stream has another "
                                          "configuration: seed is 1 here but 0 in the state"):
         make(5, seed=1).load_state_dict(saved)
-    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 2"):
+    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 3"):
         make(5).load_state_dict({"version": 99})
+
+
+def other_pole_variant(spec, rng):
+    spec.geom("pole").fromto = [0, 0, 0, 0, 0, rng.uniform(2.0, 3.0)]
+    return spec
+
+
+BASE = dict(control=controls.Uniform(), initial_state=simloader.initial.Perturbed(),
+            randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="pole")])
+CHANGES = {  # one change of what the stream is made of, and the name the refusal gives it
+    "control generator": (dict(control=controls.PiecewiseConstant(hold=2)), "control"),
+    "control parameter": (dict(control=controls.Uniform(low=-0.5)), "control"),
+    "control array": (dict(control=np.full((1, 1, 1), 0.25)), "control"),
+    "initial generator": (dict(initial_state=simloader.initial.Perturbed(qpos_std=0.3)),
+                          "initial_state"),
+    "initial array": (dict(initial_state=np.zeros((1, 5))), "initial_state"),
+    "randomized object": (dict(randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0),
+                                                   on="cart")]), "randomize"),
+    "distribution": (dict(randomize=[dr.scale("body_mass", dr.Uniform(0.5, 3.0), on="pole")]),
+                     "randomize"),
+    "variant pool": (dict(randomize=dr.Variants(pole_variant, count=4)), "randomize"),
+    "dtype": (dict(dtype=torch.float32), "dtype"),
+}
+
+
+def configured(**changes):
+    return simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=4, nthread=1,
+                                continue_episodes=True, num_batches=5, **{**BASE, **changes})
+
+
+@pytest.mark.parametrize("change", sorted(CHANGES))
+def test_resuming_another_configuration_is_refused_naming_it(change):
+    # before the fix: control, initial state and randomization were not in the fingerprint;
+    # a randomized stream resumed into another one failed late with KeyError('body_mass[cart]')
+    changes, name = CHANGES[change]
+    ds = configured()
+    it = iter(ds)
+    next(it)
+    saved = json.loads(json.dumps(ds.state_dict()))
+    it.close()
+    configured().load_state_dict(saved)  # the same configuration, made anew, resumes
+    with pytest.raises(ValueError, match=rf"the saved stream has another configuration: "
+                                         rf"(.* )?{name}\S* is "):
+        configured(**changes).load_state_dict(saved)
+
+
+def test_variant_pools_of_other_functions_differ():
+    a = configured(randomize=dr.Variants(pole_variant, count=4)).state_dict()
+    with pytest.raises(ValueError, match="randomize"):
+        configured(randomize=dr.Variants(other_pole_variant, count=4)).load_state_dict(a)
+
+
+def test_fingerprint_covers_stream_changing_backend_options_only():
+    import dataclasses
+    from simloader import resume
+
+    @dataclasses.dataclass(frozen=True)
+    class Options:  # as a backend resolves its options (the MJX backend's MjxOptions)
+        impl: str
+        impl_reason: str = "asked"
+        compilation_cache: str = "/a"
+        memory_fraction: float = None
+
+    config = configured().config
+    state = {"version": resume.VERSION,
+             "config": resume.fingerprint(dataclasses.replace(config, options=Options("jax")))}
+    # where JAX caches, how much memory it takes and why an impl was chosen: same stream
+    resume.check(dataclasses.replace(config, options=Options("jax", "auto", "/b", 0.5)), state)
+    with pytest.raises(ValueError, match=r"backend_options.impl is 'warp' here but 'jax'"):
+        resume.check(dataclasses.replace(config, options=Options("warp")), state)
+
+
+def test_fingerprint_is_the_same_in_fresh_processes(fresh_python):
+    script = textwrap.dedent("""
+        import json, sys
+        sys.path.insert(0, %r)
+        from test_resume import configured
+        print(json.dumps(configured().state_dict()["config"], sort_keys=True))
+    """ % str(pathlib.Path(__file__).parent))
+    first, second = fresh_python(script, [([], {}), ([], {"PYTHONHASHSEED": "7"})])
+    assert first == second
+    assert json.loads(first) == json.loads(json.dumps(configured().state_dict()["config"]))
 
 
 @pytest.mark.parametrize("randomize", [SPEC, dr.Variants(pole_variant, count=4)],

@@ -8,7 +8,6 @@ the GPU machine.
 """
 
 import os
-import pathlib
 import warnings
 
 import mujoco
@@ -23,7 +22,7 @@ pytest.importorskip("warp")
 import simloader  # noqa: E402
 from simloader import controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
-from conftest import RICH_XML, SHARED_MODELS  # noqa: E402
+from conftest import RICH_XML  # noqa: E402
 from test_mjx import CONTACT_FREE_TOL, ONE_STEP_TOL  # noqa: E402
 
 S = mujoco.mjtState
@@ -195,11 +194,8 @@ def test_auto_takes_jax_where_warp_cannot_run_and_says_why(rich, cache_dir, monk
 # --- on the GPU machine ------------------------------------------------------------------------
 
 def humanoid():
-    for folder in (pathlib.Path(__file__).resolve().parents[1] / ".models" / "dm_control",
-                   SHARED_MODELS):
-        if (folder / "humanoid.xml").is_file():
-            return mujoco.MjModel.from_xml_path(str(folder / "humanoid.xml"))
-    pytest.skip("the dm_control humanoid is not here (.models/ or ../shared/models)")
+    """The dm_control humanoid, built in (../shared/models/dm_control's, includes inlined)."""
+    return simloader.load_model("humanoid")
 
 
 @pytest.mark.gpu

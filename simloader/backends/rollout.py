@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import handoff, layout, resume, sharding
+from simloader import controls, handoff, layout, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend
 
@@ -33,7 +33,7 @@ class _Produced:
     control: torch.Tensor
     initial_state: torch.Tensor
     params: dict[str, torch.Tensor]  # randomized model parameters, (nbatch, nvalues) each
-    warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning in this batch
+    warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning, or a control was bad
     rows_after: Optional[np.ndarray]  # continue_episodes: the state rows after this batch
 
 
@@ -43,7 +43,7 @@ class RolloutBackend(Backend):
     def __init__(self, config, shard, stats):
         super().__init__(config, shard, stats)
         c = config
-        self.nthread = sharding.threads_per_worker(shard, c.nthread)
+        self.nthread = sharding.threads_per_worker(shard, c.nthread, c.torch_threads)
         self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
         if c.models is not None:
             self.batch.set_models(c.models)
@@ -59,6 +59,10 @@ class RolloutBackend(Backend):
                                             layout.INTEGRATION)
         self.control_defaults, self.variant_states = (
             (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
+        # what MuJoCo clamps each control column to, per model (the delivered control is
+        # what acted)
+        self.ctrl_bounds = controls.applied_bounds(c.models or c.variants or [c.model],
+                                                   c.control_spec)
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"
@@ -82,19 +86,21 @@ class RolloutBackend(Backend):
             rows[np.ix_(fresh, self.physics_cols)] = x0[fresh]
         initial[...] = rows[:, self.physics_cols]
 
+        # a new buffer per batch, also for a fixed array: a consumer may edit its batch
+        control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
         if c.control.fixed is not None:
-            control_t, control = torch.from_numpy(c.control.fixed), c.control.fixed
+            control[...] = c.control.fixed
         elif c.control.random:
-            control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
             c.control.sample_numpy(self.seed(index, sharding.CONTROL), control,
                                    self._per_trajectory(self.control_defaults))
         else:
             # control=None: the inputs stay as mj_resetData left them (in the rows), for every
             # step; delivered as such
-            # (a copy: broadcast views are read-only, and torch tensors are writable)
-            control_t = torch.from_numpy(np.array(
-                self._per_trajectory(self.control_defaults))).unsqueeze(1).expand(
-                c.nbatch, c.nstep, c.ncontrol)
+            control[...] = self._per_trajectory(self.control_defaults)[:, None]
+        bad_control = controls.bad_controls(control)
+        low, high = self._ctrl_bounds()
+        control[...] = controls.clamp_applied(control, low[:, None], high[:, None])
+        if c.control.fixed is None and not c.control.random:
             control = None
 
         recorded = {}  # one buffer per source, shared by the observations that read it
@@ -107,7 +113,7 @@ class RolloutBackend(Backend):
         start = time.perf_counter()
         self._rollout(control, {s: array for s, (_, array) in recorded.items()})
         self.stats.add(simulate_s=time.perf_counter() - start)
-        warned = self.warnings.any(axis=1)
+        warned = self.warnings.any(axis=1) | bad_control
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
         rows_after = rows.copy() if c.continue_episodes else None
@@ -140,6 +146,14 @@ class RolloutBackend(Backend):
                                control_spec=c.control_spec, record=items, out=frame)
             for s, a in out.items():
                 a[:, j] = frame[s][:, 0]
+
+    def _ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nbatch, ncontrol) each: the range each trajectory's controls are clamped to."""
+        c = self.config
+        if "actuator_ctrlrange" in self.expanded:  # randomized: each trajectory's own
+            return controls.applied_bounds([c.model], c.control_spec, self.expanded[
+                "actuator_ctrlrange"].reshape(c.nbatch, c.model.nu, 2))
+        return tuple(self._per_trajectory(b) for b in self.ctrl_bounds)
 
     def _per_trajectory(self, table: np.ndarray) -> np.ndarray:
         """(nbatch, ...): each trajectory's row of a per-model table (its variant's)."""

@@ -187,8 +187,8 @@ class MjxBackend(Backend):
                           randomize_seed.generate_state(2, np.uint32)])
         variant = None if c.variants is None else dr.draw_variants(
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
-        args = (p.model, p.data0, p.inputs0, x0, p.control, seeds, variant, self.carry,
-                self.restart)
+        args = (p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
+                self.carry, self.restart)
         simulate = p.compile(args, self.stats)
         dispatched = time.perf_counter()
         outputs, carry = simulate(*args)

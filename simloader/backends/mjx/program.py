@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import layout
+from simloader import controls, layout
 from simloader.backends.base import Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
@@ -71,7 +71,7 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
                    randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype) -> Callable:
     """The pure function that simulates one batch of configuration `c`.
 
-    The returned `simulate(model, data0, inputs0, x0, control, seeds, variant, carry,
+    The returned `simulate(model, data0, inputs0, x0, control, bounds, seeds, variant, carry,
     restart)` takes:
       model: the mjx.Model; a model list or variant pool is batched along `pool_axes`.
       data0: one trajectory's mjx.Data as `make_data` leaves it.
@@ -81,6 +81,8 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
         from the model.
       control: the fixed controls (nbatch, nstep, ncontrol), or the default rows
         ([nbatch or 1 or nvariant], ncontrol) of undriven columns.
+      bounds: (low, high), each ([npool or 1], ncontrol): the range MuJoCo clamps each control
+        column to (`controls.applied_bounds`), per model of the pool.
       seeds: (2, 2) uint32, this batch's CONTROL and RANDOMIZE seeds.
       variant: with variants, (nbatch,) int32 each trajectory's variant (drawn on the host as
         the rollout backend draws it); None otherwise.
@@ -101,6 +103,8 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
     per_model, continuing = pooled(c), c.continue_episodes
     variants, fixed_control = c.variants is not None, c.control.fixed is not None
     x0_per_variant = variants and c.initial.from_model
+    randomized_ctrlrange = c.randomization is not None and any(
+        r.field == "actuator_ctrlrange" for r in c.randomization.resolved)
 
     def reset(m, d0, inputs0, x0):
         d = mjx.set_state(m, d0, inputs0, MODEL_INPUTS)
@@ -143,7 +147,21 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
             control = control.at[..., driver.columns].set(sample.astype(dtype))
         return control
 
-    def simulate(m, d0, inputs0, x0, control, seeds, variant, carry, restart):
+    def applied(m, control, bounds, variant):
+        """The control rows as MuJoCo applies them (clamped to each trajectory's model's
+        ctrlrange where it clamps), and the trajectories given a bad (non-finite or absurd)
+        control, which are flagged diverged as on the rollout backend."""
+        if randomized_ctrlrange:
+            low, high = controls.applied_bounds([c.model], control_spec,
+                                                ctrlrange=m.actuator_ctrlrange, xp=jnp)
+        else:
+            low, high = bounds  # per model of the pool, or one row
+            if variants:
+                low, high = low[variant], high[variant]
+        return (controls.clamp_applied(control, low[:, None], high[:, None], jnp),
+                controls.bad_controls(control))
+
+    def simulate(m, d0, inputs0, x0, control, bounds, seeds, variant, carry, restart):
         params = {}  # the values each trajectory runs with, delivered in `params`
         if variants:
             if continuing:
@@ -182,9 +200,10 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
             d, unstable = restart_unstable(m, d)
             return (d, diverged | unstable), (physics(m, d), d.sensordata)
 
+        control, bad = applied(m, control, bounds, variant)
         xs = jnp.swapaxes(control, 0, 1) if given else None
         (data, diverged), (state, sensordata) = jax.lax.scan(
-            body, (data, jnp.zeros(nbatch, bool)), xs, length=nstep)
+            body, (data, bad), xs, length=nstep)
         outputs = {
             "state": jnp.swapaxes(state, 0, 1),
             "sensordata": jnp.swapaxes(sensordata, 0, 1),
@@ -218,6 +237,10 @@ class Program:
         # per model of the pool (variants too): the inputs and states mj_resetData leaves
         inputs0 = layout.reset_rows(pool(c), MODEL_INPUTS).astype(self.dtype)
         self.inputs0 = jax.device_put(inputs0 if pooled(c) else inputs0[0], device)
+        # the range each control column is clamped to, per model of the pool
+        self.bounds = jax.device_put(tuple(
+            b.astype(self.dtype) for b in controls.applied_bounds(pool(c), c.control_spec)),
+            device)
         control_defaults, variant_states = (
             (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
         constant = c.control.fixed if c.control.fixed is not None else control_defaults
