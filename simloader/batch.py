@@ -39,6 +39,11 @@ class Batch(_Delivered):
         if layout is not None:
             self.layout = layout
 
+    def __copy__(self) -> "Batch":
+        # torch's default_convert and pin_memory copy a mapping and update the copy: keep the
+        # type and the layout (pickling gives an OrderedDict, see handoff.Batch)
+        return Batch(self, layout=self.layout)
+
     def view(self, name: str, obj: Optional[str] = None, *, of: Optional[str] = None
              ) -> torch.Tensor:
         """A named part of the batch, sharing its memory (a view, never a copy).
