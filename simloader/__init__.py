@@ -6,13 +6,15 @@
         batch["state"]  # (4096, 200, nstate)
 """
 
-from simloader import controls, initial, layout, randomize
+from simloader import controls, initial, layout, observe, randomize
+from simloader.batch import Batch
 from simloader.dataset import SimDataset
 from simloader.models import builtin_models, builtin_path, describe, load_model, named_models
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Batch",
     "SimDataset",
     "builtin_models",
     "builtin_path",
@@ -22,5 +24,6 @@ __all__ = [
     "layout",
     "load_model",
     "named_models",
+    "observe",
     "randomize",
 ]

@@ -12,7 +12,7 @@ import torch
 from tqdm import tqdm
 
 import simloader
-from simloader import sharding
+from simloader import observe, sharding
 
 def parse_control_spec(text: str) -> int:
     """`ctrl|xfrc_applied` or an integer bitmask (`simloader.layout.parse_control_spec`)."""
@@ -53,6 +53,11 @@ def quickstart(args: argparse.Namespace) -> None:
 
 def info(args: argparse.Namespace) -> None:
     print(simloader.describe(args.model, args.control_spec))
+    if args.record:
+        model = simloader.load_model(args.model)
+        observations = observe.parse(model, [name.strip() for name in args.record.split(",")])
+        print("recorded keys (nbatch, nframes, ...) and their named parts:")
+        print(simloader.layout.BatchLayout(model, args.control_spec, observations).describe())
 
 
 def bench(args: argparse.Namespace) -> None:
@@ -108,6 +113,8 @@ def main(argv: list[str] | None = None) -> None:
     i.add_argument("--control-spec", type=parse_control_spec,
                    default=int(mujoco.mjtState.mjSTATE_CTRL),
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")
+    i.add_argument("--record", default="",
+                   help="names to record, e.g. 'qpos,xpos,sensor:tip_pos': what each key holds")
     i.set_defaults(run=info)
 
     b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import controls, initial, layout, models
+from simloader import controls, initial, layout, models, observe
 from simloader import randomize as dr
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +35,8 @@ class SimConfig:
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
       initial: how each batch's initial states are made.
+      observations: what each batch records (`record=`), in the order given.
+      record_every: frames are recorded after every `record_every`-th step.
       continue_episodes: batches continue the previous batch's trajectories.
       num_batches: batches per rank in total, or None for endless.
       seed: root of all randomness.
@@ -57,6 +59,8 @@ class SimConfig:
     variants: Optional[tuple[mujoco.MjModel, ...]]
     control: controls.ControlPlan
     initial: initial.InitialPlan
+    observations: tuple[observe.Observation, ...]
+    record_every: int
     continue_episodes: bool
     num_batches: Optional[int]
     seed: int
@@ -66,6 +70,11 @@ class SimConfig:
     prefetch: int
     options: Any = None
     torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
+
+    @property
+    def nframes(self) -> int:
+        """Recorded frames per trajectory per batch: `nstep // record_every`."""
+        return self.nstep // self.record_every
 
     def variant_defaults(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
         """With variants, what each variant starts from: its undriven control columns
@@ -166,10 +175,38 @@ def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
     return out
 
 
+def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
+            backend: str) -> tuple[tuple[observe.Observation, ...], int]:
+    """The observations `record` names and the validated `record_every`."""
+    observations = observe.parse(model, record)
+    record_every = _int("record_every", record_every, 1)
+    if nstep % record_every:
+        raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "
+                         f"record_every={record_every} (frame j holds the values after step "
+                         f"(j + 1) * record_every)")
+    if backend == "mjx" and (tuple(o.key for o in observations) != observe.DEFAULT
+                             or record_every != 1):
+        observe.check_mjx(observations, model, "jax")
+        # the MJX scan records the default observations until it loops over them
+        raise ValueError(f"record, record_every: backend='mjx' records only "
+                         f"record={observe.DEFAULT} with record_every=1 so far, got "
+                         f"record={tuple(o.key for o in observations)}, record_every="
+                         f"{record_every}; use backend='rollout'")
+    return observations, record_every
+
+
+def _check_memory(c: SimConfig) -> None:
+    """Refuses a CPU batch that cannot fit in host memory, before anything runs (the MJX
+    backend checks its device's memory when it has the device)."""
+    if c.backend == "rollout":  # the prefetched batches and the one being simulated
+        observe.check_batch_fits(c, observe.host_available(), "host memory",
+                                 count=c.prefetch + 1)
+
+
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
-                 prefetch: Any) -> SimConfig:
+                 prefetch: Any, record: Any, record_every: Any) -> SimConfig:
     """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`, for a
     resolved `backend` (its options are validated next, by the backend)."""
     nbatch = _int("nbatch", nbatch, 1)
@@ -199,11 +236,15 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         base = variants[0]
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
-    return SimConfig(
+    observations, record_every = _record(base, record, record_every, nstep, backend)
+    config = SimConfig(
         model=base, models=models_, backend=backend, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
-        variants=variants, control=plan, initial=init,
-        continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-        device=_torch_device(device), dtype=_torch_dtype(dtype, backend), nthread=nthread,
-        prefetch=prefetch, torch_threads=torch.get_num_threads())
+        variants=variants, control=plan, initial=init, observations=observations,
+        record_every=record_every, continue_episodes=continue_episodes,
+        num_batches=num_batches, seed=seed, device=_torch_device(device),
+        dtype=_torch_dtype(dtype, backend), nthread=nthread, prefetch=prefetch,
+        torch_threads=torch.get_num_threads())
+    _check_memory(config)
+    return config

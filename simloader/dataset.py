@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any, Optional
 
 import mujoco
 import torch
 
-from simloader import backends, handoff, layout, models, resume, sharding
+from simloader import backends, layout, models, observe, resume, sharding
 from simloader.backends.base import Backend, Stats
+from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
 
@@ -19,13 +20,18 @@ class SimDataset(torch.utils.data.IterableDataset):
     """Streams batches of `nbatch` trajectories of `nstep` steps, simulated on the fly.
 
     Use it with `torch.utils.data.DataLoader(ds, batch_size=None)` (each item is already a
-    batch) or iterate it directly. Each item is a dict of tensors:
+    batch) or iterate it directly. Each item is a `simloader.batch.Batch`, a dict of tensors
+    with named views (`batch.view("qpos")`, `batch.view("xpos", "hand")`); with the default
+    `record`:
 
-      state          (nbatch, nstep, nstate)       mjSTATE_FULLPHYSICS state after each step
-      sensordata     (nbatch, nstep, nsensordata)  sensor values after each step
-      control        (nbatch, nstep, ncontrol)     control rows applied before each step
-      initial_state  (nbatch, nstate)              state each trajectory started from
-      diverged       (nbatch,) bool                MuJoCo warning or NaN/Inf in this batch
+      state          (nbatch, nframes, nstate)       mjSTATE_FULLPHYSICS state after each frame
+      sensordata     (nbatch, nframes, nsensordata)  sensor values after each frame
+      control        (nbatch, nstep, ncontrol)       control rows applied before each step
+      initial_state  (nbatch, nstate)                state each trajectory started from
+      diverged       (nbatch,) bool                  MuJoCo warning or NaN/Inf in this batch
+
+    where `nframes = nstep // record_every` (`nstep` by default). Every name of `record` is a
+    key `(nbatch, nframes, *trailing shape)`.
 
     Args:
       model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a model name
@@ -54,9 +60,17 @@ class SimDataset(torch.utils.data.IterableDataset):
       nthread: CPU threads of the rollout backend per worker (None: the cores split among
         workers and local ranks).
       prefetch: batches simulated ahead of the consumer.
+      record: the names to record, each a batch key: "state", "sensordata", a lowercase
+        mjtState component ("qpos", "qvel", "act", "time", "ctrl", "xfrc_applied", ...), any
+        other MjData array field mj_step computes ("xpos", "xquat", "actuator_force", "qacc",
+        "site_xpos", "ncon", ...; "cfrc_ext" where a sensor makes MuJoCo compute it), or
+        "sensor:NAME". Each keeps MuJoCo's dtype (int32 and bool fields stay so).
+      record_every: record after every k-th step: frame j holds the values after step
+        (j + 1) * k; `nstep` must be a multiple of k. `control` still holds every step's row.
 
     Raises:
-      TypeError, ValueError: bad arguments, naming the argument, the expectation and the value.
+      TypeError, ValueError: bad arguments, naming the argument, the expectation and the value;
+        a batch that cannot fit in host memory (rollout backend), with its size.
     """
 
     def __init__(self, model: Any, *, backend: str = "auto", nbatch: int, nstep: int,
@@ -64,17 +78,22 @@ class SimDataset(torch.utils.data.IterableDataset):
                  initial_state: Any = None, randomize: Any = None,
                  continue_episodes: bool = False, num_batches: Optional[int] = None,
                  seed: int = 0, device: Any = None, dtype: Any = None,
-                 nthread: Optional[int] = None, prefetch: int = 2, **backend_options: Any):
+                 nthread: Optional[int] = None, prefetch: int = 2,
+                 record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
+                 **backend_options: Any):
         super().__init__()
         backends.prepare(backend, backend_options)
         config = build_config(
             model, backend=backends.resolve(backend), nbatch=nbatch, nstep=nstep,
             control=control, control_spec=control_spec, initial_state=initial_state,
             randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
-            seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch)
+            seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
+            record=record, record_every=record_every)
         # one route for every backend option: validated by the backend, kept in the config
         self.config: SimConfig = dataclasses.replace(
             config, options=backends.check_options(config, backend, backend_options))
+        self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
+                                         self.config.observations)
         self.source = models.source(model)  # where the model came from, for describe()
         self._stats = Stats()
         # workers do not see the process group: keep the rank of the constructing process
@@ -101,10 +120,13 @@ class SimDataset(torch.utils.data.IterableDataset):
         return out
 
     def describe(self) -> str:
-        """Where the model came from, which columns of state and control mean what (by object
-        name), and what simulates."""
+        """Where the model came from, which columns of state, control and sensors mean what (by
+        object name), the recorded keys with the named parts `Batch.view` finds in them, and
+        what simulates."""
         c = self.config
-        text = layout.describe(c.model, c.control_spec, self.source)
+        text = (layout.describe(c.model, c.control_spec, self.source)
+                + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
+                  f"{c.record_every} step(s):\n" + self.layout.describe())
         if c.options is not None:
             text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
                      f"({c.options.implementation().describe()}; chosen: {c.options.impl_reason})")
@@ -148,7 +170,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         resume.check(self.config, state)
         self._loaded, self._pending, self._progress = state, None, None
 
-    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+    def __iter__(self) -> Iterator[Batch]:
         # the loaded position is taken by iter(), not by the first next(): a loader may make an
         # iterator and drop it unstarted (StatefulDataLoader does when it resumes from the end
         # of an epoch), and the next iterator must start the next epoch, not find it again
@@ -177,7 +199,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                                 self.config.prefetch)
         try:
             for index, produced in prefetcher:
-                batch = handoff.Batch(backend.deliver(produced))
+                batch = Batch(backend.deliver(produced), layout=self.layout)
                 self._progress = (shard, index + shard.num_workers, backend, produced)
                 yield batch
         finally:

@@ -26,6 +26,11 @@ def host_buffer(shape: tuple[int, ...], dtype: torch.dtype = torch.float64,
     return tensor, tensor.numpy()
 
 
+def torch_dtype(dtype: np.dtype) -> torch.dtype:
+    """The torch dtype of a NumPy dtype (float64, int32, bool, ...)."""
+    return torch.from_numpy(np.empty(0, dtype)).dtype
+
+
 def to_target(tensor: torch.Tensor, device: Optional[torch.device],
               dtype: Optional[torch.dtype]) -> torch.Tensor:
     """The tensor on the requested device and dtype: itself when nothing changes (no copy)."""

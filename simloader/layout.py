@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 from collections.abc import Sequence
-from typing import Optional
+from typing import Any, Optional
 
 import mujoco
 import numpy as np
@@ -39,6 +39,10 @@ _PHYSICS_COMPONENTS = (
     ("plugin_state", S.mjSTATE_PLUGIN),
     ("plastic", S.mjSTATE_PLASTIC),
 )
+
+# MjData fields that are components of the state (mjtState), each set by mj_setState
+STATE_FIELDS = (*(c[0] for c in _PHYSICS_COMPONENTS), "qacc_warmstart",
+                *(c[0] for c in _USER_COMPONENTS))
 
 USER = int(S.mjSTATE_USER)
 FULLPHYSICS = int(S.mjSTATE_FULLPHYSICS)
@@ -101,37 +105,36 @@ class Component:
         cols = []
         for name in [names] if isinstance(names, str) else names:
             if name not in self.objects:
-                close = difflib.get_close_matches(str(name), self.objects, n=3)
-                hint = f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
                 raise ValueError(
-                    f"on: {self.name} has no object {name!r}{hint}; its objects are "
+                    f"on: {self.name} has no object {name!r}{did_you_mean(name, self.objects)}; "
+                    f"its objects are "
                     f"{list(self.objects)}")
             i = self.objects.index(name)
             cols.extend(range(i * self.width, (i + 1) * self.width))
         return np.asarray(cols, dtype=np.intp)
 
 
-def _name(model: mujoco.MjModel, objtype: mujoco.mjtObj, i: int, kind: str) -> str:
+def object_name(model: mujoco.MjModel, objtype: mujoco.mjtObj, i: int, kind: str) -> str:
     return mujoco.mj_id2name(model, objtype, i) or f"{kind}#{i}"
 
 
 def _objects(model: mujoco.MjModel, kind: str) -> tuple[str, ...]:
     O = mujoco.mjtObj
     if kind == "actuator":
-        return tuple(_name(model, O.mjOBJ_ACTUATOR, i, kind) for i in range(model.nu))
+        return tuple(object_name(model, O.mjOBJ_ACTUATOR, i, kind) for i in range(model.nu))
     if kind == "body":
-        return tuple(_name(model, O.mjOBJ_BODY, i, kind) for i in range(model.nbody))
+        return tuple(object_name(model, O.mjOBJ_BODY, i, kind) for i in range(model.nbody))
     if kind == "equality":
-        return tuple(_name(model, O.mjOBJ_EQUALITY, i, kind) for i in range(model.neq))
+        return tuple(object_name(model, O.mjOBJ_EQUALITY, i, kind) for i in range(model.neq))
     if kind == "mocap":
         bodies = np.flatnonzero(model.body_mocapid >= 0)
         order = np.argsort(model.body_mocapid[bodies])
-        return tuple(_name(model, O.mjOBJ_BODY, int(b), "body") for b in bodies[order])
+        return tuple(object_name(model, O.mjOBJ_BODY, int(b), "body") for b in bodies[order])
     if kind == "dof":
         # a dof is named after its joint, with the axis index for multi-dof joints
         names = []
         for j in range(model.njnt):
-            jname = _name(model, O.mjOBJ_JOINT, j, "joint")
+            jname = object_name(model, O.mjOBJ_JOINT, j, "joint")
             ndof = {0: 6, 1: 3}.get(int(model.jnt_type[j]), 1)
             names.extend([jname] if ndof == 1 else [f"{jname}[{k}]" for k in range(ndof)])
         return tuple(names)
@@ -159,7 +162,7 @@ def state_layout(model: mujoco.MjModel) -> tuple[Component, ...]:
         if name in ("qpos", "qvel"):
             objects = _qpos_names(model) if name == "qpos" else _objects(model, "dof")
         elif name == "act":
-            objects = tuple(_name(model, O.mjOBJ_ACTUATOR, int(i), "actuator")
+            objects = tuple(object_name(model, O.mjOBJ_ACTUATOR, int(i), "actuator")
                             for i in range(model.nu) for _ in range(int(model.actuator_actnum[i])))
         else:
             objects = tuple(f"{name}#{i}" for i in range(size))
@@ -171,7 +174,7 @@ def state_layout(model: mujoco.MjModel) -> tuple[Component, ...]:
 def _qpos_names(model: mujoco.MjModel) -> tuple[str, ...]:
     names = []
     for j in range(model.njnt):
-        jname = _name(model, mujoco.mjtObj.mjOBJ_JOINT, j, "joint")
+        jname = object_name(model, mujoco.mjtObj.mjOBJ_JOINT, j, "joint")
         nq = {0: 7, 1: 4}.get(int(model.jnt_type[j]), 1)
         names.extend([jname] if nq == 1 else [f"{jname}[{k}]" for k in range(nq)])
     return tuple(names)
@@ -224,5 +227,156 @@ def describe(model: mujoco.MjModel, control_spec: int = int(S.mjSTATE_CTRL),
     for i in range(model.nsensor):
         adr, dim = int(model.sensor_adr[i]), int(model.sensor_dim[i])
         lines.append(f"  [{adr}:{adr + dim}] "
-                     f"{_name(model, mujoco.mjtObj.mjOBJ_SENSOR, i, 'sensor')}")
+                     f"{object_name(model, mujoco.mjtObj.mjOBJ_SENSOR, i, 'sensor')}")
     return "\n".join(lines)
+
+
+# MjData's named views (data.body(i), ...), whose attributes are slices of MjData fields
+_VIEW_KINDS = (("body", "nbody", mujoco.mjtObj.mjOBJ_BODY),
+               ("joint", "njnt", mujoco.mjtObj.mjOBJ_JOINT),
+               ("actuator", "nu", mujoco.mjtObj.mjOBJ_ACTUATOR),
+               ("geom", "ngeom", mujoco.mjtObj.mjOBJ_GEOM),
+               ("site", "nsite", mujoco.mjtObj.mjOBJ_SITE),
+               ("sensor", "nsensor", mujoco.mjtObj.mjOBJ_SENSOR),
+               ("tendon", "ntendon", mujoco.mjtObj.mjOBJ_TENDON),
+               ("camera", "ncam", mujoco.mjtObj.mjOBJ_CAMERA),
+               ("light", "nlight", mujoco.mjtObj.mjOBJ_LIGHT))
+
+
+@dataclasses.dataclass(frozen=True)
+class Part:
+    """Where a named part lies in a batch tensor.
+
+    Attributes:
+      key: the batch key holding it.
+      start, stop: its range of the key's trailing values, flattened.
+      shape: its own trailing shape.
+    """
+
+    key: str
+    start: int
+    stop: int
+    shape: tuple[int, ...]
+
+
+def _field_objects(model: mujoco.MjModel, data: mujoco.MjData,
+                   field: str) -> dict[str, tuple[int, int, tuple[int, ...]]]:
+    """{object name: (start, stop, shape)} of MjData field `field`'s flattened values, from
+    MjData's named views (`data.body("hand").xpos` is a slice of `data.xpos`)."""
+    full = getattr(data, field, None)
+    if not isinstance(full, np.ndarray) or not full.size:
+        return {}
+    lo, hi = full.ctypes.data, full.ctypes.data + full.nbytes
+    out: dict[str, tuple[int, int, tuple[int, ...]]] = {}
+    for kind, count, objtype in _VIEW_KINDS:
+        n = getattr(model, count)
+        if not n:
+            continue
+        first = getattr(data, kind)(0)
+        attrs = [a for a in dir(first) if not a.startswith("_")
+                 and isinstance(part := getattr(first, a), np.ndarray) and part.dtype == full.dtype
+                 and part.size and lo <= part.ctypes.data < hi]
+        for attr in attrs[:1]:
+            for i in range(n):
+                part = getattr(getattr(data, kind)(i), attr)
+                if not part.size:
+                    continue
+                start = (part.ctypes.data - lo) // full.itemsize
+                out.setdefault(object_name(model, objtype, i, kind),
+                               (start, start + part.size, part.shape))
+    return out
+
+
+class BatchLayout:
+    """What each column of a batch means, by name: `locate(name, obj)` finds a part of a
+    batch key (a state component of `state`, a control component of `control`, a sensor of
+    `sensordata`, an object's rows of a recorded field) as a range of its trailing values.
+
+    Plain data (picklable, small): built once per dataset from the model, the control spec and
+    the recorded observations.
+    """
+
+    def __init__(self, model: mujoco.MjModel, control_spec: int, observations: Sequence[Any]):
+        data = mujoco.MjData(model)
+        self.keys = {o.key: tuple(o.shape) for o in observations}
+        self.keys["control"] = (mujoco.mj_stateSize(model, control_spec),)
+        self.keys["initial_state"] = (mujoco.mj_stateSize(model, FULLPHYSICS),)
+        # MjData field shapes (time: a scalar)
+        self.field_shapes = {"time": ()}
+        # where a field lies within a concatenated key: {field: {key: (start, stop)}}
+        self.within: dict[str, dict[str, tuple[int, int]]] = {}
+        components = [(c, k) for c in state_layout(model) for k in ("state", "initial_state")]
+        components += [(c, "control") for c in control_layout(model, control_spec)]
+        sensors = {}
+        for i in range(model.nsensor):
+            adr, dim = int(model.sensor_adr[i]), int(model.sensor_dim[i])
+            sensors["sensor:" + object_name(model, mujoco.mjtObj.mjOBJ_SENSOR, i, "sensor")] = (
+                adr, adr + dim)
+        for c, key in components:
+            if key in self.keys and c.size:
+                self.within.setdefault(c.name, {})[key] = (c.start, c.start + c.size)
+        if "sensordata" in self.keys:
+            for name, cols in sensors.items():
+                self.within.setdefault(name, {})["sensordata"] = cols
+        fields = set(self.within) | set(self.keys)
+        for field in fields:
+            value = getattr(data, field, None)
+            if isinstance(value, np.ndarray):
+                self.field_shapes[field] = value.shape
+            elif field in sensors:
+                self.field_shapes[field] = (sensors[field][1] - sensors[field][0],)
+        # objects along each field: {field: {object: (start, stop, shape)}}
+        self.objects = {f: _field_objects(model, data, f) for f in sorted(fields)
+                        if f in self.field_shapes}
+        self.objects["sensordata"] = {n[len("sensor:"):]: (a, b, (b - a,))
+                                      for n, (a, b) in sensors.items()}
+        self.objects = {f: o for f, o in self.objects.items() if o}
+
+    def locate(self, name: str, obj: Optional[str] = None, of: Optional[str] = None) -> Part:
+        """The part `name` (a batch key, a state or control component, "sensor:NAME"), or
+        object `obj`'s part of it, in batch key `of` (default: `name`'s own key if recorded,
+        else the key that holds it).
+
+        Raises:
+          KeyError: the batch holds no such part (with the names it holds).
+        """
+        if of is None:
+            of = name if name in self.keys else next(iter(self.within.get(name, {})), None)
+        if of is None or of not in self.keys:
+            held = sorted(set(self.keys) | set(self.within))
+            raise KeyError(f"{name!r}{' in ' + repr(of) if of else ''}: the batch holds no such "
+                           f"part{did_you_mean(name, held)}; it holds {held}")
+        if of == name:
+            start, stop, shape = 0, int(np.prod(self.keys[of])), self.keys[of]
+        elif name in self.within and of in self.within[name]:
+            (start, stop), shape = self.within[name][of], self.field_shapes[name]
+        else:
+            raise KeyError(f"{name!r} is not part of {of!r}; parts of {of!r}: "
+                           f"{sorted(n for n, w in self.within.items() if of in w)}")
+        if obj is None:
+            return Part(of, start, stop, tuple(shape))
+        objects = self.objects.get("sensordata" if name.startswith("sensor:") else name, {})
+        if obj not in objects:
+            raise KeyError(f"{name!r} has no object {obj!r}{did_you_mean(obj, objects)}; "
+                           f"its objects: {list(objects) or '(none)'}")
+        a, b, part_shape = objects[obj]
+        return Part(of, start + a, start + b, tuple(part_shape))
+
+    def describe(self) -> str:
+        """One line per recorded key and the named parts it holds."""
+        lines = []
+        for key, shape in self.keys.items():
+            if key in ("control", "initial_state"):
+                continue
+            parts = [n for n, w in self.within.items() if key in w]
+            objects = list(self.objects.get(key, {}))
+            what = (f"parts {', '.join(parts)}" if parts else
+                    f"rows of {', '.join(objects)}" if objects else "")
+            lines.append(f"  {key} {tuple(shape)}{': ' + what if what else ''}")
+        return "\n".join(lines)
+
+
+def did_you_mean(name: Any, names) -> str:
+    """' (did you mean ...?)' with the names closest to `name`, or ''."""
+    close = difflib.get_close_matches(str(name), list(names), n=3)
+    return f" (did you mean {', '.join(map(repr, close))}?)" if close else ""

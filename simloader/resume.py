@@ -67,6 +67,7 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
         "model": hashlib.sha256("".join(_model_digest(m) for m in models).encode()
                                 ).hexdigest()[:16],
         "control": control,
+        "record": [o.key for o in config.observations], "record_every": config.record_every,
         "initial_state": (_describe(init.generator) if init.generator is not None else
                           {"keyframe": init.keyframe} if init.from_model else
                           _describe(init.fixed)),

@@ -13,6 +13,14 @@ def test_info_names_columns(capsys):
     assert "xfrc_applied" in out and "pole" in out
 
 
+def test_info_names_recorded_keys(capsys):
+    cli.main(["info", "cartpole", "--record", "qpos,xpos,sensor:tip_pos"])
+    out = capsys.readouterr().out
+    assert "recorded keys (nbatch, nframes, ...) and their named parts:" in out
+    assert "xpos (3, 3): rows of world, cart, pole" in out
+    assert "qpos (2,): rows of slider, hinge" in out
+
+
 def test_quickstart_streams_and_reports_throughput(capsys):
     cli.main(["quickstart", "--backend", "rollout", "--nbatch", "8", "--nstep", "5",
               "--batches", "3"])

@@ -12,7 +12,7 @@ import torch
 from torch.utils.data import DataLoader
 
 import simloader
-from simloader import controls
+from simloader import controls, layout
 
 S = mujoco.mjtState
 
@@ -102,8 +102,11 @@ def test_zero_copy_delivered_tensors_are_the_buffers_mujoco_wrote():
     try:
         produced = backend.produce(0)
         batch = backend.deliver(produced)
-        for key in ("state", "sensordata", "control", "initial_state"):
-            assert batch[key].data_ptr() == getattr(produced, key).data_ptr(), key
+        written = {"state": produced.recorded[layout.FULLPHYSICS],
+                   "sensordata": produced.recorded["sensordata"], "control": produced.control,
+                   "initial_state": produced.initial_state}
+        for key, buffer in written.items():
+            assert batch[key].data_ptr() == buffer.data_ptr(), key
         # MuJoCo recorded into exactly that memory: its Batch writes the out= arrays we pass
         assert batch["state"].numpy().base is not None or batch["state"].is_contiguous()
     finally:
@@ -135,8 +138,8 @@ def test_nonfinite_outputs_without_a_mujoco_warning_are_flagged():
     backend = cartpole(nbatch=3).make_backend()
     try:
         produced = backend.produce(0)
-        produced.sensordata[1, 2, 0] = float("nan")
-        produced.state[2, 5, 1] = float("inf")
+        produced.recorded["sensordata"][1, 2, 0] = float("nan")
+        produced.recorded[layout.FULLPHYSICS][2, 5, 1] = float("inf")
         assert backend.deliver(produced)["diverged"].tolist() == [False, True, True]
     finally:
         backend.close()

@@ -1,10 +1,11 @@
 """CPU backend: MuJoCo's native batched simulation (`mujoco.batch.Batch`) on a thread pool.
 
 Each trajectory is an `mjSTATE_INTEGRATION` row of the batch (solver warmstart included), so a
-batch that continues the previous one starts exactly where it ended. `Batch.rollout` records the
-`mjSTATE_FULLPHYSICS` state and the sensors straight into NumPy views of new torch tensors: the
-delivered tensors are the buffers MuJoCo wrote, and every batch equals `mujoco.rollout` on the
-same inputs bit for bit, at any thread count.
+batch that continues the previous one starts exactly where it ended. `Batch.rollout` records what
+`record=` names (the `mjSTATE_FULLPHYSICS` state and the sensors by default; any MjData field)
+straight into NumPy views of new torch tensors: the delivered tensors are the buffers MuJoCo
+wrote (or views of them), and every batch equals `mujoco.rollout` on the same inputs bit for
+bit, at any thread count.
 
 Rows are initialized as `mujoco.rollout` initializes its MjData: user inputs outside
 `control_spec` as `mj_resetData` leaves them (zero controls and forces, mocap bodies at their
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Optional
+from typing import Optional, Union
 
 import numpy as np
 import torch
@@ -28,8 +29,7 @@ from simloader.backends.base import Backend
 
 @dataclasses.dataclass
 class _Produced:
-    state: torch.Tensor
-    sensordata: torch.Tensor
+    recorded: dict[Union[str, int], torch.Tensor]  # by `mujoco.batch` record item (source)
     control: torch.Tensor
     initial_state: torch.Tensor
     params: dict[str, torch.Tensor]  # randomized model parameters, (nbatch, nvalues) each
@@ -103,20 +103,49 @@ class RolloutBackend(Backend):
         if c.control.fixed is None and not c.control.random:
             control = None
 
-        state_t, state = handoff.host_buffer((c.nbatch, c.nstep, c.nstate), pin=self.pin)
-        sensor_t, sensor = handoff.host_buffer((c.nbatch, c.nstep, c.nsensordata), pin=self.pin)
+        recorded = {}  # one buffer per source, shared by the observations that read it
+        for o in c.observations:
+            if o.source not in recorded:
+                recorded[o.source] = handoff.host_buffer(
+                    (c.nbatch, c.nframes, *o.source_shape), handoff.torch_dtype(o.dtype),
+                    pin=self.pin)
         self.warnings[...] = 0
         start = time.perf_counter()
-        self.batch.rollout(c.nstep, control, control_spec=c.control_spec,
-                           record=(layout.FULLPHYSICS, "sensordata"),
-                           out={layout.FULLPHYSICS: state, "sensordata": sensor})
+        self._rollout(control, {s: array for s, (_, array) in recorded.items()})
         self.stats.add(simulate_s=time.perf_counter() - start)
         warned = self.warnings.any(axis=1) | bad_control
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
         rows_after = rows.copy() if c.continue_episodes else None
         params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
-        return _Produced(state_t, sensor_t, control_t, initial_t, params, warned, rows_after)
+        return _Produced({s: tensor for s, (tensor, _) in recorded.items()}, control_t, initial_t,
+                         params, warned, rows_after)
+
+    def _rollout(self, control: Optional[np.ndarray], out: dict) -> None:
+        """Runs the batch's `nstep` steps, recording the sources into `out` ({source:
+        (nbatch, nframes, ...)}) after every `record_every`-th step.
+
+        With `record_every=k > 1`, each frame is `k - 1` steps recording nothing and one step
+        recording into a one-frame buffer, copied into its frame: the state rows (warmstart
+        included) carry the trajectory from call to call, so the steps are those of one call.
+        """
+        c, k = self.config, self.config.record_every
+        items = tuple(out)
+        if k == 1:
+            self.batch.rollout(c.nstep, control, control_spec=c.control_spec, record=items,
+                               out=out)
+            return
+        if control is not None:
+            control = np.broadcast_to(control, (c.nbatch, c.nstep, c.ncontrol))
+        frame = {s: np.empty((c.nbatch, 1, *a.shape[2:]), a.dtype) for s, a in out.items()}
+        for j in range(c.nframes):
+            u = None if control is None else control[:, j * k:(j + 1) * k]
+            self.batch.rollout(k - 1, None if u is None else u[:, :-1],
+                               control_spec=c.control_spec, record=())
+            self.batch.rollout(1, None if u is None else u[:, -1:],
+                               control_spec=c.control_spec, record=items, out=frame)
+            for s, a in out.items():
+                a[:, j] = frame[s][:, 0]
 
     def _ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(nbatch, ncontrol) each: the range each trajectory's controls are clamped to."""
@@ -159,20 +188,18 @@ class RolloutBackend(Backend):
 
     def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
-        # MuJoCo's checks catch NaN/Inf/huge in qpos, qvel and qacc; this also covers
-        # sensors and runs here, overlapped with the next batch's simulation
-        finite = np.isfinite(p.state.numpy()).all(axis=(1, 2))
-        if c.nsensordata:
-            finite &= np.isfinite(p.sensordata.numpy()).all(axis=(1, 2))
+        # MuJoCo's checks catch NaN/Inf/huge in qpos, qvel and qacc; this also covers every
+        # floating record and runs here, overlapped with the next batch's simulation
+        finite = np.ones(c.nbatch, dtype=bool)
+        for recorded in p.recorded.values():
+            if recorded.is_floating_point() and recorded.numel():
+                finite &= np.isfinite(recorded.numpy().reshape(c.nbatch, -1)).all(axis=1)
         diverged = p.warned | ~finite
         self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
-        out = {
-            "state": p.state,
-            "sensordata": p.sensordata,
-            "control": p.control,
-            "initial_state": p.initial_state,
-        }
-        out = {k: handoff.to_target(v, c.device, c.dtype) for k, v in out.items()}
+        out = {o.key: o.select(p.recorded[o.source]) for o in c.observations}
+        out.update(control=p.control, initial_state=p.initial_state)
+        out = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
+               for k, v in out.items()}
         out["diverged"] = handoff.to_target(torch.from_numpy(diverged), c.device, None)
         if p.params:
             out["params"] = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point()

@@ -1,0 +1,76 @@
+"""The delivered batch: a dict of tensors with named views.
+
+`Batch` is a `dict[str, torch.Tensor]` (the delivered `handoff.Batch`, which torch's default
+collation refuses; `pin_memory` and `default_convert` keep its type: they copy it and update
+the copy), plus `view()`, which finds a named part of a key without index arithmetic and
+without copying. A batch from a DataLoader worker arrives as an `OrderedDict` (it pickles as
+one, so that `torch.load(weights_only=True)` loads it): `Batch(batch, layout=ds.layout)` gives
+it its views back, without copies.
+
+    batch.view("qpos")                     # (nbatch, nframes, nq), out of "state"
+    batch.view("qpos", of="initial_state") # (nbatch, nq)
+    batch.view("xpos", "hand")             # body hand's rows of a recorded "xpos"
+    batch.view("sensordata", "ball")       # sensor ball's columns
+    batch.view("ctrl", "elbow")            # actuator elbow's column of "control"
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import torch
+
+from simloader.handoff import Batch as _Delivered
+from simloader.layout import BatchLayout
+
+
+class Batch(_Delivered):
+    """A batch: `dict[str, torch.Tensor]` with named views.
+
+    Attributes:
+      layout: what each column means (`simloader.layout.BatchLayout`), or None for a batch
+        made from a plain dict, which has no named views.
+    """
+
+    layout: Optional[BatchLayout] = None
+
+    def __init__(self, *args: Any, layout: Optional[BatchLayout] = None, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        if layout is not None:
+            self.layout = layout
+
+    def __copy__(self) -> "Batch":
+        # torch's default_convert and pin_memory copy a mapping and update the copy: keep the
+        # type and the layout (pickling gives an OrderedDict, see handoff.Batch)
+        return Batch(self, layout=self.layout)
+
+    def view(self, name: str, obj: Optional[str] = None, *, of: Optional[str] = None
+             ) -> torch.Tensor:
+        """A named part of the batch, sharing its memory (a view, never a copy).
+
+        Args:
+          name: a batch key, a state component ("time", "qpos", "qvel", "act", ...) held in
+            "state", a control component ("ctrl", "xfrc_applied", ...) held in "control", or
+            "sensor:NAME" held in "sensordata".
+          obj: an object's part of it, by name: a joint of "qpos"/"qvel", a body of "xpos" or
+            "xfrc_applied", an actuator of "ctrl" or "actuator_force", a sensor of
+            "sensordata", ...
+          of: the key to take it from (default: `name` itself if recorded, else the key that
+            holds it), e.g. "initial_state".
+
+        Returns:
+          `(*leading, *part_shape)`: the key's leading axes (nbatch, nframes or nstep; nbatch
+          for initial_state) and the part's own shape.
+
+        Raises:
+          KeyError: the batch holds no such part (naming what it holds).
+        """
+        if self.layout is None:
+            raise KeyError("this batch has no layout (made from a plain dict): named views need "
+                           "the batch a SimDataset delivers")
+        part = self.layout.locate(name, obj, of)
+        tensor = self[part.key]
+        lead = tensor.shape[:tensor.dim() - len(self.layout.keys[part.key])]
+        # `view`, not `reshape`: a view or an error, never a silent copy
+        flat = tensor.view(*lead, -1) if tensor.dim() > len(lead) else tensor.unsqueeze(-1)
+        return flat[..., part.start:part.stop].view(*lead, *part.shape)

@@ -1,0 +1,106 @@
+"""The MJX side of `record=`: each observation's `jax_value` on one mjx.Data against MuJoCo C
+after the same steps (float32, named tolerances), and the host-side refusals for impl="jax"."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from simloader import observe
+from tests.test_record import PILE_XML
+
+jax = pytest.importorskip("jax")
+mjx = pytest.importorskip("mujoco.mjx")
+
+# after one contact step from the same state (reliability check 2: 1e-4); forces are larger
+# numbers, compared relative to their scale
+ONE_STEP_ATOL = 1e-4
+FORCE_RTOL = 2e-3
+NAMES = ("state", "qpos", "qvel", "xpos", "xquat", "xmat", "geom_xmat", "site_xpos", "actuator_force", "cfrc_ext",
+         "sensor:tip_acc", "sensor:wrist", "sensordata", "time")
+
+
+def test_jax_values_match_mujoco_c_after_a_contact_step():
+    model = mujoco.MjModel.from_xml_string(PILE_XML)
+    data = mujoco.MjData(model)
+    for _ in range(60):  # let the pile land: contacts
+        data.ctrl[:] = [1.0, 0.5]
+        mujoco.mj_step(model, data)
+    assert data.ncon > 0
+    observations = observe.parse(model, NAMES)
+    observe.check_mjx(observations, model, "jax")
+    m = mjx.put_model(model, impl="jax")
+    d = mjx.put_data(model, data, impl="jax")
+    mujoco.mj_step(model, data)
+    d = jax.jit(mjx.step)(m, d)
+    values = jax.jit(lambda m, d: {o.key: o.jax_value(m, d) for o in observations})(m, d)
+    for o in observations:
+        got = np.asarray(values[o.key])
+        if isinstance(o, observe.State):
+            expected = np.empty(o.shape)
+            mujoco.mj_getState(model, data, expected, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        elif o.key.startswith("sensor:"):
+            expected = data.sensor(o.key[len("sensor:"):]).data
+        else:
+            expected = np.asarray(getattr(data, o.key))
+        assert got.shape == o.shape, o.key
+        assert got.dtype == np.float32, o.key
+        scale = max(1.0, float(np.abs(expected).max(initial=0)))
+        tol = FORCE_RTOL * scale if o.key in ("cfrc_ext", "sensor:tip_acc", "sensordata",
+                                              "actuator_force") else ONE_STEP_ATOL
+        np.testing.assert_allclose(got, expected, atol=tol, rtol=0, err_msg=o.key)
+
+
+def test_jax_values_under_vmap_have_the_frame_shape():
+    model = mujoco.MjModel.from_xml_string(PILE_XML)
+    observations = observe.parse(model, ("xpos", "sensor:tip_force", "state", "time"))
+    m = mjx.put_model(model, impl="jax")
+    d = jax.vmap(lambda _: mjx.make_data(model, impl="jax"))(np.arange(3))
+    values = jax.vmap(lambda d: observe.jax_frame(observations, m, d))(d)
+    assert sorted(values) == sorted(o.key for o in observations)  # (JAX sorts dict keys)
+    for o in observations:
+        assert values[o.key].shape == (3, *o.shape), o.key
+    assert observe.jax_finite(observations, values).tolist() == [True] * 3
+    values["xpos"] = values["xpos"].at[1, 2, 0].set(np.nan)
+    values["time"] = values["time"].at[2].set(np.inf)
+    assert observe.jax_finite(observations, values).tolist() == [True, False, False]
+
+
+def test_a_batch_too_large_for_the_gpu_is_refused(rich_model):
+    import simloader
+    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=1024, nstep=1000,
+                              record=("state", "xpos"), record_every=2)
+    # what the MJX backend calls with its device's free memory, floats as float32
+    with pytest.raises(ValueError, match=r"nbatch, record: a batch needs 72.3 MiB, more than "
+                                         r"the 10.0 MiB of GPU memory available; use a smaller "
+                                         r"nbatch \(at most 141 fits\), a larger record_every "
+                                         r"\(now 2\)"):
+        observe.check_batch_fits(ds.config, 10 * 2**20, "GPU memory", count=1, itemsize=4)
+
+
+def test_check_mjx_refuses_by_name_with_the_reason():
+    model = mujoco.MjModel.from_xml_string(PILE_XML)
+    observations = observe.parse(model, ("qpos", "M", "ncon", "geom_xquat", "qfrc_spring",
+                                         "nefc", "xmat"))
+    with pytest.raises(ValueError) as info:
+        observe.check_mjx(observations, model, "jax")
+    message = str(info.value)
+    assert message.startswith("record: backend='mjx' cannot record M: MJX (impl='jax') stores M "
+                              "with shape (")
+    assert ("ncon: MJX (impl='jax') holds ncon as a constant of the compiled model (a size "
+            "fixed at compilation), not per trajectory") in message
+    assert "nefc: MJX (impl='jax') holds nefc as a constant" in message
+    assert "xmat:" not in message  # (n, 3, 3) in MJX: the same values, reshaped
+    assert "geom_xquat: MJX (impl='jax') has no field geom_xquat" in message
+    assert "qfrc_spring: MJX (impl='jax') has no field qfrc_spring" in message
+    assert "qpos:" not in message
+    assert message.endswith("use backend='rollout' for these")
+
+
+def test_record_beyond_the_default_is_refused_on_mjx_until_wired(rich_model):
+    import simloader
+    with pytest.raises(ValueError, match=r"record, record_every: backend='mjx' records only "
+                                         r"record=\('state', 'sensordata'\) with "
+                                         r"record_every=1 so far"):
+        simloader.SimDataset(rich_model, backend="mjx", nbatch=2, nstep=4, record=("qpos",))
+    with pytest.raises(ValueError, match="record: backend='mjx' cannot record M: "):
+        simloader.SimDataset(rich_model, backend="mjx", nbatch=2, nstep=4, record=("M",))
