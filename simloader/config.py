@@ -184,14 +184,6 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
         raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "
                          f"record_every={record_every} (frame j holds the values after step "
                          f"(j + 1) * record_every)")
-    if backend == "mjx" and (tuple(o.key for o in observations) != observe.DEFAULT
-                             or record_every != 1):
-        observe.check_mjx(observations, model, "jax")
-        # the MJX scan records the default observations until it loops over them
-        raise ValueError(f"record, record_every: backend='mjx' records only "
-                         f"record={observe.DEFAULT} with record_every=1 so far, got "
-                         f"record={tuple(o.key for o in observations)}, record_every="
-                         f"{record_every}; use backend='rollout'")
     return observations, record_every
 
 

@@ -269,22 +269,17 @@ def _check_computed(model: mujoco.MjModel, data: mujoco.MjData, fields: Sequence
                              f"of the simulation: MuJoCo computes it {why}")
 
 
-def check_mjx(observations: Sequence[Observation], model: mujoco.MjModel, impl: str) -> None:
+def check_mjx(observations: Sequence[Observation], data: Any, impl: str) -> None:
     """Refuses, by name and with the reason, what MJX implementation `impl` cannot record.
 
-    Field names are checked against MJX's `Data` (public fields, and the implementation's own
-    under `_impl`: for "jax" `DataJAX`, for "warp" `DataWarp`), their shapes and dtype kinds
-    against MuJoCo's. Run on the host at construction.
+    Field names are checked against `data`, one trajectory's `mjx.Data` of that implementation
+    (public fields, and the implementation's own under `_impl`: for "jax" `DataJAX`, for
+    "warp" `DataWarp`), their shapes and dtype kinds against MuJoCo's. Run on the host at
+    construction.
 
     Raises:
       ValueError: naming every refused observation and why.
     """
-    from mujoco import mjx
-    try:
-        data = mjx.make_data(model, impl=impl)
-    except Exception as e:  # e.g. warp without the warp package or a GPU
-        raise ValueError(f"record: cannot check the recorded fields against MJX "
-                         f"impl={impl!r}: {e}") from None
     refused = [f"{o.key}: {why}" for o in observations
                if (why := o.mjx_refusal(data, impl)) is not None]
     if refused:

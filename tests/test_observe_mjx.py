@@ -4,6 +4,7 @@ after the same steps (float32, named tolerances), and the host-side refusals for
 import mujoco
 import numpy as np
 import pytest
+import torch
 
 from simloader import observe
 from tests.test_record import PILE_XML
@@ -27,7 +28,7 @@ def test_jax_values_match_mujoco_c_after_a_contact_step():
         mujoco.mj_step(model, data)
     assert data.ncon > 0
     observations = observe.parse(model, NAMES)
-    observe.check_mjx(observations, model, "jax")
+    observe.check_mjx(observations, mjx.make_data(model, impl="jax"), "jax")
     m = mjx.put_model(model, impl="jax")
     d = mjx.put_data(model, data, impl="jax")
     mujoco.mj_step(model, data)
@@ -82,7 +83,7 @@ def test_check_mjx_refuses_by_name_with_the_reason():
     observations = observe.parse(model, ("qpos", "M", "ncon", "geom_xquat", "qfrc_spring",
                                          "nefc", "xmat"))
     with pytest.raises(ValueError) as info:
-        observe.check_mjx(observations, model, "jax")
+        observe.check_mjx(observations, mjx.make_data(model, impl="jax"), "jax")
     message = str(info.value)
     assert message.startswith("record: backend='mjx' cannot record M: MJX (impl='jax') stores M "
                               "with shape (")
@@ -96,11 +97,29 @@ def test_check_mjx_refuses_by_name_with_the_reason():
     assert message.endswith("use backend='rollout' for these")
 
 
-def test_record_beyond_the_default_is_refused_on_mjx_until_wired(rich_model):
+def test_what_mjx_cannot_record_is_refused_at_construction(rich_model):
     import simloader
-    with pytest.raises(ValueError, match=r"record, record_every: backend='mjx' records only "
-                                         r"record=\('state', 'sensordata'\) with "
-                                         r"record_every=1 so far"):
-        simloader.SimDataset(rich_model, backend="mjx", nbatch=2, nstep=4, record=("qpos",))
     with pytest.raises(ValueError, match="record: backend='mjx' cannot record M: "):
         simloader.SimDataset(rich_model, backend="mjx", nbatch=2, nstep=4, record=("M",))
+
+
+@pytest.mark.parametrize("record_every", [1, 5])
+def test_mjx_records_what_the_rollout_backend_records(record_every, cache_dir):
+    import simloader
+    from test_mjx import CONTACT_FREE_TOL
+    control = np.random.default_rng(0).uniform(-1, 1, (3, 20, 1))
+    kwargs = dict(nbatch=3, nstep=20, control=control, num_batches=2, continue_episodes=True,
+                  record=("qpos", "xpos", "sensor:pole_angle", "qvel"),
+                  record_every=record_every)
+    mjx_batches = list(simloader.SimDataset("cartpole", backend="mjx",
+                                            compilation_cache=cache_dir, **kwargs))
+    c_batches = list(simloader.SimDataset("cartpole", backend="rollout", **kwargs))
+    for got, want in zip(mjx_batches, c_batches, strict=True):
+        assert set(got) == set(want)
+        for key in kwargs["record"]:
+            assert got[key].shape == want[key].shape == (3, 20 // record_every,
+                                                          *want[key].shape[2:])
+            assert got[key].dtype == torch.float32
+            np.testing.assert_allclose(got[key].numpy(), want[key].numpy(),
+                                       atol=CONTACT_FREE_TOL, err_msg=key)
+        assert got.view("qpos", "hinge").shape == (3, 20 // record_every, 1)

@@ -296,3 +296,16 @@ def test_variants_differing_in_what_warp_shares_are_refused_by_name(cache_dir, v
     with pytest.raises(ValueError, match=message):
         dataset("cartpole", cache_dir, nbatch=4, nstep=30,
                 randomize=dr.Variants(variant, count=3))
+
+
+def test_recorded_fields_every_kth_step_match_the_rollout_backend(rich, cache_dir):
+    # a contact step apart, float32 against float64: one frame of 2 steps from the keyframe
+    control = np.random.default_rng(0).uniform(-1, 1, (4, 2, rich.nu))
+    kwargs = dict(nbatch=4, nstep=2, control=control, initial_state="raised", num_batches=1,
+                  record=("qpos", "xpos", "sensor:ball", "time"), record_every=2)
+    got = next(iter(dataset(rich, cache_dir, **kwargs)))
+    want = next(iter(simloader.SimDataset(rich, backend="rollout", **kwargs)))
+    for key in kwargs["record"]:
+        assert got[key].shape == want[key].shape == (4, 1, *want[key].shape[2:]), key
+        np.testing.assert_allclose(got[key].cpu().numpy(), want[key].numpy(),
+                                   atol=ONE_STEP_TOL, err_msg=key)

@@ -23,10 +23,11 @@ from collections.abc import Callable
 from typing import Any, Optional
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import torch
 
-from simloader import handoff, resume, sharding
+from simloader import handoff, observe, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
@@ -123,6 +124,10 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
     resolved = MjxOptions(choice.impl, choice.reason, naconmax, njmax, cache, fraction)
     impl = resolved.implementation()
     mx, _ = put_models(config, impl, device)
+    observe.check_mjx(config.observations, impl.make_data(config.model, device), impl.name)
+    # the batches in flight (prefetched, being simulated, being consumed), float32 outputs
+    observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
+                             f"memory", count=config.prefetch + 2, itemsize=4)
     if config.randomization is not None:
         mjx_randomize.check(config.model, mx, config.randomization, impl)
     return resolved
@@ -219,7 +224,9 @@ class MjxBackend(Backend):
                        batches=1, steps=c.nbatch * c.nstep,
                        diverged=int(np.count_nonzero(outputs["diverged"])))
         self.last_ready = ready
-        batch = {key: self._tensor(array, None if key == "diverged" else c.dtype)
+        # `dtype=` converts floating outputs; integer and bool records keep their dtype
+        batch = {key: self._tensor(array, c.dtype if jnp.issubdtype(array.dtype, jnp.floating)
+                                   else None)
                  for key, array in outputs.items() if key not in ("params", "overflow")}
         if "overflow" in outputs:
             batch["overflow"] = handoff.to_target(

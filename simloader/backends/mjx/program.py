@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import controls, layout
+from simloader import controls, layout, observe
 from simloader.backends.base import Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
@@ -98,6 +98,7 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
     # configuration and must not keep the configuration alive
     nbatch, nstep, control_spec, drivers = c.nbatch, c.nstep, c.control_spec, c.control.drivers
     inputs = tuple(component.name for component in c.control.components)
+    observations, every, nframes = c.observations, c.record_every, c.nframes
     given = c.control.fixed is not None or bool(drivers)  # control=None leaves inputs alone
     shape = (nbatch, nstep, c.ncontrol)
     per_model, continuing = pooled(c), c.continue_episodes
@@ -194,23 +195,31 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
 
-        def body(loop, u):
+        def advance(loop, u):
             d, diverged = loop
             d = jax.vmap(step, (model_axes, 0, 0 if given else None))(m, d, u)
             d, unstable = restart_unstable(m, d)
-            return (d, diverged | unstable), (physics(m, d), d.sensordata)
+            return (d, diverged | unstable), None
+
+        def record(loop, us):
+            """`record_every` steps (`us`: their control rows), then one recorded frame."""
+            if every == 1:
+                loop, _ = advance(loop, None if us is None else us[0])
+            else:
+                loop, _ = jax.lax.scan(advance, loop, us, length=every)
+            d, diverged = loop
+            frame = jax.vmap(lambda m, d: observe.jax_frame(observations, m, d),
+                             (model_axes, 0))(m, d)
+            finite = observe.jax_finite(observations, frame)
+            return (d, diverged if finite is None else diverged | ~finite), frame
 
         control, bad = applied(m, control, bounds, variant)
-        xs = jnp.swapaxes(control, 0, 1) if given else None
-        (data, diverged), (state, sensordata) = jax.lax.scan(
-            body, (data, bad), xs, length=nstep)
-        outputs = {
-            "state": jnp.swapaxes(state, 0, 1),
-            "sensordata": jnp.swapaxes(sensordata, 0, 1),
-            "control": control,
-            "initial_state": initial,
-            "diverged": diverged,
-        }
+        # (nframes, record_every, nbatch, ncontrol): the rows of each frame's steps
+        xs = (jnp.swapaxes(control, 0, 1).reshape(nframes, every, *control.shape[::2])
+              if given else None)
+        (data, diverged), frames = jax.lax.scan(record, (data, bad), xs, length=nframes)
+        outputs = {key: jnp.swapaxes(value, 0, 1) for key, value in frames.items()}
+        outputs.update(control=control, initial_state=initial, diverged=diverged)
         if params:
             outputs["params"] = params
         overflow = impl.overflow(data)  # sticky bits since the reset: the whole batch's
@@ -218,7 +227,7 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
             outputs["overflow"] = overflow
         if not continuing:
             return outputs, None
-        return outputs, {"state": state[-1], "qacc_warmstart": data.qacc_warmstart,
+        return outputs, {"state": physics(m, data), "qacc_warmstart": data.qacc_warmstart,
                          "params": params}
 
     return simulate

@@ -170,3 +170,13 @@ def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Iterator[None
         if said.is_set():
             print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
                   file=sys.stderr, flush=True)
+
+
+def memory_available(device: jax.Device) -> int:
+    """Bytes JAX may still allocate on `device` (a GPU: its limit less what is in use; the
+    CPU: the host's available memory)."""
+    stats = device.memory_stats() if device.platform == "gpu" else None
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+    from simloader import observe
+    return observe.host_available()
