@@ -368,7 +368,7 @@ class SimloaderMeasure:
         self.first_s = first.first_s
         self.compile_s = self.ds.stats.get("compile_s", 0.0)
         self.shapes = {k: tuple(v.shape) for k, v in first.last.items() if k != "params"}
-        self.device = first.last["state"].device
+        self.device = first.last["control"].device
         del first
 
     def measure(self, nbatches: int) -> float:
