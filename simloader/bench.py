@@ -87,9 +87,15 @@ def jax_has_gpu() -> bool:
 # -- timing -----------------------------------------------------------------------------------
 
 def sync() -> None:
-    """Waits for all queued GPU work (every stream of the device: torch's and JAX's)."""
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
+    """Waits for the GPU work queued on torch's current stream.
+
+    Not a device-wide `torch.cuda.synchronize()`: MuJoCo Warp (`impl="warp"`) may be capturing
+    a CUDA graph on JAX's stream for the next batch meanwhile, and a device-wide synchronize
+    during a capture invalidates it (CUDA error 901). simloader's batches are complete when
+    delivered (it waits for JAX's results), so torch's stream is all there is left to wait for.
+    """
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.current_stream().synchronize()
 
 
 def drain() -> None:
