@@ -318,7 +318,10 @@ class RawMjx:
                                                   getattr(d, n), 0 * getattr(d, n))
                                      for n in _READ})
                 state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
-                return d, (state, d.sensordata)
+                # Warp: an output of its kernels stacked as it is would be written in place at
+                # a new address every step (its CUDA graph captured anew every step)
+                sensordata = d.sensordata + 0 * d.sensordata if impl == "warp" else d.sensordata
+                return d, (state, sensordata)
 
             _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
             # batch-major, as simloader delivers

@@ -45,6 +45,10 @@ class Implementation:
         data they replaced), ready for `mjx.step`."""
         return d
 
+    def detach(self, value: jax.Array) -> jax.Array:
+        """A recorded value as the scan stacks it into the batch's output."""
+        return value
+
     def overflow(self, d: Any) -> Optional[jax.Array]:
         """Per trajectory (of batched `d`), the buffer-overflow bits since the reset, or None
         for an implementation without fixed-size buffers."""

@@ -210,6 +210,7 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
             d, diverged = loop
             frame = jax.vmap(lambda m, d: observe.jax_frame(observations, m, d),
                              (model_axes, 0))(m, d)
+            frame = {key: impl.detach(value) for key, value in frame.items()}
             finite = observe.jax_finite(observations, frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
 
