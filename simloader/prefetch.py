@@ -8,13 +8,27 @@ is re-raised in the consumer with its type and traceback; `close()` stops and jo
 
 from __future__ import annotations
 
+import atexit
 import queue
 import threading
+import weakref
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 _END = object()
 _POLL_S = 0.1
+_LIVE: "weakref.WeakSet[Prefetcher]" = weakref.WeakSet()
+_registered = False
+
+
+def _stop_all() -> None:
+    """At interpreter exit, stops the producers still running (an iterator left open). A
+    daemon thread that comes back from native code (JAX's dispatch, MuJoCo's rollout) after the
+    interpreter began to finalize is killed inside it, which aborts the process ("terminate
+    called ... FATAL: exception not rethrown"). Registered when the first producer starts, so
+    after JAX's own exit handlers and hence run before them."""
+    for prefetcher in list(_LIVE):
+        prefetcher.close()
 
 
 class _Failure:
@@ -31,6 +45,11 @@ class Prefetcher:
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="simloader-prefetch", daemon=True)
+        global _registered
+        if not _registered:
+            atexit.register(_stop_all)
+            _registered = True
+        _LIVE.add(self)
         self._thread.start()
 
     def _put(self, item: Any) -> bool:
