@@ -67,6 +67,12 @@ class SimDataset(torch.utils.data.IterableDataset):
         "sensor:NAME". Each keeps MuJoCo's dtype (int32 and bool fields stay so).
       record_every: record after every k-th step: frame j holds the values after step
         (j + 1) * k; `nstep` must be a multiple of k. `control` still holds every step's row.
+      **backend_options: `backend="mjx"` only: `impl` ("auto", "jax" or "warp": MJX's
+        implementation; "auto" takes MuJoCo Warp for a model with contacts where Warp and a
+        GPU are present), `naconmax`/`njmax` (MuJoCo Warp's buffers; None: sized from the
+        model), `compilation_cache`, `memory_fraction` (see `backends.mjx.check_options`).
+        A Warp batch also holds `overflow` (nbatch,) bool: trajectories that lost contacts or
+        constraint rows to those buffers.
 
     Raises:
       TypeError, ValueError: bad arguments, naming the argument, the expectation and the value;
