@@ -25,7 +25,6 @@ from collections.abc import Callable  # noqa: E402
 import mujoco  # noqa: E402
 
 import common  # noqa: E402
-import simloader  # noqa: E402
 from simloader import bench, controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 

@@ -150,6 +150,3 @@ def solver_notices(bits: jax.Array) -> jax.Array:
 def dropped(bits: jax.Array) -> jax.Array:
     return (bits & ~SOLVER_LIMIT) != 0
 
-
-def zero_overflow(d: Any) -> Any:
-    return d.replace(_impl=d._impl.replace(overflow=jnp.zeros_like(d._impl.overflow)))
