@@ -309,3 +309,16 @@ def test_recorded_fields_every_kth_step_match_the_rollout_backend(rich, cache_di
         assert got[key].shape == want[key].shape == (4, 1, *want[key].shape[2:]), key
         np.testing.assert_allclose(got[key].cpu().numpy(), want[key].numpy(),
                                    atol=ONE_STEP_TOL, err_msg=key)
+
+
+def test_a_bad_input_does_not_reach_later_steps(cache_dir):
+    # each input gets a buffer of its own before a step; one made from the previous step's
+    # (`u + 0 * old`) would carry a NaN force into every later step of that trajectory
+    xfrc = int(S.mjSTATE_XFRC_APPLIED)
+    control = np.random.default_rng(0).uniform(-1, 1, (2, 10, 6 * 3))
+    control[0, 3] = np.nan
+    batch = next(iter(dataset(simloader.load_model("cartpole"), cache_dir, nbatch=2, nstep=10,
+                              control_spec=xfrc, control=control, num_batches=1)))
+    assert batch["diverged"].tolist() == [True, False]
+    time = batch["state"][0, :, 0].cpu().numpy()  # restarted at step 4, then runs on
+    assert time[-1] > time[4] > 0 and np.isfinite(batch["state"].cpu().numpy()).all()

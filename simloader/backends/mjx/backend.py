@@ -14,6 +14,7 @@ persistent cache.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
@@ -104,9 +105,6 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
         raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
                         f"backend='mjx' (its options are {list(OPTIONS)})")
     asked = options.get("impl", "auto")
-    if not isinstance(asked, str):
-        raise TypeError(f"impl: expected one of {('auto', 'jax', 'warp')}, got "
-                        f"{type(asked).__name__} {asked!r}")
     naconmax = _positive("naconmax", options.get("naconmax"))
     njmax = _positive("njmax", options.get("njmax"))
     cache = runtime.cache_dir(options.get("compilation_cache"))
@@ -171,7 +169,7 @@ class MjxBackend(Backend):
                 config, options.implementation(), device)
         self.options = options
         self.device = device
-        self.first = True  # the first batch runs Warp's kernels, compiled on first use
+        self.first = True  # the first batch may compile (Warp's kernels, on first use)
         self.carry: Any = None
         self.restart: Any = None
         if config.continue_episodes:
@@ -206,14 +204,9 @@ class MjxBackend(Backend):
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
         # waiting here also orders the hand-off before any torch stream reads the buffers
-        if self.first and self.options.impl == "warp":
-            with runtime.slow_notice(
-                    "running the first batch", hint="MuJoCo Warp compiles its kernels for this "
-                    "model on first use on a machine (about a minute for a humanoid on an H200, "
-                    "into ~/.cache/warp; later processes load them in seconds). `simloader "
-                    "warmup` does it ahead of time."):
-                outputs = jax.block_until_ready(produced.outputs)
-        else:
+        hint = self.program.impl.first_batch_hint if self.first else None
+        with runtime.slow_notice("running the first batch", hint=hint) if hint \
+                else contextlib.nullcontext():
             outputs = jax.block_until_ready(produced.outputs)
         self.first = False
         ready = time.perf_counter()

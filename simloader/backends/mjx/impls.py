@@ -15,7 +15,6 @@ import dataclasses
 from typing import Any, Optional
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -40,13 +39,17 @@ class Implementation:
         """One trajectory's mjx.Data as `make_data` leaves it."""
         return mjx.make_data(model, device=device, impl=self.name)
 
-    def refresh(self, d: Any, before: Any, names: tuple[str, ...]) -> Any:
-        """`d` after inputs `names` were set from a per-step control row (`before`: the
-        data they replaced), ready for `mjx.step`."""
-        return d
+    # what a user is told while the first batch runs, if it may take long (None: nothing)
+    first_batch_hint: Optional[str] = None
+
+    def refresh(self, d: Any, names: tuple[str, ...]) -> Any:
+        """`d` after inputs `names` were set from a per-step control row, ready for
+        `mjx.step`: each input as `detach` gives it."""
+        return d.replace(**{n: self.detach(getattr(d, n)) for n in names})
 
     def detach(self, value: jax.Array) -> jax.Array:
-        """A recorded value as the scan stacks it into the batch's output."""
+        """`value` in the buffer the implementation needs it in: an input set from the scanned
+        controls before a step, or a recorded value the scan stacks into the batch's output."""
         return value
 
     def overflow(self, d: Any) -> Optional[jax.Array]:
@@ -80,8 +83,11 @@ def choose(asked: str, model: mujoco.MjModel, warp_missing: Optional[str],
     a model with contacts, and JAX otherwise.
 
     Raises:
+      TypeError: `impl` is not a string.
       ValueError: `impl` is unknown, or "warp" was asked where it cannot run (`warp_missing`).
     """
+    if not isinstance(asked, str):
+        raise TypeError(f"impl: expected one of {IMPLS}, got {type(asked).__name__} {asked!r}")
     if asked not in IMPLS:
         raise ValueError(f"impl: expected one of {IMPLS}, got {asked!r}")
     if asked == "warp":
@@ -111,7 +117,3 @@ def has_contacts(model: mujoco.MjModel) -> bool:
     mask = ((contype[:, None] & conaffinity[None, :]) | (conaffinity[:, None] & contype[None, :]))
     mask = (mask != 0) & (body[:, None] != body[None, :])
     return bool(np.triu(mask, 1).any())
-
-
-def floating(d: Any, name: str) -> bool:
-    return jnp.issubdtype(getattr(d, name).dtype, jnp.floating)

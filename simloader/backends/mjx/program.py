@@ -113,7 +113,7 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
 
     def step(m, d, u):
         if given:
-            d = impl.refresh(mjx.set_state(m, d, u, control_spec), d, inputs)
+            d = impl.refresh(mjx.set_state(m, d, u, control_spec), inputs)
         return mjx.step(m, d)
 
     def restart_unstable(m, d):

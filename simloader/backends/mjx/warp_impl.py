@@ -14,8 +14,8 @@ Three things differ from MJX-JAX:
   `WARP`) and re-captures it whenever an input buffer moves. In a `lax.scan`, an input set
   straight from the step's control row is a slice of the scanned array, at a new address every
   step: re-capture every step (0.3-0.6M humanoid steps/s instead of 3.9M, measured on an H200).
-  `refresh` gives every input set from the row a buffer of its own (`x + 0 * old`: XLA cannot
-  fold `0 * old` for floats), which stays put from step to step.
+  `detach` gives every input set from the row, and every recorded output, a buffer of its
+  own (`x + 0 * x`: XLA cannot fold `0 * x` for floats), which stays put from step to step.
 - Which model fields may differ per trajectory: only those MuJoCo Warp stores with a world axis.
 """
 
@@ -29,7 +29,7 @@ import mujoco
 import numpy as np
 
 from simloader import layout
-from simloader.backends.mjx.impls import Implementation, floating
+from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.runtime import mjx
 
 # mujoco_warp's OverflowType bits: the solver stopping at its iteration limits (which MuJoCo C's
@@ -52,6 +52,10 @@ class WarpImpl(Implementation):
     name = "warp"
     # setconst.py recomputes derived constants with MJX-JAX's kinematics, which Warp models lack
     recomputes_constants = False
+    first_batch_hint = ("MuJoCo Warp compiles its kernels for this model on first use on a "
+                        "machine (about a minute for a humanoid on an H200, into ~/.cache/warp; "
+                        "later processes load them in seconds). `simloader warmup` does it "
+                        "ahead of time.")
 
     def __init__(self, naconmax: int, njmax: int):
         self.naconmax, self.njmax = naconmax, njmax
@@ -68,15 +72,13 @@ class WarpImpl(Implementation):
         return mjx.make_data(model, device=device, impl="warp", naconmax=self.naconmax,
                              njmax=self.njmax)
 
-    def refresh(self, d: Any, before: Any, names: tuple[str, ...]) -> Any:
-        return d.replace(**{n: getattr(d, n) + 0 * getattr(before, n) for n in names
-                            if floating(d, n)})
-
     def detach(self, value: jax.Array) -> jax.Array:
-        # an output of Warp's kernels stacked as it is into the scan's output would be written
-        # in place, at another address every step: its CUDA graph captured anew every step
-        # (measured: recording xpos halved the humanoid's throughput). A buffer of its own
-        # keeps the graph's addresses put (floats only: XLA folds `0 * x` for integers)
+        # Warp's CUDA graph is captured anew whenever a buffer it reads or writes moves. An
+        # input set from a slice of the scanned controls, or a kernel output stacked as it is
+        # into the scan's output (written in place), is at another address every step
+        # (measured: 0.6M humanoid steps/s, and recording xpos halved throughput). A buffer
+        # of its own stays put. `x + 0 * x`, not `+ 0 * old`: a bad input of one step does
+        # not reach the next (floats only: XLA folds `0 * x` for integers)
         return value + 0 * value if jnp.issubdtype(value.dtype, jnp.floating) else value
 
     def overflow(self, d: Any) -> jax.Array:
