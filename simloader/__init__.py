@@ -9,12 +9,14 @@
 from simloader import controls, initial, layout, observe, randomize
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
+from simloader.observe import Camera
 from simloader.models import builtin_models, builtin_path, describe, load_model, named_models
 
 __version__ = "0.1.0"
 
 __all__ = [
     "Batch",
+    "Camera",
     "SimDataset",
     "builtin_models",
     "builtin_path",

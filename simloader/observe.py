@@ -11,6 +11,9 @@ Kinds of names:
   "qpos", "xpos", .. `Field`: an `MjData` field (a state component or anything `mj_step`
                      computes), with the field's own trailing shape and dtype.
   "sensor:NAME"      `Sensor`: one sensor's columns of `sensordata`.
+  Camera(...)        `CameraImage`s: a camera's RGB, depth and segmentation images, each its
+                     own batch key ("camera/NAME/rgb", ...). These are rendered, not recorded
+                     by `mujoco.batch` (`Observation.rendered`).
 """
 
 from __future__ import annotations
@@ -74,6 +77,12 @@ class Observation:
         """Whether `dtype=` applies to it (and the divergence check covers it)."""
         return self.dtype.kind == "f"
 
+    @property
+    def rendered(self) -> bool:
+        """Whether it is an image rendered from the simulation's state rather than a value
+        the simulation computes (a `CameraImage`)."""
+        return False
+
     def select(self, recorded: Any) -> Any:
         """This observation out of its source's recorded `(nbatch, nframes, *source_shape)`
         buffer (a NumPy array or torch tensor): a view, no copy."""
@@ -136,11 +145,126 @@ class Sensor(Observation):
         return d.sensordata[self.columns[0]:self.columns[1]]
 
 
+CAMERA_PREFIX = "camera/"
+# what a Camera delivers: batch key suffix -> (dtype, channels or None)
+IMAGE_KINDS = {"rgb": (np.dtype(np.uint8), 3), "depth": (np.dtype(np.float32), None),
+               "segmentation": (np.dtype(np.int32), None)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """A camera to render in every recorded frame, for `record=`.
+
+    Args:
+      camera: the camera's name or id in the model; -1 is the free camera (MuJoCo's default
+        view).
+      height, width: the image size in pixels.
+      rgb: deliver `"camera/NAME/rgb"`, uint8 `(nbatch, nframes, height, width, 3)`.
+      depth: deliver `"camera/NAME/depth"`, float32 metres from the camera,
+        `(nbatch, nframes, height, width)`.
+      segmentation: deliver `"camera/NAME/segmentation"`, int32 geom ids, -1 where no geom
+        is seen, `(nbatch, nframes, height, width)`.
+
+    NAME is the camera's name; an unnamed camera is named by its id, the free camera "free".
+    """
+
+    camera: Union[str, int]
+    height: int = 64
+    width: int = 64
+    rgb: bool = True
+    depth: bool = False
+    segmentation: bool = False
+
+    def __post_init__(self):
+        if isinstance(self.camera, bool) or not isinstance(self.camera, (str, int, np.integer)):
+            raise TypeError(f"Camera: camera must be a camera name (str) or id (int, -1 for the "
+                            f"free camera), got {type(self.camera).__name__} {self.camera!r}")
+        for name in ("height", "width"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"Camera: {name} must be a positive int (pixels), got "
+                                 f"{value!r}")
+        for name in IMAGE_KINDS:
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise TypeError(f"Camera: {name} must be a bool, got "
+                                f"{getattr(self, name)!r}")
+        if not (self.rgb or self.depth or self.segmentation):
+            raise ValueError(f"Camera: at least one of rgb, depth and segmentation must be True, "
+                             f"got {self!r}")
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        """The images asked for, in the order "rgb", "depth", "segmentation"."""
+        return tuple(k for k in IMAGE_KINDS if getattr(self, k))
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraImage(Observation):
+    """One image of a `Camera`: `kind` ("rgb", "depth" or "segmentation") of camera
+    `camera_id` (-1: the free camera), as asked by `camera`."""
+
+    camera: Optional[Camera] = None
+    camera_id: int = -1
+    kind: str = "rgb"
+
+    @property
+    def floating(self) -> bool:
+        # depth stays float32 metres whatever `dtype=` says, and far planes are not divergence
+        return False
+
+    @property
+    def rendered(self) -> bool:
+        return True
+
+    def select(self, recorded: Any) -> Any:
+        return recorded
+
+
+def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, ...]:
+    """The observations of `camera`, validated against the model.
+
+    Raises:
+      ValueError: an unknown camera name or an id out of range.
+    """
+    names = [layout.object_name(model, mujoco.mjtObj.mjOBJ_CAMERA, i, "camera")
+             for i in range(model.ncam)]
+    if isinstance(camera.camera, str):
+        cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera.camera)
+        if cam < 0:
+            raise ValueError(f"record: the model has no camera {camera.camera!r}"
+                             f"{layout.did_you_mean(camera.camera, names)}; its cameras: "
+                             f"{names or '(none)'}, or -1 for the free camera")
+    else:
+        cam = int(camera.camera)
+        if not -1 <= cam < model.ncam:
+            raise ValueError(f"record: Camera(camera={cam}) is out of range: the model has "
+                             f"{model.ncam} cameras (ids 0 to {model.ncam - 1}), and -1 is the "
+                             f"free camera")
+    name = "free" if cam < 0 else (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam)
+                                   or str(cam))
+    out = []
+    for kind in camera.kinds:
+        dtype, channels = IMAGE_KINDS[kind]
+        shape = (camera.height, camera.width) + ((channels,) if channels else ())
+        key = f"{CAMERA_PREFIX}{name}/{kind}"
+        out.append(CameraImage(key, shape, dtype, key, shape, None, camera, cam, kind))
+    return tuple(out)
+
+
+def cameras(observations: Sequence[Observation]) -> dict[Camera, tuple[CameraImage, ...]]:
+    """The cameras among `observations`, each with its images, in the order given."""
+    out: dict[Camera, list[CameraImage]] = {}
+    for o in observations:
+        if isinstance(o, CameraImage):
+            out.setdefault(o.camera, []).append(o)
+    return {cam: tuple(images) for cam, images in out.items()}
+
+
 def jax_frame(observations: Sequence[Observation], m: Any, d: Any) -> dict[str, Any]:
     """One frame of every observation, `{key: (*shape)}`, from one trajectory's `mjx.Model` and
     `mjx.Data` (pure: for `jax.vmap` inside the scan body, whose stacked outputs are then
     `(nframes, nbatch, *shape)`)."""
-    return {o.key: o.jax_value(m, d) for o in observations}
+    return {o.key: o.jax_value(m, d) for o in observations if not o.rendered}
 
 
 def jax_finite(observations: Sequence[Observation], frame: dict[str, Any]) -> Any:
@@ -189,15 +313,24 @@ def parse(model: mujoco.MjModel, record: Any) -> tuple[Observation, ...]:
         given twice, a field that holds no per-step values, or one `mj_step` does not compute
         for this model.
     """
-    if isinstance(record, str) or not isinstance(record, Sequence):
-        raise TypeError(f"record: expected a sequence of names such as {DEFAULT}, got "
-                        f"{type(record).__name__} {record!r}")
+    if isinstance(record, (str, Camera)) or not isinstance(record, Sequence):
+        raise TypeError(f"record: expected a sequence of names such as {DEFAULT} (and "
+                        f"simloader.Camera), got {type(record).__name__} {record!r}")
     if not record:
         raise ValueError("record: expected at least one name, got an empty sequence")
     out, seen, data = [], set(), mujoco.MjData(model)
     for name in record:
+        if isinstance(name, Camera):
+            for image in camera_images(model, name):
+                if image.key in seen:
+                    raise ValueError(f"record: {image.key!r} is asked twice (two Cameras of "
+                                     f"the same camera and image); give each camera once")
+                seen.add(image.key)
+                out.append(image)
+            continue
         if not isinstance(name, str):
-            raise TypeError(f"record: expected names (str), got {type(name).__name__} {name!r}")
+            raise TypeError(f"record: expected names (str) or simloader.Camera, got "
+                            f"{type(name).__name__} {name!r}")
         if name in seen:
             raise ValueError(f"record: {name!r} is given twice")
         seen.add(name)
