@@ -179,8 +179,8 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
             backend: str) -> tuple[tuple[observe.Observation, ...], int]:
     """The observations `record` names and the validated `record_every`."""
     observations = observe.parse(model, record)
-    if any(o.rendered for o in observations):  # the backends' renderers are being built
-        raise ValueError("record: simloader.Camera is not supported yet")
+    if backend == "rollout" and any(o.rendered for o in observations):
+        raise ValueError("record: simloader.Camera is not supported yet on backend='rollout'")
     record_every = _int("record_every", record_every, 1)
     if nstep % record_every:
         raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "

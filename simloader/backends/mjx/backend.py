@@ -32,7 +32,7 @@ from simloader import handoff, observe, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import runtime, warp_impl
+from simloader.backends.mjx import render, runtime, warp_impl
 from simloader.backends.mjx.impls import Implementation, choose
 from simloader.backends.mjx.pool import put_models
 from simloader.backends.mjx.program import Program
@@ -111,7 +111,8 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
     fraction = runtime.configure_memory(options.get("memory_fraction"))
     runtime.configure_cache(cache)
     device = runtime.jax_device(config.device)
-    choice = choose(asked, config.model, runtime.warp_missing(device))
+    images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
+    choice = choose(asked, config.model, runtime.warp_missing(device), cameras=bool(images))
     if choice.impl != "warp" and (naconmax is not None or njmax is not None):
         raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need impl='warp', "
                          f"but impl resolved to {choice.impl!r} ({choice.reason})")
@@ -123,6 +124,9 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
     impl = resolved.implementation()
     mx, _ = put_models(config, impl, device)
     observe.check_mjx(config.observations, impl.make_data(config.model, device), impl.name)
+    why = render.refusal(images, impl.name)
+    if why:
+        raise ValueError(f"record: backend='mjx' cannot render {[o.key for o in images]}: {why}")
     # the batches in flight (prefetched, being simulated, being consumed), float32 outputs
     observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
                              f"memory", count=config.prefetch + 2, itemsize=4)
@@ -217,9 +221,10 @@ class MjxBackend(Backend):
                        batches=1, steps=c.nbatch * c.nstep,
                        diverged=int(np.count_nonzero(outputs["diverged"])))
         self.last_ready = ready
-        # `dtype=` converts floating outputs; integer and bool records keep their dtype
+        # `dtype=` converts floating outputs; integer and bool records, and images (depth
+        # stays float32 metres), keep their dtype
         batch = {key: self._tensor(array, c.dtype if jnp.issubdtype(array.dtype, jnp.floating)
-                                   else None)
+                                   and key not in self.program.rendered else None)
                  for key, array in outputs.items() if key not in ("params", "overflow")}
         if "overflow" in outputs:
             batch["overflow"] = handoff.to_target(

@@ -100,6 +100,8 @@ def choose(asked: str, model: mujoco.MjModel, warp_missing: Optional[str],
         return Choice("jax", "asked")
     if warp_missing:
         return Choice("jax", f"auto: {warp_missing}")
+    if cameras:
+        return Choice("warp", "auto: cameras render only on MuJoCo Warp")
     if has_contacts(model):
         return Choice("warp", "auto: the model has contacts, where MuJoCo Warp is faster")
     return Choice("jax", "auto: the model has no contacts, where MJX-JAX is faster")

@@ -42,6 +42,7 @@ from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import PHYSICS, pool, pooled, put_models
+from simloader.backends.mjx.render import Renderer
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
@@ -68,7 +69,8 @@ def _key(seed: jax.Array) -> jax.Array:
 
 
 def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axes: Any,
-                   randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype) -> Callable:
+                   randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype,
+                   renderer: Optional[Renderer] = None) -> Callable:
     """The pure function that simulates one batch of configuration `c`.
 
     The returned `simulate(model, data0, inputs0, x0, control, bounds, seeds, variant, carry,
@@ -210,6 +212,9 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
             d, diverged = loop
             frame = jax.vmap(lambda m, d: observe.jax_frame(observations, m, d),
                              (model_axes, 0))(m, d)
+            if renderer is not None:  # only the recorded frames: rendering is the costly part
+                d, images = renderer(m, d, model_axes)
+                frame.update(images)
             frame = {key: impl.detach(value) for key, value in frame.items()}
             finite = observe.jax_finite(observations, frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
@@ -269,8 +274,13 @@ class Program:
         self.param_keys = (("variant",) if c.variants is not None else
                            () if c.randomization is None else
                            tuple(r.param.key for r in c.randomization.resolved))
+        images = [o for o in c.observations if o.rendered]
+        self.rendered = frozenset(o.key for o in images)
+        randomized = () if c.randomization is None else tuple(
+            r.field for r in c.randomization.resolved)
+        self.renderer = Renderer(c.model, images, c.nbatch, randomized) if images else None
         self.jitted = jax.jit(batch_function(c, impl, model_axes, pool_axes, self.randomizer,
-                                             self.dtype))
+                                             self.dtype, self.renderer))
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
 

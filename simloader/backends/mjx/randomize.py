@@ -43,7 +43,11 @@ _ACTUATION = ("actuator_gainprm", "actuator_biasprm", "actuator_dynprm", "actuat
               "jnt_actfrcrange", "tendon_actfrcrange")
 _OPTIONS = ("opt.gravity", "opt.timestep", "opt.impratio", "opt.tolerance", "opt.ls_tolerance",
             "opt.magnetic", "opt.density", "opt.viscosity", "opt.wind")
-FIELDS = (_CONTACT + _CONSTRAINTS + _PASSIVE + _ACTUATION + mjx_setconst.INPUTS + _OPTIONS)
+# what cameras see (MuJoCo Warp's renderer reads them per world; no effect on the physics)
+_LOOKS = ("geom_rgba", "mat_rgba", "mat_emission", "mat_specular", "mat_shininess",
+          "light_ambient", "light_diffuse", "light_specular", "light_attenuation", "cam_fovy")
+FIELDS = (_CONTACT + _CONSTRAINTS + _PASSIVE + _ACTUATION + mjx_setconst.INPUTS + _OPTIONS
+          + _LOOKS)
 
 # MJX keeps constraint rows only for the dofs and tendons whose friction loss is > 0 in the model
 _FRICTIONLOSS = ("dof_frictionloss", "tendon_frictionloss")
