@@ -264,6 +264,8 @@ class RawMjx:
         step; kept to show what that costs).
       check: after each step, put back rows whose state is not finite (a per-row select over
         what a step reads, as simloader's divergence check does).
+      render: after each step, `render(mx, d) -> (d, {key: images})` on the batched data
+        (e.g. MuJoCo Warp's renderer); the images are returned batch-major with the rest.
 
     Attributes:
       compile_s: seconds to trace and compile; first_s: to the first batch in hand;
@@ -272,12 +274,14 @@ class RawMjx:
 
     def __init__(self, model: mujoco.MjModel, w: Workload, seed: int, impl: str = "jax",
                  naconmax: Optional[int] = None, njmax: Optional[int] = None,
-                 controls: bool = True, refresh: bool = True, check: bool = False):
+                 controls: bool = True, refresh: bool = True, check: bool = False,
+                 render: Optional[Callable[[Any, Any], tuple[Any, dict]]] = None):
         import jax
         import jax.numpy as jnp
         from simloader.backends.mjx.runtime import mjx  # (imports MJX without its warp print)
 
         self.w = w
+        self.render = render  # alive as long as the compiled function (it may own buffers)
         self.mx = mjx.put_model(model, impl=impl)
         if impl == "warp":
             # no printf from the kernels (MuJoCo Warp's default prints a notice every step the
@@ -321,12 +325,16 @@ class RawMjx:
                 # Warp: an output of its kernels stacked as it is would be written in place at
                 # a new address every step (its CUDA graph captured anew every step)
                 sensordata = d.sensordata + 0 * d.sensordata if impl == "warp" else d.sensordata
-                return d, (state, sensordata)
+                images = {}
+                if render is not None:
+                    d, images = render(mx, d)
+                return d, (state, sensordata, images)
 
-            _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
+            _, (state, sensordata, images) = jax.lax.scan(body, d, ctrl)
             # batch-major, as simloader delivers
             return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
-                    "control": ctrl.swapaxes(0, 1)}
+                    "control": ctrl.swapaxes(0, 1),
+                    **{k: v.swapaxes(0, 1) for k, v in images.items()}}
 
         start = time.perf_counter()
         # the same matmul precision as simloader's (JAX's GPU default is TF32)
