@@ -100,8 +100,8 @@ def rays(model, qpos, camera, height, width):
 
 def check_view(model, batch, key, qpos, height, width):
     name = key.split("/")[1]
-    seg = batch[f"camera/{name}/segmentation"].numpy()
-    depth = batch[f"camera/{name}/depth"].numpy()
+    seg = batch[f"camera/{name}/segmentation"].cpu().numpy()
+    depth = batch[f"camera/{name}/depth"].cpu().numpy()
     for i in range(seg.shape[0]):
         for j in range(seg.shape[1]):
             geom, planar = rays(model, qpos[i, j], name, height, width)
@@ -122,7 +122,7 @@ def test_images_show_the_recorded_state_from_every_camera_mode(cameras_model, ca
     x0[:, 8:14] = [[1.0, 0.5, 3.0, 2.0, -3.0, 1.0], [-1.0, 0.0, 2.0, -2.0, 1.0, 4.0]]
     batch = first(dataset(cameras_model, cache_dir, nbatch=nbatch, nstep=30, record_every=15,
                           initial_state=x0, record=("qpos", *cams)))
-    qpos = batch["qpos"].numpy().astype(np.float64)
+    qpos = batch["qpos"].cpu().numpy().astype(np.float64)
     # the box moved and turned between frames: a lagging pose would show
     assert np.abs(qpos[:, 1, :3] - qpos[:, 0, :3]).max() > 0.1
     for cam in cams:
@@ -132,8 +132,8 @@ def test_images_show_the_recorded_state_from_every_camera_mode(cameras_model, ca
         assert batch[f"camera/{cam.camera}/segmentation"].dtype == torch.int32
         check_view(cameras_model, batch, key, qpos, h, w)
     # the box and its nose are seen in colour: red box, green nose
-    rgb = batch["camera/fixed/rgb"].numpy().reshape(-1, 3).astype(int)
-    seg = batch["camera/fixed/segmentation"].numpy().ravel()
+    rgb = batch["camera/fixed/rgb"].cpu().numpy().reshape(-1, 3).astype(int)
+    seg = batch["camera/fixed/segmentation"].cpu().numpy().ravel()
     box = rgb[seg == 1]
     assert len(box) and (box[:, 0] > box[:, 1] + 40).mean() > 0.9
 
@@ -155,7 +155,7 @@ def test_cartpole_rgb_uint8_and_float64_keeps_depth_float32(cache_dir):
     assert batch["qpos"].dtype == torch.float64
     assert batch["camera/front/rgb"].shape == (2, 2, 64, 64, 3)
     assert batch["camera/front/depth"].dtype == torch.float32
-    rgb = batch["camera/front/rgb"].numpy()
+    rgb = batch["camera/front/rgb"].cpu().numpy()
     assert rgb.max() > 100 and len(np.unique(rgb)) > 10  # lit, not blank
 
 
@@ -163,9 +163,9 @@ def test_randomized_colours_show_per_trajectory(cache_dir):
     spec = [dr.set("geom_rgba", dr.Uniform(0.0, 1.0), on="cart", index=[0, 1, 2])]
     batch = first(dataset("cartpole", cache_dir, nbatch=4, nstep=1, randomize=spec,
                           record=(simloader.Camera("front", segmentation=True),)))
-    rgba = batch["params"]["geom_rgba[cart]"].numpy().reshape(4, 3)
-    seg = batch["camera/front/segmentation"].numpy()[:, 0]
-    rgb = batch["camera/front/rgb"].numpy()[:, 0].astype(float)
+    rgba = batch["params"]["geom_rgba[cart]"].cpu().numpy().reshape(4, 3)
+    seg = batch["camera/front/segmentation"].cpu().numpy()[:, 0]
+    rgb = batch["camera/front/rgb"].cpu().numpy()[:, 0].astype(float)
     cart = mujoco.mj_name2id(simloader.load_model("cartpole"), mujoco.mjtObj.mjOBJ_GEOM, "cart")
     means = np.stack([rgb[i][seg[i] == cart].mean(axis=0) for i in range(4)])
     # shading scales each channel alike: the seen colour follows the drawn one
