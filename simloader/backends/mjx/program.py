@@ -68,10 +68,151 @@ def _key(seed: jax.Array) -> jax.Array:
     return jax.random.fold_in(jax.random.key(seed[0]), seed[1])
 
 
-def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axes: Any,
-                   randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype,
-                   renderer: Optional[Renderer] = None) -> Callable:
-    """The pure function that simulates one batch of configuration `c`.
+class Pieces:
+    """The pure pieces of one batch of configuration `c`, shared by both drivers: the open
+    loop (`batch_function`: one fused scan) and the closed loop (`closed_loop_functions`: one
+    jitted step per call, a torch policy between calls).
+
+    Only plain values are captured: the program that holds these functions is cached per
+    configuration and must not keep the configuration alive.
+    """
+
+    def __init__(self, c: SimConfig, impl: Implementation, model_axes: Any, pool_axes: Any,
+                 randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype,
+                 renderer: Optional[Renderer]):
+        self.impl, self.model_axes, self.pool_axes = impl, model_axes, pool_axes
+        self.randomizer, self.dtype, self.renderer = randomizer, dtype, renderer
+        self.nbatch, self.nstep, self.control_spec = c.nbatch, c.nstep, c.control_spec
+        self.drivers = c.control.drivers
+        self.inputs = tuple(component.name for component in c.control.components)
+        self.observations, self.every, self.nframes = c.observations, c.record_every, c.nframes
+        # control=None leaves inputs alone; a policy always sets them
+        self.given = (c.control.fixed is not None or bool(self.drivers)
+                      or getattr(c, "policy", None) is not None)
+        self.shape = (c.nbatch, c.nstep, c.ncontrol)
+        self.per_model, self.continuing = pooled(c), c.continue_episodes
+        self.variants, self.fixed_control = c.variants is not None, c.control.fixed is not None
+        self.x0_per_variant = self.variants and c.initial.from_model
+        self.randomized_ctrlrange = c.randomization is not None and any(
+            r.field == "actuator_ctrlrange" for r in c.randomization.resolved)
+        self.ctrl_model = c.model if self.randomized_ctrlrange else None
+
+    def reset(self, m, d0, inputs0, x0):
+        """One trajectory as mj_resetData leaves it, with the physics state `x0`."""
+        d = mjx.set_state(m, d0, inputs0, MODEL_INPUTS)
+        return mjx.set_state(m, d, x0, PHYSICS)
+
+    def step(self, m, d, u):
+        """One trajectory's step, its `control_spec` inputs set from the row `u` first."""
+        if self.given:
+            d = self.impl.refresh(mjx.set_state(m, d, u, self.control_spec), self.inputs)
+        return mjx.step(m, d)
+
+    def restart_unstable(self, m, d):
+        """Flags the trajectories (of batched `d`) that went unstable, and restarts them as
+        mj_resetData leaves them, as MuJoCo does: their NaNs are never delivered, and the
+        solver loops of the whole batch, which run until every trajectory converges, do not
+        keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
+        # NaN compares False, so `<=` catches NaN, Inf and huge values at once
+        stable = (jnp.all(jnp.abs(self.physics(m, d)) <= _MAXVAL, axis=-1)
+                  & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
+                  & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
+
+        def keep(x, reset):
+            return jnp.where(_rows(stable, x), x, reset)
+
+        # a step reads only these of the previous one (besides the inputs, which are not
+        # simulated); mj_resetData zeroes all but qpos
+        d = d.replace(time=keep(d.time, 0.0), qpos=keep(d.qpos, m.qpos0),
+                      qvel=keep(d.qvel, 0.0), act=keep(d.act, 0.0),
+                      qacc_warmstart=keep(d.qacc_warmstart, 0.0),
+                      sensordata=keep(d.sensordata, 0.0))
+        return d, ~stable
+
+    def physics(self, m, d):
+        return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (self.model_axes, 0))(m, d)
+
+    def draw(self, defaults, seed, drivers):
+        """(nbatch, nstep, ncontrol): `defaults` rows with the `drivers`' columns drawn."""
+        control = jnp.broadcast_to(defaults[:, None, :], self.shape)
+        for driver, k in zip(drivers, jax.random.split(_key(seed), len(drivers))):
+            params = {name: jnp.asarray(v, self.dtype) for name, v in driver.params.items()}
+            sample = driver.generator.sample_jax(k, params,
+                                                 (*self.shape[:2], len(driver.columns)))
+            control = control.at[..., driver.columns].set(sample.astype(self.dtype))
+        return control
+
+    def bounds(self, m, bounds, variant):
+        """(low, high), each (nbatch or 1, ncontrol): the range MuJoCo clamps each
+        trajectory's controls to (its model's ctrlrange where it clamps)."""
+        if self.ctrl_model is not None:
+            return controls.applied_bounds([self.ctrl_model], self.control_spec,
+                                           ctrlrange=m.actuator_ctrlrange, xp=jnp)
+        low, high = bounds  # per model of the pool, or one row
+        if self.variants:
+            low, high = low[variant], high[variant]
+        return low, high
+
+    def begin(self, m, d0, inputs0, x0, control, seeds, variant, carry, restart):
+        """The batch's models, its trajectories reset (or continued), and what it delivers
+        besides frames: (m, data, control, variant, params)."""
+        params = {}  # the values each trajectory runs with, delivered in `params`
+        if self.variants:
+            if self.continuing:
+                variant = _restarted(restart, variant, carry["params"]["variant"])
+            m = mjx_randomize.gather(m, self.pool_axes, variant)
+            inputs0 = inputs0[variant]
+            control = control if self.fixed_control else control[variant]
+            x0 = x0[variant] if self.x0_per_variant else x0
+            params["variant"] = variant
+        if self.randomizer is not None:
+            values = self.randomizer.plan.sample_jax(_key(seeds[1]), self.nbatch, self.dtype)
+            if self.continuing:
+                values = {k: _restarted(restart, v, carry["params"][k])
+                          for k, v in values.items()}
+            m = self.randomizer(m, d0, values, self.nbatch)
+            params.update(values)
+        if self.continuing:
+            # a step reads no more of the previous one than its physics state and the solver
+            # warmstart (inputs are set before every step): carrying only these restores the
+            # trajectory exactly, and makes a small checkpoint
+            x0 = _restarted(restart, x0, carry["state"])
+        data = jax.vmap(self.reset, (self.model_axes, None, 0 if self.per_model else None, 0))(
+            m, d0, inputs0, x0)
+        if self.continuing:
+            data = data.replace(qacc_warmstart=_restarted(
+                restart, jnp.zeros_like(data.qacc_warmstart), carry["qacc_warmstart"]))
+        return m, data, control, variant, params
+
+    def observe(self, m, d):
+        """One frame of every observation of the batched `d` (cameras rendered): (d, {key:
+        (nbatch, *shape)}), each in a buffer of its own (`Implementation.detach`)."""
+        frame = jax.vmap(lambda m, d: observe.jax_frame(self.observations, m, d),
+                         (self.model_axes, 0))(m, d)
+        if self.renderer is not None:  # only the recorded frames: rendering is the costly part
+            d, images = self.renderer(m, d, self.model_axes)
+            frame.update(images)
+        return d, {key: self.impl.detach(value) for key, value in frame.items()}
+
+    def finite(self, frame):
+        """(nbatch,) bool, or None with no floating observation."""
+        return observe.jax_finite(self.observations, frame)
+
+    def finish(self, m, data, outputs, params):
+        """The batch's outputs completed, and the carry of `continue_episodes`."""
+        if params:
+            outputs["params"] = params
+        overflow = self.impl.overflow(data)  # sticky bits since the reset: the whole batch's
+        if overflow is not None:
+            outputs["overflow"] = overflow
+        if not self.continuing:
+            return outputs, None
+        return outputs, {"state": self.physics(m, data), "qacc_warmstart": data.qacc_warmstart,
+                         "params": params}
+
+
+def batch_function(pieces: Pieces) -> Callable:
+    """The pure function that simulates one batch open loop: one scan over the batch's steps.
 
     The returned `simulate(model, data0, inputs0, x0, control, bounds, seeds, variant, carry,
     restart)` takes:
@@ -96,111 +237,22 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
     It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
     the carry for the next batch.
     """
-    # only plain values are captured: the program that holds this function is cached per
-    # configuration and must not keep the configuration alive
-    nbatch, nstep, control_spec, drivers = c.nbatch, c.nstep, c.control_spec, c.control.drivers
-    inputs = tuple(component.name for component in c.control.components)
-    observations, every, nframes = c.observations, c.record_every, c.nframes
-    given = c.control.fixed is not None or bool(drivers)  # control=None leaves inputs alone
-    shape = (nbatch, nstep, c.ncontrol)
-    per_model, continuing = pooled(c), c.continue_episodes
-    variants, fixed_control = c.variants is not None, c.control.fixed is not None
-    x0_per_variant = variants and c.initial.from_model
-    randomized_ctrlrange = c.randomization is not None and any(
-        r.field == "actuator_ctrlrange" for r in c.randomization.resolved)
-
-    def reset(m, d0, inputs0, x0):
-        d = mjx.set_state(m, d0, inputs0, MODEL_INPUTS)
-        return mjx.set_state(m, d, x0, PHYSICS)
-
-    def step(m, d, u):
-        if given:
-            d = impl.refresh(mjx.set_state(m, d, u, control_spec), inputs)
-        return mjx.step(m, d)
-
-    def restart_unstable(m, d):
-        """Flags the trajectories (of batched `d`) that went unstable, and restarts them as
-        mj_resetData leaves them, as MuJoCo does: their NaNs are never delivered, and the
-        solver loops of the whole batch, which run until every trajectory converges, do not
-        keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
-        # NaN compares False, so `<=` catches NaN, Inf and huge values at once
-        stable = (jnp.all(jnp.abs(physics(m, d)) <= _MAXVAL, axis=-1)
-                  & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
-                  & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
-
-        def keep(x, reset):
-            return jnp.where(_rows(stable, x), x, reset)
-
-        # a step reads only these of the previous one (besides the inputs, which are not
-        # simulated); mj_resetData zeroes all but qpos
-        d = d.replace(time=keep(d.time, 0.0), qpos=keep(d.qpos, m.qpos0),
-                      qvel=keep(d.qvel, 0.0), act=keep(d.act, 0.0),
-                      qacc_warmstart=keep(d.qacc_warmstart, 0.0),
-                      sensordata=keep(d.sensordata, 0.0))
-        return d, ~stable
-
-    def physics(m, d):
-        return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (model_axes, 0))(m, d)
-
-    def draw(defaults, seed):
-        control = jnp.broadcast_to(defaults[:, None, :], shape)
-        for driver, k in zip(drivers, jax.random.split(_key(seed), len(drivers))):
-            params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
-            sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
-            control = control.at[..., driver.columns].set(sample.astype(dtype))
-        return control
-
-    def applied(m, control, bounds, variant):
-        """The control rows as MuJoCo applies them (clamped to each trajectory's model's
-        ctrlrange where it clamps), and the trajectories given a bad (non-finite or absurd)
-        control, which are flagged diverged as on the rollout backend."""
-        if randomized_ctrlrange:
-            low, high = controls.applied_bounds([c.model], control_spec,
-                                                ctrlrange=m.actuator_ctrlrange, xp=jnp)
-        else:
-            low, high = bounds  # per model of the pool, or one row
-            if variants:
-                low, high = low[variant], high[variant]
-        return (controls.clamp_applied(control, low[:, None], high[:, None], jnp),
-                controls.bad_controls(control))
+    P = pieces
+    every, nframes, given, shape = P.every, P.nframes, P.given, P.shape
 
     def simulate(m, d0, inputs0, x0, control, bounds, seeds, variant, carry, restart):
-        params = {}  # the values each trajectory runs with, delivered in `params`
-        if variants:
-            if continuing:
-                variant = _restarted(restart, variant, carry["params"]["variant"])
-            m = mjx_randomize.gather(m, pool_axes, variant)
-            inputs0 = inputs0[variant]
-            control = control if fixed_control else control[variant]
-            x0 = x0[variant] if x0_per_variant else x0
-            params["variant"] = variant
-        if randomizer is not None:
-            values = randomizer.plan.sample_jax(_key(seeds[1]), nbatch, dtype)
-            if continuing:
-                values = {k: _restarted(restart, v, carry["params"][k])
-                          for k, v in values.items()}
-            m = randomizer(m, d0, values, nbatch)
-            params.update(values)
-        if continuing:
-            # a step reads no more of the previous one than its physics state and the solver
-            # warmstart (inputs are set before every step): carrying only these restores the
-            # trajectory exactly, and makes a small checkpoint
-            x0 = _restarted(restart, x0, carry["state"])
-        data = jax.vmap(reset, (model_axes, None, 0 if per_model else None, 0))(
-            m, d0, inputs0, x0)
-        if continuing:
-            data = data.replace(qacc_warmstart=_restarted(
-                restart, jnp.zeros_like(data.qacc_warmstart), carry["qacc_warmstart"]))
-        initial = physics(m, data)
-        if drivers:
-            control = draw(control, seeds[0])
+        m, data, control, variant, params = P.begin(m, d0, inputs0, x0, control, seeds,
+                                                    variant, carry, restart)
+        initial = P.physics(m, data)
+        if P.drivers:
+            control = P.draw(control, seeds[0], P.drivers)
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
 
         def advance(loop, u):
             d, diverged = loop
-            d = jax.vmap(step, (model_axes, 0, 0 if given else None))(m, d, u)
-            d, unstable = restart_unstable(m, d)
+            d = jax.vmap(P.step, (P.model_axes, 0, 0 if given else None))(m, d, u)
+            d, unstable = P.restart_unstable(m, d)
             return (d, diverged | unstable), None
 
         def record(loop, us):
@@ -210,31 +262,22 @@ def batch_function(c: SimConfig, impl: Implementation, model_axes: Any, pool_axe
             else:
                 loop, _ = jax.lax.scan(advance, loop, us, length=every)
             d, diverged = loop
-            frame = jax.vmap(lambda m, d: observe.jax_frame(observations, m, d),
-                             (model_axes, 0))(m, d)
-            if renderer is not None:  # only the recorded frames: rendering is the costly part
-                d, images = renderer(m, d, model_axes)
-                frame.update(images)
-            frame = {key: impl.detach(value) for key, value in frame.items()}
-            finite = observe.jax_finite(observations, frame)
+            d, frame = P.observe(m, d)
+            finite = P.finite(frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
 
-        control, bad = applied(m, control, bounds, variant)
+        # the control rows as MuJoCo applies them (clamped where it clamps); a bad (non-finite
+        # or absurd) control flags its trajectory diverged, as on the rollout backend
+        low, high = P.bounds(m, bounds, variant)
+        bad = controls.bad_controls(control)
+        control = controls.clamp_applied(control, low[:, None], high[:, None], jnp)
         # (nframes, record_every, nbatch, ncontrol): the rows of each frame's steps
         xs = (jnp.swapaxes(control, 0, 1).reshape(nframes, every, *control.shape[::2])
               if given else None)
         (data, diverged), frames = jax.lax.scan(record, (data, bad), xs, length=nframes)
         outputs = {key: jnp.swapaxes(value, 0, 1) for key, value in frames.items()}
         outputs.update(control=control, initial_state=initial, diverged=diverged)
-        if params:
-            outputs["params"] = params
-        overflow = impl.overflow(data)  # sticky bits since the reset: the whole batch's
-        if overflow is not None:
-            outputs["overflow"] = overflow
-        if not continuing:
-            return outputs, None
-        return outputs, {"state": physics(m, data), "qacc_warmstart": data.qacc_warmstart,
-                         "params": params}
+        return P.finish(m, data, outputs, params)
 
     return simulate
 
@@ -279,8 +322,9 @@ class Program:
         randomized = () if c.randomization is None else tuple(
             r.field for r in c.randomization.resolved)
         self.renderer = Renderer(c.model, images, c.nbatch, randomized) if images else None
-        self.jitted = jax.jit(batch_function(c, impl, model_axes, pool_axes, self.randomizer,
-                                             self.dtype, self.renderer))
+        self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype,
+                             self.renderer)
+        self.jitted = jax.jit(batch_function(self.pieces))
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
 
