@@ -145,6 +145,7 @@ class _Produced:
     outputs: dict[str, Any]  # arrays (and the `params` dict), dispatched, maybe not ready yet
     dispatched: float  # time.perf_counter() at dispatch
     carry: Any = None  # continue_episodes: what the next batch continues from
+    extras: Optional[dict[str, torch.Tensor]] = None  # closed loop: the policy's extras
 
 
 class MjxBackend(Backend):
@@ -184,6 +185,26 @@ class MjxBackend(Backend):
         self.warned_overflow = False
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch
         self.in_worker = torch.utils.data.get_worker_info() is not None
+        self.previous: Any = None  # closed loop: the last batch's data (donated to the next)
+        self.extras: dict[str, torch.Tensor] = {}  # closed loop: this batch's policy extras
+
+    def _policy_step(self, obs: dict[str, jax.Array], t: int) -> jax.Array:
+        """The policy's control rows for step `t`, from the observations before it: JAX
+        arrays to torch and back through DLPack, ordered on the device, never on the host."""
+        c = self.config
+        tensors = {k: self._tensor(v, c.dtype if k not in self.program.rendered and
+                                   jnp.issubdtype(v.dtype, jnp.floating) else None)
+                   for k, v in obs.items()}
+        with torch.no_grad():
+            out = c.policy(tensors)
+        control, extras = out if isinstance(out, tuple) else (out, {})
+        if t == 0:
+            self.extras = {f"policy/{k}": torch.empty((c.nbatch, c.nstep, *v.shape[1:]),
+                                                      dtype=v.dtype, device=v.device)
+                           for k, v in extras.items()}
+        for k, v in extras.items():
+            self.extras[f"policy/{k}"][:, t] = v
+        return jax.dlpack.from_dlpack(control.detach().contiguous())
 
     def produce(self, index: int) -> _Produced:
         c, p = self.config, self.program
@@ -196,14 +217,19 @@ class MjxBackend(Backend):
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
         args = (p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
                 self.carry, self.restart)
-        simulate = p.compile(args, self.stats)
         dispatched = time.perf_counter()
-        outputs, carry = simulate(*args)
+        if p.closed_loop is not None:
+            outputs, carry, self.previous = p.closed_loop.run(
+                args, self._policy_step, c.nbatch, c.nstep, p.data0, self.previous)
+        else:
+            simulate = p.compile(args, self.stats)
+            dispatched = time.perf_counter()
+            outputs, carry = simulate(*args)
         self.last_dispatched = outputs
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting
             self.carry, self.restart = carry, outputs["diverged"]
-        return _Produced(outputs, dispatched, carry)
+        return _Produced(outputs, dispatched, carry, self.extras)
 
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -226,6 +252,7 @@ class MjxBackend(Backend):
         batch = {key: self._tensor(array, c.dtype if jnp.issubdtype(array.dtype, jnp.floating)
                                    and key not in self.program.rendered else None)
                  for key, array in outputs.items() if key not in ("params", "overflow")}
+        batch.update(produced.extras or {})
         if "overflow" in outputs:
             batch["overflow"] = handoff.to_target(
                 torch.from_numpy(self._overflow(outputs["overflow"])), c.device, None)

@@ -40,6 +40,7 @@ from simloader import controls, layout, observe
 from simloader.backends.base import Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
+from simloader.backends.mjx.closed_loop import ClosedLoop
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import PHYSICS, pool, pooled, put_models
 from simloader.backends.mjx.render import Renderer
@@ -70,7 +71,7 @@ def _key(seed: jax.Array) -> jax.Array:
 
 class Pieces:
     """The pure pieces of one batch of configuration `c`, shared by both drivers: the open
-    loop (`batch_function`: one fused scan) and the closed loop (`closed_loop_functions`: one
+    loop (`batch_function`: one fused scan) and the closed loop (`closed_loop.py`: one
     jitted step per call, a torch policy between calls).
 
     Only plain values are captured: the program that holds these functions is cached per
@@ -325,6 +326,10 @@ class Program:
         self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype,
                              self.renderer)
         self.jitted = jax.jit(batch_function(self.pieces))
+        policy = getattr(c, "policy", None)
+        noise = getattr(c, "policy_noise", None)
+        self.closed_loop = None if policy is None else ClosedLoop(
+            self.pieces, () if noise is None else noise.drivers)
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
 

@@ -1,0 +1,131 @@
+"""The closed-loop driver on MJX: a torch policy picks every step's controls.
+
+A batch is `start` (reset, the initial observations), then `nstep` calls of `advance` (the
+policy's rows applied, one step, the next observations), then `finish`, each a jitted function
+of the pieces the open loop uses (`program.Pieces`), so both drivers simulate alike. Between
+calls, the observations reach torch and the controls come back through DLPack, which orders
+the two on the device (the consumer's stream waits on an event of the producer's): nothing
+waits on the host, so Python runs ahead of the GPU and the policy and steps queue up back to
+back.
+
+The loop's buffers (the batch of `mjx.Data`, the frames recorded so far, the applied
+controls) are donated to every call: each step writes them in place, at the same addresses,
+which also lets MuJoCo Warp replay the CUDA graph it captured on the first step instead of
+capturing a new one (Warp keys its graphs on buffer addresses). The data's buffers are donated
+on from batch to batch as well.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from simloader import controls
+from simloader.backends.mjx.runtime import mjx
+
+
+def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callable]:
+    """The pure `start`, `advance` and `finish` of a closed-loop batch (`P`: `Pieces`)."""
+    every, nframes = P.every, P.nframes
+
+    def start(m, d0, inputs0, x0, defaults, bounds, seeds, variant, carry, restart, previous):
+        """The batch's models and reset trajectories, the loop state, and the observations of
+        the initial state (derived fields by a forward pass, as `mj_forward` computes them).
+
+        `previous`: the last batch's data, donated so the new one takes its buffers."""
+        del previous
+        m, data, defaults, variant, params = P.begin(m, d0, inputs0, x0, defaults, seeds,
+                                                     variant, carry, restart)
+        initial = P.physics(m, data)
+        low, high = P.bounds(m, bounds, variant)
+        shape = P.shape
+        noise = (P.draw(jnp.zeros(shape[::2], P.dtype), seeds[0], noise_drivers)
+                 if noise_drivers else None)
+        data = jax.vmap(mjx.forward, (P.model_axes, 0))(m, data)
+        data, obs = P.observe(m, data)
+        loop = {"d": data, "t": jnp.zeros((), jnp.int32),
+                "diverged": jnp.zeros(P.nbatch, bool),
+                "frames": {k: jnp.zeros((P.nbatch, nframes, *v.shape[1:]), v.dtype)
+                           for k, v in obs.items()},
+                "control": jnp.zeros(shape, P.dtype),
+                "low": jnp.broadcast_to(low, shape[::2]).astype(P.dtype),
+                "high": jnp.broadcast_to(high, shape[::2]).astype(P.dtype)}
+        if noise is not None:
+            loop["noise"] = noise
+        return m, loop, obs, {"initial_state": initial, "params": params}
+
+    def advance(m, loop, u):
+        """One step of every trajectory with the policy's rows `u` (nbatch, ncontrol): the
+        loop state after it, and the observations the policy sees next."""
+        t = loop["t"]
+        u = u.astype(P.dtype)
+        if "noise" in loop:
+            u = u + jax.lax.dynamic_index_in_dim(loop["noise"], t, axis=1, keepdims=False)
+        # as the open loop: a bad row flags its trajectory, MuJoCo's clamp is applied
+        bad = controls.bad_controls(u[:, None])
+        u = controls.clamp_applied(u, loop["low"], loop["high"], jnp)
+        d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, loop["d"], u)
+        d, unstable = P.restart_unstable(m, d)
+        d, obs = P.observe(m, d)
+        diverged = loop["diverged"] | unstable | bad
+        finite = P.finite(obs)
+        if finite is not None:
+            diverged = diverged | ~finite
+        # frame j holds the values after step (j + 1) * every: written in place when due
+        j, due = t // every, (t % every) == every - 1
+        frames = {}
+        for key, buffer in loop["frames"].items():
+            old = jax.lax.dynamic_index_in_dim(buffer, j, axis=1, keepdims=False)
+            frames[key] = jax.lax.dynamic_update_index_in_dim(
+                buffer, jnp.where(due, obs[key], old), j, axis=1)
+        control = jax.lax.dynamic_update_index_in_dim(loop["control"], u, t, axis=1)
+        loop = {**loop, "d": d, "t": t + 1, "diverged": diverged, "frames": frames,
+                "control": control}
+        return loop, obs
+
+    def finish(m, loop, delivered):
+        """The batch's outputs, the carry of `continue_episodes`, and the data (whose buffers
+        the next batch's `start` takes)."""
+        outputs = {**loop["frames"], "control": loop["control"],
+                   "initial_state": delivered["initial_state"], "diverged": loop["diverged"]}
+        outputs, carry = P.finish(m, loop["d"], outputs, delivered["params"])
+        return outputs, carry, loop["d"]
+
+    return start, advance, finish
+
+
+class ClosedLoop:
+    """A configuration's closed-loop batch, compiled on first use; one per program."""
+
+    def __init__(self, pieces: Any, noise_drivers: tuple):
+        start, advance, finish = functions(pieces, noise_drivers)
+        # donated: the previous data to `start`, the loop state to `advance` and `finish`
+        self.start = jax.jit(start, donate_argnums=(10,))
+        self.advance = jax.jit(advance, donate_argnums=(1,))
+        self.finish = jax.jit(finish, donate_argnums=(1,))
+
+    def run(self, args: tuple, policy: Callable[[dict[str, Any], int], Any], nbatch: int,
+            nstep: int, data0: Any, previous: Any) -> tuple[dict[str, Any], Any, Any]:
+        """One batch: `policy(observations, t) -> control rows` (JAX arrays in, a JAX array
+        out) before every step. Only dispatches: nothing here waits for the device.
+
+        Args:
+          args: the open loop's batch function's arguments (`batch_function`).
+          data0: one trajectory's data as `make_data` leaves it.
+          previous: the data the last batch of this iterator returned (donated), or None.
+
+        Returns:
+          (outputs, carry) as the open loop's, and the data for the next batch's `previous`.
+        """
+        if previous is None:  # data of the batch's shapes, to be donated to the first batch
+            previous = jax.tree.map(
+                lambda x: jnp.array(jnp.broadcast_to(x, (nbatch, *x.shape)), copy=True), data0)
+        # true float32 dot products, as the open loop (JAX's GPU default is TF32)
+        with jax.default_matmul_precision("float32"):
+            m, loop, obs, delivered = self.start(*args, previous)
+            for t in range(nstep):
+                loop, obs = self.advance(m, loop, policy(obs, t))
+            return self.finish(m, loop, delivered)
