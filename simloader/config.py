@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from simloader import controls, initial, layout, models, observe
+from simloader import policy as simloader_policy
 from simloader import randomize as dr
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +45,9 @@ class SimConfig:
       nthread: CPU threads of the rollout backend (None: the cores split among workers).
       prefetch: batches simulated ahead of the consumer.
       torch_threads: torch's intra-op threads in the constructing process (the consumer's).
+      policy: closed loop: the callable that picks every step's controls, or None.
+      policy_noise: closed loop: exploration noise added to the policy's controls, drawn as
+        `control` generators draw (a plan whose undriven columns are 0), or None.
     """
 
     model: mujoco.MjModel
@@ -70,6 +74,8 @@ class SimConfig:
     prefetch: int
     options: Any = None
     torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
+    policy: Any = None
+    policy_noise: Optional[controls.ControlPlan] = None
 
     @property
     def nframes(self) -> int:
@@ -189,6 +195,30 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
     return observations, record_every
 
 
+def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, control_spec: int,
+            nbatch: int, nstep: int) -> Optional[controls.ControlPlan]:
+    """Validates the closed loop's arguments; returns the noise plan (None without noise)."""
+    if policy is None:
+        if noise is not None:
+            raise ValueError("policy_noise: is exploration noise around a policy's controls and "
+                             "needs policy=; for open-loop noise pass it as control=")
+        return None
+    simloader_policy.check(policy)
+    if control is not None:
+        raise ValueError(f"control, policy: the policy picks every step's controls, so control "
+                         f"must be None, got {type(control).__name__}; for exploration noise "
+                         f"around the policy pass a generator as policy_noise=")
+    if noise is None:
+        return None
+    plan = controls.ControlPlan(model, control_spec, noise, nbatch, nstep)
+    if plan.fixed is not None:
+        raise TypeError(f"policy_noise: expected a simloader.controls generator or a dict "
+                        f"{{component: generator}}, got {type(noise).__name__}")
+    # noise is added: the columns no generator drives get none
+    plan.default_rows = np.zeros_like(plan.default_rows)
+    return plan
+
+
 def _check_memory(c: SimConfig) -> None:
     """Refuses a CPU batch that cannot fit in host memory, before anything runs (the MJX
     backend checks its device's memory when it has the device)."""
@@ -200,7 +230,8 @@ def _check_memory(c: SimConfig) -> None:
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
-                 prefetch: Any, record: Any, record_every: Any) -> SimConfig:
+                 prefetch: Any, record: Any, record_every: Any, policy: Any = None,
+                 policy_noise: Any = None) -> SimConfig:
     """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`, for a
     resolved `backend` (its options are validated next, by the backend)."""
     nbatch = _int("nbatch", nbatch, 1)
@@ -229,6 +260,7 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     elif variants is not None:
         base = variants[0]
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
+    noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     observations, record_every = _record(base, record, record_every, nstep, backend)
     config = SimConfig(
@@ -239,6 +271,6 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         record_every=record_every, continue_episodes=continue_episodes,
         num_batches=num_batches, seed=seed, device=_torch_device(device),
         dtype=_torch_dtype(dtype, backend), nthread=nthread, prefetch=prefetch,
-        torch_threads=torch.get_num_threads())
+        torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise)
     _check_memory(config)
     return config

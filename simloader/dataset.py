@@ -10,6 +10,7 @@ import mujoco
 import torch
 
 from simloader import backends, layout, models, observe, resume, sharding
+from simloader import policy as simloader_policy
 from simloader.backends.base import Backend, Stats
 from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
@@ -67,6 +68,17 @@ class SimDataset(torch.utils.data.IterableDataset):
         "sensor:NAME". Each keeps MuJoCo's dtype (int32 and bool fields stay so).
       record_every: record after every k-th step: frame j holds the values after step
         (j + 1) * k; `nstep` must be a multiple of k. `control` still holds every step's row.
+        A `simloader.Camera` in `record` renders images ("camera/NAME/rgb", ...).
+      policy: closed loop (instead of `control`): a callable, typically a `torch.nn.Module`
+        on the dataset's device, called once per step, before the step, under
+        `torch.no_grad()`, with a dict of the current observations (tensors `nbatch x ...`,
+        keys as in `record`; at the first step those of the initial state), returning the
+        control rows `(nbatch, ncontrol)` or `(control, extras)`, extras (a dict of tensors
+        `nbatch x ...`) delivered as "policy/KEY" `(nbatch, nstep, ...)`. Every batch holds
+        "policy/version": which update of the weights produced it (`simloader.policy.version`).
+      policy_noise: exploration noise added to the policy's controls before MuJoCo's clamp: a
+        `simloader.controls` generator or a dict `{component: generator(s)}`, drawn from
+        `seed` as `control` is.
       **backend_options: `backend="mjx"` only: `impl` ("auto", "jax" or "warp": MJX's
         implementation; "auto" takes MuJoCo Warp for a model with contacts where Warp and a
         GPU are present), `naconmax`/`njmax` (MuJoCo Warp's buffers; None: sized from the
@@ -86,7 +98,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                  seed: int = 0, device: Any = None, dtype: Any = None,
                  nthread: Optional[int] = None, prefetch: int = 2,
                  record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
-                 **backend_options: Any):
+                 policy: Any = None, policy_noise: Any = None, **backend_options: Any):
         super().__init__()
         backends.prepare(backend, backend_options)
         config = build_config(
@@ -94,7 +106,8 @@ class SimDataset(torch.utils.data.IterableDataset):
             control=control, control_spec=control_spec, initial_state=initial_state,
             randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
             seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
-            record=record, record_every=record_every)
+            record=record, record_every=record_every, policy=policy,
+            policy_noise=policy_noise)
         # one route for every backend option: validated by the backend, kept in the config
         self.config: SimConfig = dataclasses.replace(
             config, options=backends.check_options(config, backend, backend_options))
@@ -180,6 +193,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         # the loaded position is taken by iter(), not by the first next(): a loader may make an
         # iterator and drop it unstarted (StatefulDataLoader does when it resumes from the end
         # of an epoch), and the next iterator must start the next epoch, not find it again
+        if self.config.policy is not None:
+            simloader_policy.check_worker(self.config.policy)
         shard = sharding.current_shard(self._rank)
         loaded, self._loaded = self._loaded, None
         self._pending, self._progress = loaded, None

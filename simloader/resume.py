@@ -17,8 +17,10 @@ import numpy as np
 
 from simloader.config import SimConfig
 
-VERSION = 3  # 3: the configuration covers control, initial state, randomization, dtype, options
-# 2: continuing checkpoints carry the randomized values and variants
+# 2: continuing checkpoints carry the randomized values and variants; 3: the configuration
+# covers control, initial state, randomization, dtype, options; 4: and whether a policy (and
+# its noise) picks the controls
+VERSION = 4
 
 # backend options that do not change the stream (where JAX caches, how much memory it takes,
 # why an implementation was chosen)
@@ -72,6 +74,11 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
                           {"keyframe": init.keyframe} if init.from_model else
                           _describe(init.fixed)),
         "randomize": randomize,
+        # a policy changes the stream (its weights are the training's, not the stream's)
+        "policy": config.policy is not None,
+        "policy_noise": None if config.policy_noise is None else [
+            {"generator": _describe(d.generator), "columns": _describe(d.columns)}
+            for d in config.policy_noise.drivers],
         "dtype": None if config.dtype is None else str(config.dtype),
         "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())
                             if k not in _SETUP_OPTIONS},

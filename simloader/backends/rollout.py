@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, resume, sharding
+from simloader import controls, handoff, layout, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend
 
@@ -35,6 +35,7 @@ class _Produced:
     params: dict[str, torch.Tensor]  # randomized model parameters, (nbatch, nvalues) each
     warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning, or a control was bad
     rows_after: Optional[np.ndarray]  # continue_episodes: the state rows after this batch
+    extras: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)  # policy's
 
 
 class RolloutBackend(Backend):
@@ -71,6 +72,7 @@ class RolloutBackend(Backend):
         # does: mj_resetData, which MuJoCo calls on an unstable simulation, zeroes them and
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
+        self.live: Optional[_LiveSources] = None  # closed loop: what the policy observes
 
     def produce(self, index: int) -> _Produced:
         c = self.config
@@ -88,7 +90,10 @@ class RolloutBackend(Backend):
 
         # a new buffer per batch, also for a fixed array: a consumer may edit its batch
         control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
-        if c.control.fixed is not None:
+        version = policy.version(c.policy) if c.policy is not None else None
+        if c.policy is not None:
+            control[...] = 0.0  # filled step by step
+        elif c.control.fixed is not None:
             control[...] = c.control.fixed
         elif c.control.random:
             c.control.sample_numpy(self.seed(index, sharding.CONTROL), control,
@@ -97,11 +102,12 @@ class RolloutBackend(Backend):
             # control=None: the inputs stay as mj_resetData left them (in the rows), for every
             # step; delivered as such
             control[...] = self._per_trajectory(self.control_defaults)[:, None]
-        bad_control = controls.bad_controls(control)
         low, high = self._ctrl_bounds()
-        control[...] = controls.clamp_applied(control, low[:, None], high[:, None])
-        if c.control.fixed is None and not c.control.random:
-            control = None
+        if c.policy is None:
+            bad_control = controls.bad_controls(control)
+            control[...] = controls.clamp_applied(control, low[:, None], high[:, None])
+            if c.control.fixed is None and not c.control.random:
+                control = None
 
         recorded = {}  # one buffer per source, shared by the observations that read it
         for o in c.observations:
@@ -111,15 +117,22 @@ class RolloutBackend(Backend):
                     pin=self.pin)
         self.warnings[...] = 0
         start = time.perf_counter()
-        self._rollout(control, {s: array for s, (_, array) in recorded.items()})
+        out = {s: array for s, (_, array) in recorded.items()}
+        extras = {}
+        if c.policy is not None:
+            bad_control, extras = self._closed_loop(index, control, low, high, out)
+        else:
+            self._rollout(control, out)
         self.stats.add(simulate_s=time.perf_counter() - start)
         warned = self.warnings.any(axis=1) | bad_control
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
         rows_after = rows.copy() if c.continue_episodes else None
         params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
+        if version is not None:
+            extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
         return _Produced({s: tensor for s, (tensor, _) in recorded.items()}, control_t, initial_t,
-                         params, warned, rows_after)
+                         params, warned, rows_after, extras)
 
     def _rollout(self, control: Optional[np.ndarray], out: dict) -> None:
         """Runs the batch's `nstep` steps, recording the sources into `out` ({source:
@@ -146,6 +159,45 @@ class RolloutBackend(Backend):
                                control_spec=c.control_spec, record=items, out=frame)
             for s, a in out.items():
                 a[:, j] = frame[s][:, 0]
+
+    def _closed_loop(self, index: int, control: np.ndarray, low: np.ndarray, high: np.ndarray,
+                     out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+        """Runs the batch's `nstep` steps with the policy picking each step's controls (into
+        `control`, as applied), recording the sources into `out` as `_rollout` does.
+
+        Each step: the observations (views of the state rows and of the fields the batch
+        binds, which MuJoCo refreshes after every call) go to the policy; its rows, plus
+        noise, clamped as MuJoCo clamps, go into the rows' `control_spec` components; one
+        `mj_step` per trajectory (`Batch.step`). The first observations are those of the
+        initial state, derived fields by `mj_forward`.
+
+        Returns:
+          (nbatch,) bool: a trajectory got a bad (non-finite or absurd) control; the extras.
+        """
+        c, b, k = self.config, self.batch, self.config.record_every
+        if self.live is None:
+            self.live = _LiveSources(b, c)
+        noise = None
+        if c.policy_noise is not None:
+            noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
+            c.policy_noise.sample_numpy(self.seed(index, sharding.CONTROL), noise,
+                                        c.policy_noise.default_rows)
+        call = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep, c.device)
+        bad = np.zeros(c.nbatch, dtype=bool)
+        b.forward()
+        for t in range(c.nstep):
+            u = call(self.live.observations(), t)
+            row = control[:, t]
+            row[...] = u.detach().to("cpu", torch.float64).numpy()
+            if noise is not None:
+                row += noise[:, t]
+            bad |= controls.bad_controls(row[:, None])
+            row[...] = controls.clamp_applied(row, low, high)
+            b.state[:, self.live.control_columns] = row
+            b.step()
+            if (t + 1) % k == 0:
+                self.live.record(out, (t + 1) // k - 1)
+        return bad, call.extras
 
     def _ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(nbatch, ncontrol) each: the range each trajectory's controls are clamped to."""
@@ -197,7 +249,7 @@ class RolloutBackend(Backend):
         diverged = p.warned | ~finite
         self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
         out = {o.key: o.select(p.recorded[o.source]) for o in c.observations}
-        out.update(control=p.control, initial_state=p.initial_state)
+        out.update(control=p.control, initial_state=p.initial_state, **p.extras)
         out = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
                for k, v in out.items()}
         out["diverged"] = handoff.to_target(torch.from_numpy(diverged), c.device, None)
@@ -223,3 +275,49 @@ class RolloutBackend(Backend):
     def close(self) -> None:
         # drops the batch's thread pool now rather than at garbage collection
         self.batch = None
+
+
+class _LiveSources:
+    """The closed loop's view of the batch: every recorded source as MuJoCo keeps it current,
+    `(nbatch, ...)`: state components as columns of the state rows, other fields as
+    `Batch.bind` outputs (refreshed after every call, as `mj_step` leaves them)."""
+
+    def __init__(self, batch: mj_batch.Batch, config):
+        c = self.config = config
+        self.batch = batch
+        self.bound: dict = {}  # source -> live (nbatch, *source_shape) output
+        self.columns: dict = {}  # source (an mjtState spec) -> its columns of the state rows
+        for o in c.observations:
+            if isinstance(o.source, str):
+                self.bound[o.source] = batch.bind(o.source).reshape(c.nbatch, *o.source_shape)
+            else:
+                self.columns[o.source] = layout.component_columns(c.model, layout.INTEGRATION,
+                                                                  o.source)
+        self.control_columns = layout.component_columns(c.model, layout.INTEGRATION,
+                                                        c.control_spec)
+
+    def value(self, source) -> np.ndarray:
+        """The source's current values, `(nbatch, *source_shape)`; a view where MuJoCo's
+        memory is laid out so, else a copy."""
+        if source in self.bound:
+            return self.bound[source]
+        return self.batch.state[:, self.columns[source]]
+
+    def observations(self) -> dict[str, torch.Tensor]:
+        """The policy's observations now: a tensor of its own per key (the next step
+        overwrites MuJoCo's buffers; a copy of this size costs little next to a policy
+        call), on the dataset's device, floats in its dtype."""
+        c = self.config
+        out = {}
+        for o in c.observations:
+            value = torch.tensor(self.value(o.source), dtype=handoff.torch_dtype(o.dtype))
+            value = o.select(value[:, None])[:, 0]
+            out[o.key] = handoff.to_target(value, c.device,
+                                           c.dtype if o.floating else None)
+        return out
+
+    def record(self, out: dict, frame: int) -> None:
+        """Writes frame `frame` of every source into `out` ({source: (nbatch, nframes,
+        ...)})."""
+        for source, buffer in out.items():
+            buffer[:, frame] = self.value(source)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import torch
 
-from simloader import handoff, observe, resume, sharding
+from simloader import handoff, observe, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
@@ -186,25 +186,21 @@ class MjxBackend(Backend):
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch
         self.in_worker = torch.utils.data.get_worker_info() is not None
         self.previous: Any = None  # closed loop: the last batch's data (donated to the next)
-        self.extras: dict[str, torch.Tensor] = {}  # closed loop: this batch's policy extras
+        self.caller: Optional[policy.Caller] = None  # closed loop: this batch's policy calls
 
     def _policy_step(self, obs: dict[str, jax.Array], t: int) -> jax.Array:
         """The policy's control rows for step `t`, from the observations before it: JAX
-        arrays to torch and back through DLPack, ordered on the device, never on the host."""
+        arrays to torch and back through DLPack, which orders them on the device (each side's
+        stream waits on an event of the other's), never on the host."""
         c = self.config
         tensors = {k: self._tensor(v, c.dtype if k not in self.program.rendered and
                                    jnp.issubdtype(v.dtype, jnp.floating) else None)
                    for k, v in obs.items()}
-        with torch.no_grad():
-            out = c.policy(tensors)
-        control, extras = out if isinstance(out, tuple) else (out, {})
-        if t == 0:
-            self.extras = {f"policy/{k}": torch.empty((c.nbatch, c.nstep, *v.shape[1:]),
-                                                      dtype=v.dtype, device=v.device)
-                           for k, v in extras.items()}
-        for k, v in extras.items():
-            self.extras[f"policy/{k}"][:, t] = v
-        return jax.dlpack.from_dlpack(control.detach().contiguous())
+        control = self.caller(tensors, t).detach()
+        here = runtime.torch_device(self.device)
+        if control.device != here:  # a policy on another device than the simulation
+            control = control.to(here, non_blocking=True)
+        return jax.dlpack.from_dlpack(control.contiguous())
 
     def produce(self, index: int) -> _Produced:
         c, p = self.config, self.program
@@ -218,9 +214,15 @@ class MjxBackend(Backend):
         args = (p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
                 self.carry, self.restart)
         dispatched = time.perf_counter()
+        extras = None
         if p.closed_loop is not None:
+            version = policy.version(c.policy)
+            self.caller = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep,
+                                        c.device or runtime.torch_device(self.device))
             outputs, carry, self.previous = p.closed_loop.run(
                 args, self._policy_step, c.nbatch, c.nstep, p.data0, self.previous)
+            extras = {**self.caller.extras,
+                      policy.VERSION: torch.tensor(version, dtype=torch.int64)}
         else:
             simulate = p.compile(args, self.stats)
             dispatched = time.perf_counter()
@@ -229,7 +231,7 @@ class MjxBackend(Backend):
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting
             self.carry, self.restart = carry, outputs["diverged"]
-        return _Produced(outputs, dispatched, carry, self.extras)
+        return _Produced(outputs, dispatched, carry, extras)
 
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -252,7 +254,8 @@ class MjxBackend(Backend):
         batch = {key: self._tensor(array, c.dtype if jnp.issubdtype(array.dtype, jnp.floating)
                                    and key not in self.program.rendered else None)
                  for key, array in outputs.items() if key not in ("params", "overflow")}
-        batch.update(produced.extras or {})
+        batch.update({k: handoff.to_target(v, c.device, None)
+                      for k, v in (produced.extras or {}).items()})
         if "overflow" in outputs:
             batch["overflow"] = handoff.to_target(
                 torch.from_numpy(self._overflow(outputs["overflow"])), c.device, None)

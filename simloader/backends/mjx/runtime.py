@@ -149,6 +149,13 @@ def jax_device(target: Optional[torch.device]) -> jax.Device:
     return gpus[index % len(gpus)]
 
 
+def torch_device(device: jax.Device) -> torch.device:
+    """The torch device of JAX device `device` (where DLPack puts its arrays)."""
+    if device.platform == "gpu":
+        return torch.device("cuda", device.local_hardware_id)
+    return torch.device("cpu")
+
+
 @contextlib.contextmanager
 def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Iterator[None]:
     """Says on stderr what is happening when `what` takes longer than `after` seconds (a cold

@@ -1,0 +1,130 @@
+"""Closed loop: the user's policy, as both backends call it.
+
+`SimDataset(policy=...)` calls the policy once per step, before the step, with the current
+observations (a dict of tensors `nbatch x ...`, keys as in `record`, on the dataset's device);
+it returns the control rows (`nbatch x ncontrol`, the `control_spec` layout) or a pair
+`(control, extras)` whose extras (tensors `nbatch x ...`) are delivered as `"policy/KEY"`,
+`nbatch x nstep x ...`. The backends drive the loop (`backends/rollout.py`: `mujoco.batch`'s
+`step()`; `backends/mjx/closed_loop.py`: one jitted step per call); this module holds what they
+share: calling and checking the policy, its extras, its weights' version, and the rule for
+DataLoader workers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any, Optional
+
+import torch
+
+PREFIX = "policy/"
+# batch key: which update of the weights produced the batch (read as the batch starts)
+VERSION = "policy/version"
+
+
+def check(policy: Any) -> None:
+    """Raises TypeError unless `policy` is callable."""
+    if not callable(policy):
+        raise TypeError(f"policy: expected a callable (e.g. a torch.nn.Module) mapping a dict of "
+                        f"observation tensors to control rows, got {type(policy).__name__}")
+
+
+def version(policy: Any) -> int:
+    """Which update of the weights the policy is at now.
+
+    The policy's own `version` attribute (an int the training loop bumps after each update) if
+    it has one; else, for a `torch.nn.Module`, the sum of torch's version counters of its
+    parameters and buffers, which every in-place update (`optimizer.step()`,
+    `param.copy_()`, ...) increases; else -1 (unknown).
+    """
+    own = getattr(policy, "version", None)
+    if isinstance(own, int) and not isinstance(own, bool):
+        return own
+    if isinstance(policy, torch.nn.Module):
+        return int(sum(t._version for t in _tensors(policy)))
+    return -1
+
+
+def _tensors(policy: torch.nn.Module) -> list[torch.Tensor]:
+    return [*policy.parameters(), *policy.buffers()]
+
+
+def check_worker(policy: Any) -> None:
+    """In a DataLoader worker: refuses a policy whose weights would be a frozen copy.
+
+    A worker gets a copy of the policy when it starts; updates made by the training process
+    reach it only through shared memory (`module.share_memory()` before the DataLoader starts
+    its workers, CPU tensors). A module with every parameter and buffer shared is accepted.
+
+    Raises:
+      RuntimeError: a policy that is not a module whose tensors are all in shared memory.
+    """
+    if torch.utils.data.get_worker_info() is None:
+        return
+    if isinstance(policy, torch.nn.Module):
+        tensors = _tensors(policy)
+        if all(t.is_shared() and t.device.type == "cpu" for t in tensors):
+            return
+    raise RuntimeError(
+        "policy: a DataLoader worker holds a copy of the policy made when it started, so the "
+        "training loop's updates would never reach it; use num_workers=0 (the policy runs in "
+        "a thread of the training process, on its live weights), or a CPU torch.nn.Module "
+        "whose tensors are in shared memory (call policy.share_memory() before iterating)")
+
+
+class Caller:
+    """Calls the policy for one batch and checks what it returns.
+
+    Args:
+      policy: the user's callable.
+      nbatch, ncontrol: the expected control rows.
+      nstep: steps per batch (the extras' second axis).
+      device: where the extras are kept (the dataset's device, or the CPU).
+    """
+
+    def __init__(self, policy: Callable, nbatch: int, ncontrol: int, nstep: int,
+                 device: Optional[torch.device]):
+        self.policy, self.nbatch, self.ncontrol, self.nstep = policy, nbatch, ncontrol, nstep
+        self.device = device
+        self.extras: dict[str, torch.Tensor] = {}
+
+    def __call__(self, obs: dict[str, torch.Tensor], t: int) -> torch.Tensor:
+        """The control rows of step `t` (a tensor `nbatch x ncontrol`); the extras are kept in
+        `self.extras` (`"policy/KEY"`: `nbatch x nstep x ...`)."""
+        with torch.no_grad():
+            out = self.policy(obs)
+        control, extras = out if isinstance(out, tuple) and len(out) == 2 else (out, None)
+        if t == 0:
+            self._check(control, extras)
+            self.extras = {PREFIX + k: torch.empty((self.nbatch, self.nstep, *v.shape[1:]),
+                                                   dtype=v.dtype, device=v.device)
+                           for k, v in (extras or {}).items()}
+        for k, v in (extras or {}).items():
+            self.extras[PREFIX + k][:, t] = v
+        return control
+
+    def _check(self, control: Any, extras: Any) -> None:
+        expected = (self.nbatch, self.ncontrol)
+        if not isinstance(control, torch.Tensor):
+            raise TypeError(f"policy: expected it to return control rows as a torch.Tensor "
+                            f"{expected} (or a pair (control, extras)), got "
+                            f"{type(control).__name__}")
+        if tuple(control.shape) != expected:
+            raise ValueError(f"policy: control rows must have shape (nbatch, ncontrol) = "
+                             f"{expected} (the control_spec layout), got {tuple(control.shape)}")
+        if not control.is_floating_point():
+            raise TypeError(f"policy: control rows must be floating point, got {control.dtype}")
+        if self.device is not None and control.device != self.device:
+            raise ValueError(f"policy: control rows must be on the dataset's device "
+                             f"{self.device}, got {control.device}")
+        if extras is None:
+            return
+        if not isinstance(extras, Mapping):
+            raise TypeError(f"policy: extras (the second of the pair it returns) must be a dict "
+                            f"of tensors, got {type(extras).__name__}")
+        for k, v in extras.items():
+            if not isinstance(k, str) or not isinstance(v, torch.Tensor) or not v.ndim \
+                    or v.shape[0] != self.nbatch:
+                raise ValueError(f"policy: extras[{k!r}] must be a tensor nbatch x ... "
+                                 f"({self.nbatch} x ...) under a str key, got "
+                                 f"{type(v).__name__} {tuple(getattr(v, 'shape', ()))}")

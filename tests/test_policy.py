@@ -1,0 +1,282 @@
+"""Closed loop (`policy=`): the policy picks every step's controls from the observations before
+the step. The CPU backend equals a plain loop of `mj_step` + the same policy bit for bit; MJX
+(both implementations) follows it within float32 tolerances; noise, extras, the weights'
+version, workers and the refusals."""
+
+import json
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+import simloader
+from simloader import controls
+from simloader import randomize as dr
+
+S = mujoco.mjtState
+
+
+class Feedback(torch.nn.Module):
+    """A deterministic MLP of (qpos, qvel), float64, saturating past the control range at
+    times (so MuJoCo's clamp is exercised)."""
+
+    def __init__(self, nin, nout, seed=0):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.net = torch.nn.Sequential(torch.nn.Linear(nin, 16), torch.nn.Tanh(),
+                                       torch.nn.Linear(16, nout)).double()
+
+    def forward(self, obs):
+        x = torch.cat([obs["qpos"], obs["qvel"]], -1).to(self.net[0].weight.dtype)
+        u = 3 * self.net(x)
+        return u, {"value": u.sum(-1), "seen": obs["qpos"]}
+
+
+def plain_loop(models, x0, policy, nstep, noise=None):
+    """MuJoCo C, one MjData per trajectory stepped in lockstep, the policy called on the batch
+    of their observations before every step: qpos, qvel, xpos, sensordata and the applied
+    controls after every step."""
+    datas = [mujoco.MjData(m) for m in models]
+    for m, d, x in zip(models, datas, x0):
+        mujoco.mj_setState(m, d, x, S.mjSTATE_FULLPHYSICS)
+        mujoco.mj_forward(m, d)
+    out = {k: [] for k in ("qpos", "qvel", "xpos", "sensordata", "control")}
+    for t in range(nstep):
+        obs = {"qpos": torch.tensor(np.stack([d.qpos for d in datas])),
+               "qvel": torch.tensor(np.stack([d.qvel for d in datas]))}
+        with torch.no_grad():
+            u = policy(obs)[0].numpy()
+        if noise is not None:
+            u = u + noise[:, t]
+        for m, d, row in zip(models, datas, u):
+            low, high = m.actuator_ctrlrange.T
+            d.ctrl[:] = np.clip(row, low, high)
+            mujoco.mj_step(m, d)
+        for k in ("qpos", "qvel", "xpos", "sensordata"):
+            out[k].append(np.stack([getattr(d, k).copy() for d in datas]))
+        out["control"].append(np.stack([d.ctrl.copy() for d in datas]))
+    return {k: np.stack(v, 1) for k, v in out.items()}
+
+
+RECORD = ("qpos", "qvel", "xpos", "sensor:pole_angle", "sensordata")
+
+
+def cartpole_policy():
+    model = simloader.load_model("cartpole")
+    return model, Feedback(model.nq + model.nv, model.nu)
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_cpu_equals_a_plain_mj_step_loop_bit_for_bit(every):
+    model, policy = cartpole_policy()
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=6, nstep=12, record=RECORD,
+                              record_every=every, policy=policy, nthread=2,
+                              initial_state=simloader.initial.Perturbed(qvel_std=1.0))
+    batch = next(iter(ds))
+    ref = plain_loop([model] * 6, batch["initial_state"].numpy(), policy, 12)
+    frames = slice(every - 1, None, every)
+    for key in ("qpos", "qvel", "xpos", "sensordata"):
+        assert np.array_equal(batch[key].numpy(), ref[key][:, frames]), key
+    assert np.array_equal(batch["sensor:pole_angle"].numpy(), ref["sensordata"][:, frames, 1:2])
+    assert np.array_equal(batch["control"].numpy(), ref["control"])
+    # the controls were clamped somewhere (the policy saturates)
+    assert np.abs(batch["control"].numpy()).max() == 1.0
+    # extras every step; what the policy saw first is the initial state
+    assert batch["policy/value"].shape == (6, 12)
+    assert np.array_equal(batch["policy/seen"][:, 0].numpy(),
+                          batch["initial_state"][:, 1:1 + model.nq].numpy())
+    assert np.array_equal(batch["policy/seen"][:, 1:].numpy(), ref["qpos"][:, :-1])
+
+
+def test_cpu_continuing_variants_randomized_and_noisy():
+    """Two continuing batches of a randomized model with noise around the policy: the
+    physics equals MuJoCo C given the delivered controls, and every delivered control is the
+    policy's row plus the noise, clamped."""
+    model, policy = cartpole_policy()
+    spec = [dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="pole")]
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=5, nstep=8, record=RECORD,
+                              policy=policy, policy_noise=controls.Normal(std=0.3),
+                              continue_episodes=True, randomize=spec, nthread=2, seed=4)
+    it = iter(ds)
+    first, second = next(it), next(it)
+    masses = first["params"]["body_mass[pole]"].numpy()
+    models = []
+    for i in range(5):
+        m = simloader.load_model("cartpole")
+        m.body_mass[m.body("pole").id] = masses[i, 0]  # the value it ran with
+        mujoco.mj_setConst(m, mujoco.MjData(m))
+        models.append(m)
+    both = np.concatenate([first["control"].numpy(), second["control"].numpy()], 1)
+    ref = plain_loop(models, first["initial_state"].numpy(),
+                     lambda obs: (torch.zeros(5, 1, dtype=torch.float64),), 16, noise=both)
+    assert np.array_equal(np.concatenate([first["qpos"], second["qpos"]], 1), ref["qpos"])
+    for batch in (first, second):
+        # controls: clamp(policy(obs) + noise), noise of the right spread
+        obs_q = np.concatenate([batch["initial_state"][:, None, 1:3].numpy(),
+                                batch["qpos"][:, :-1].numpy()], 1)
+        obs_v = np.concatenate([batch["initial_state"][:, None, 3:5].numpy(),
+                                batch["qvel"][:, :-1].numpy()], 1)
+        with torch.no_grad():
+            u = policy({"qpos": torch.tensor(obs_q), "qvel": torch.tensor(obs_v)})[0].numpy()
+        noise = batch["control"].numpy() - u
+        inside = np.abs(batch["control"].numpy()) < 1
+        assert inside.sum() > 10 and 0.15 < noise[inside].std() < 0.5
+    assert np.array_equal(second["initial_state"][:, 1:].numpy(),
+                          np.concatenate([first["qpos"][:, -1], first["qvel"][:, -1]], 1))
+    # the same seed and weights give the same stream
+    again = next(iter(simloader.SimDataset(
+        model, backend="rollout", nbatch=5, nstep=8, record=RECORD, policy=policy,
+        policy_noise=controls.Normal(std=0.3), continue_episodes=True, randomize=spec,
+        nthread=2, seed=4)))
+    assert torch.equal(again["control"], first["control"])
+
+
+@pytest.mark.parametrize("impl", ["jax", "warp"])
+def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
+    pytest.importorskip("mujoco.mjx")
+    if impl == "warp":
+        pytest.importorskip("warp")
+        monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+    model, policy = cartpole_policy()
+    policy.float()
+    kwargs = dict(nbatch=4, nstep=10, record=("qpos", "qvel"), policy=policy, seed=2,
+                  dtype=torch.float32, initial_state=simloader.initial.Perturbed())
+    cpu = next(iter(simloader.SimDataset(model, backend="rollout", **kwargs)))
+    ds = simloader.SimDataset(model, backend="mjx", impl=impl, compilation_cache=cache_dir,
+                              **kwargs)
+    it = iter(DataLoader(ds, batch_size=None))
+    gpu, gpu2 = next(it), next(it)
+    assert torch.equal(gpu["initial_state"].cpu(), cpu["initial_state"])
+    for key in ("qpos", "qvel", "control"):
+        np.testing.assert_allclose(gpu[key].cpu().numpy(), cpu[key].numpy(), atol=2e-3,
+                                   err_msg=key)
+    assert gpu["policy/value"].shape == (4, 10)
+    assert not gpu2["diverged"].any() and not torch.equal(gpu2["qpos"], gpu["qpos"])
+
+
+def test_weights_version_follows_training():
+    model, policy = cartpole_policy()
+    opt = torch.optim.SGD(policy.parameters(), lr=1e-3)
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=3, policy=policy,
+                              record=("qpos", "qvel"), nthread=1, prefetch=1)
+    versions = [int(next(iter(ds))["policy/version"])]
+    for _ in range(3):
+        policy.zero_grad()
+        sum(p.sum() for p in policy.parameters()).backward()
+        opt.step()
+    versions.append(int(next(iter(ds))["policy/version"]))
+    assert versions[1] > versions[0]
+    policy.version = 7  # the user's own counter wins
+    assert int(next(iter(ds))["policy/version"]) == 7
+
+
+def test_refusals():
+    model, policy = cartpole_policy()
+    base = dict(backend="rollout", nbatch=2, nstep=3, record=("qpos", "qvel"))
+    with pytest.raises(ValueError, match="control, policy"):
+        simloader.SimDataset(model, policy=policy, control=controls.Uniform(), **base)
+    with pytest.raises(ValueError, match="policy_noise: .*needs policy="):
+        simloader.SimDataset(model, policy_noise=controls.Normal(std=0.1), **base)
+    with pytest.raises(TypeError, match="policy: expected a callable"):
+        simloader.SimDataset(model, policy="pid", **base)
+    with pytest.raises(ValueError, match=r"policy: control rows must have shape \(nbatch, "
+                                         r"ncontrol\) = \(2, 1\).*got \(2, 3\)"):
+        next(iter(simloader.SimDataset(model, policy=lambda obs: torch.zeros(2, 3), **base)))
+    with pytest.raises(TypeError, match="policy: expected it to return control rows as a "
+                                        "torch.Tensor"):
+        next(iter(simloader.SimDataset(model, policy=lambda obs: np.zeros((2, 1)), **base)))
+
+
+class Bias(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.bias = torch.nn.Parameter(torch.full((1,), 0.5, dtype=torch.float64))
+
+    def forward(self, obs):
+        return self.bias.expand(obs["qpos"].shape[0], 1)
+
+
+# A forked worker holds a copy-on-write copy of the policy: refused unless its tensors were put
+# in shared memory first. Run in a fresh process (fork after torch ran its thread pool may hang).
+FORKED_WORKERS = """
+import json, sys, torch
+from torch.utils.data import DataLoader
+import simloader
+
+
+class Bias(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.bias = torch.nn.Parameter(torch.full((1,), 0.5, dtype=torch.float64))
+
+    def forward(self, obs):
+        return self.bias.expand(obs["qpos"].shape[0], 1)
+
+
+policy = Bias()
+if sys.argv[1] == "shared":
+    policy.share_memory()
+ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3, policy=policy,
+                          record=("qpos",), nthread=1, num_batches=40, prefetch=1)
+seen = []
+try:
+    for i, batch in enumerate(DataLoader(ds, batch_size=None, num_workers=2,
+                                         multiprocessing_context="fork")):
+        seen.append(float(batch["control"][0, 0, 0]))
+        if i == 2:
+            with torch.no_grad():
+                policy.bias.fill_(-0.5)
+except RuntimeError as e:
+    seen = str(e)
+print(json.dumps(seen))
+"""
+
+
+def test_forked_workers_need_shared_weights(fresh_python):
+    refused, shared = (json.loads(out) for out in fresh_python(
+        FORKED_WORKERS, [(["copied"], {}), (["shared"], {})], timeout=120))
+    assert "share_memory" in refused
+    # the training process's updates reach the workers
+    assert shared[0] == 0.5 and shared[-1] == -0.5
+
+
+def test_spawned_workers_share_the_weights():
+    """Sending the policy to a spawned worker puts its CPU tensors in shared memory (torch's
+    pickler), so updates reach the workers without share_memory()."""
+    policy = Bias()
+    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3, policy=policy,
+                              record=("qpos",), nthread=1, num_batches=40, prefetch=1)
+    seen = []
+    for i, batch in enumerate(DataLoader(ds, batch_size=None, num_workers=2,
+                                         multiprocessing_context="spawn")):
+        seen.append(float(batch["control"][0, 0, 0]))
+        if i == 2:
+            with torch.no_grad():
+                policy.bias.fill_(-0.5)
+    assert seen[0] == 0.5 and seen[-1] == -0.5
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_mjx_closed_loop_never_waits_on_the_host(cache_dir):
+    """Dispatching a closed-loop batch makes no host synchronisation: torch's sync debug
+    mode raises on any synchronising torch call, JAX's transfer guard on any device-to-host
+    transfer."""
+    import jax
+    from simloader import sharding
+    model, policy = cartpole_policy()
+    policy.float().cuda()
+    ds = simloader.SimDataset(model, backend="mjx", nbatch=64, nstep=20, policy=policy,
+                              record=("qpos", "qvel"), compilation_cache=cache_dir)
+    next(iter(ds))  # compiles
+    backend = ds.make_backend(sharding.current_shard(0))
+    backend.produce(0)  # the first batch of an iterator sets its buffers up
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        with jax.transfer_guard_device_to_host("disallow"):
+            produced = backend.produce(1)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert backend.deliver(produced)["qpos"].shape == (64, 20, 2)
