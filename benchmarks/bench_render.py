@@ -81,7 +81,7 @@ def main() -> None:
         slowest = max([sim.first_s / 10] + [r.batch_s for r in raws.values()])
         nbatches = common.batches_for(args, slowest)
         measures = {name: (lambda r=r: r.measure(nbatches)) for name, r in raws.items()}
-        measures["simloader"] = lambda: sim.measure(nbatches)
+        measures["simloader"] = lambda s=sim: s.measure(nbatches)
         results = common.interleave(measures, args.repeats, desc=f"{w} {size}x{size}")
         for name, s in results.items():
             rows.append([f"{w}", f"{camera} {size}x{size}", name, common.rate(1 / s),

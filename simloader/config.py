@@ -185,8 +185,11 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
             backend: str) -> tuple[tuple[observe.Observation, ...], int]:
     """The observations `record` names and the validated `record_every`."""
     observations = observe.parse(model, record)
-    if backend == "rollout" and any(o.rendered for o in observations):
-        raise ValueError("record: simloader.Camera is not supported yet on backend='rollout'")
+    images = [o for o in observations if o.rendered]
+    if backend == "rollout" and images:
+        from simloader.backends import cpu_render
+        cpu_render.check(model, images)
+        cpu_render.gl_platform()  # fails here, naming what to install, if no GL works
     record_every = _int("record_every", record_every, 1)
     if nstep % record_every:
         raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "
@@ -196,7 +199,8 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
 
 
 def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, control_spec: int,
-            nbatch: int, nstep: int) -> Optional[controls.ControlPlan]:
+            nbatch: int, nstep: int, backend: str,
+            observations: Sequence[observe.Observation]) -> Optional[controls.ControlPlan]:
     """Validates the closed loop's arguments; returns the noise plan (None without noise)."""
     if policy is None:
         if noise is not None:
@@ -204,6 +208,10 @@ def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, contro
                              "needs policy=; for open-loop noise pass it as control=")
         return None
     simloader_policy.check(policy)
+    if backend == "rollout" and any(o.rendered for o in observations):
+        raise ValueError("policy, record: on backend='rollout' a policy cannot see cameras yet "
+                         "(they are rendered after the batch); use backend='mjx' (MuJoCo Warp "
+                         "renders every step), or record no Camera")
     if control is not None:
         raise ValueError(f"control, policy: the policy picks every step's controls, so control "
                          f"must be None, got {type(control).__name__}; for exploration noise "
@@ -260,9 +268,10 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     elif variants is not None:
         base = variants[0]
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
-    noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     observations, record_every = _record(base, record, record_every, nstep, backend)
+    noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep, backend,
+                    observations)
     config = SimConfig(
         model=base, models=models_, backend=backend, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,

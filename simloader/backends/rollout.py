@@ -14,16 +14,20 @@ model poses, `eq_active0`), the FULLPHYSICS part from the initial state, zero wa
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import threading
 import time
 from typing import Optional, Union
 
+import mujoco
 import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
 from simloader import controls, handoff, layout, policy, resume, sharding
 from simloader import randomize as dr
+from simloader.backends import cpu_render
 from simloader.backends.base import Backend
 
 
@@ -36,6 +40,8 @@ class _Produced:
     warned: np.ndarray  # (nbatch,) bool: MuJoCo raised a warning, or a control was bad
     rows_after: Optional[np.ndarray]  # continue_episodes: the state rows after this batch
     extras: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)  # policy's
+    images: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)  # cameras'
+    rendering: list = dataclasses.field(default_factory=list)  # futures filling `images`
 
 
 class RolloutBackend(Backend):
@@ -73,6 +79,10 @@ class RolloutBackend(Backend):
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
         self.live: Optional[_LiveSources] = None  # closed loop: what the policy observes
+        # cameras: rendered by a pool of renderer threads from recorded state rows
+        self.images = [o for o in c.observations if o.rendered]
+        self.renderer = (cpu_render.RenderPool(c.model, self.images, self.nthread)
+                         if self.images else None)
 
     def produce(self, index: int) -> _Produced:
         c = self.config
@@ -110,11 +120,13 @@ class RolloutBackend(Backend):
                 control = None
 
         recorded = {}  # one buffer per source, shared by the observations that read it
-        for o in c.observations:
-            if o.source not in recorded:
-                recorded[o.source] = handoff.host_buffer(
-                    (c.nbatch, c.nframes, *o.source_shape), handoff.torch_dtype(o.dtype),
-                    pin=self.pin)
+        sources = [(o.source, o.source_shape, o.dtype) for o in c.observations if not o.rendered]
+        if self.images:  # what rendering a frame needs: the state rows
+            sources.append((layout.INTEGRATION, (self.batch.nstate,), np.dtype(np.float64)))
+        for source, shape, dtype in sources:
+            if source not in recorded:
+                recorded[source] = handoff.host_buffer(
+                    (c.nbatch, c.nframes, *shape), handoff.torch_dtype(dtype), pin=self.pin)
         self.warnings[...] = 0
         start = time.perf_counter()
         out = {s: array for s, (_, array) in recorded.items()}
@@ -131,8 +143,16 @@ class RolloutBackend(Backend):
         params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
         if version is not None:
             extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
+        images, rendering = {}, []
+        if self.images:
+            images = {o.key: handoff.host_buffer((c.nbatch, c.nframes, *o.shape),
+                                                 handoff.torch_dtype(o.dtype), pin=self.pin)
+                      for o in self.images}
+            rendering = self.renderer.render(recorded[layout.INTEGRATION][1], self._model_of(),
+                                             {k: a for k, (_, a) in images.items()})
         return _Produced({s: tensor for s, (tensor, _) in recorded.items()}, control_t, initial_t,
-                         params, warned, rows_after, extras)
+                         params, warned, rows_after, extras,
+                         {k: t for k, (t, _) in images.items()}, rendering)
 
     def _rollout(self, control: Optional[np.ndarray], out: dict) -> None:
         """Runs the batch's `nstep` steps, recording the sources into `out` ({source:
@@ -199,6 +219,34 @@ class RolloutBackend(Backend):
                 self.live.record(out, (t + 1) // k - 1)
         return bad, call.extras
 
+    def _model_of(self):
+        """`model_of(i)`: trajectory i's model as it ran this batch, for the render threads
+        (which run while the next batch redraws variants and randomized values: these are
+        snapshots)."""
+        c = self.config
+        if c.models is not None:
+            return lambda i: c.models[i]
+        if c.variants is not None:
+            variant = self.params["variant"].copy()
+            return lambda i: c.variants[variant[i]]
+        if c.randomization is None:
+            return lambda i: c.model
+        values = {k: v.copy() for k, v in self.params.items()}
+        plan, local = c.randomization, threading.local()
+
+        def model_of(i: int) -> mujoco.MjModel:
+            if not hasattr(local, "model"):  # each render thread writes its own copy
+                local.model, local.data = copy.copy(c.model), None
+            m = local.model
+            for r in plan.resolved:
+                if not r.field.startswith("opt."):  # options change nothing a camera sees
+                    dr._field_array(m, r.field).reshape(-1)[r.elements] = values[r.param.key][i]
+            if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
+                local.data = local.data or mujoco.MjData(m)
+                mujoco.mj_setConst(m, local.data)
+            return m
+        return model_of
+
     def _ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(nbatch, ncontrol) each: the range each trajectory's controls are clamped to."""
         c = self.config
@@ -240,6 +288,8 @@ class RolloutBackend(Backend):
 
     def deliver(self, p: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
+        for future in p.rendering:  # rendered while the next batch simulated
+            future.result()
         # MuJoCo's checks catch NaN/Inf/huge in qpos, qvel and qacc; this also covers every
         # floating record and runs here, overlapped with the next batch's simulation
         finite = np.ones(c.nbatch, dtype=bool)
@@ -248,11 +298,12 @@ class RolloutBackend(Backend):
                 finite &= np.isfinite(recorded.numpy().reshape(c.nbatch, -1)).all(axis=1)
         diverged = p.warned | ~finite
         self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
-        out = {o.key: o.select(p.recorded[o.source]) for o in c.observations}
+        out = {o.key: o.select(p.recorded[o.source]) for o in c.observations if not o.rendered}
         out.update(control=p.control, initial_state=p.initial_state, **p.extras)
         out = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
                for k, v in out.items()}
         out["diverged"] = handoff.to_target(torch.from_numpy(diverged), c.device, None)
+        out.update({k: handoff.to_target(v, c.device, None) for k, v in p.images.items()})
         if p.params:
             out["params"] = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point()
                                                   else None) for k, v in p.params.items()}
@@ -275,6 +326,8 @@ class RolloutBackend(Backend):
     def close(self) -> None:
         # drops the batch's thread pool now rather than at garbage collection
         self.batch = None
+        if self.renderer is not None:
+            self.renderer.close()
 
 
 class _LiveSources:

@@ -1,0 +1,191 @@
+"""Cameras on the rollout backend: a pool of `mujoco.Renderer`s, one set per thread.
+
+The simulation records, per frame, the `mjSTATE_INTEGRATION` rows of the trajectories (the
+physics state and every input a scene shows: mocap poses, equality activations); the pool then
+renders each recorded state as a plain `mujoco.Renderer` would after `mj_forward` of that
+state, straight into the batch's image tensors, while the prefetch thread simulates the next
+batch. Each trajectory is rendered with its own model (model lists, variants, randomized
+colours, lights or cameras), so the pixels equal `mujoco.Renderer(model_i).update_scene(d,
+camera)` bit for bit.
+
+OpenGL contexts belong to the thread that made them current, so every render thread makes its
+renderers once and keeps them. The GL platform: `MUJOCO_GL` where set (as MuJoCo reads it);
+else EGL (a GPU's driver, or Mesa's software rasterizer on a CPU-only machine), else OSMesa.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import importlib
+import os
+import threading
+from collections.abc import Sequence
+from typing import Any, Callable, Optional
+
+import mujoco
+import numpy as np
+
+from simloader import observe
+
+_PLATFORM_LOCK = threading.Lock()
+_PLATFORM: Optional[tuple[Any, str]] = None  # (GLContext class, name), chosen once
+
+
+def gl_platform() -> tuple[Any, str]:
+    """The GL context class renderers use, and its name ("egl", "osmesa", or MUJOCO_GL's).
+
+    Raises:
+      RuntimeError: no GL platform works here, saying what to install.
+    """
+    global _PLATFORM
+    with _PLATFORM_LOCK:
+        if _PLATFORM is not None:
+            return _PLATFORM
+        asked = os.environ.get("MUJOCO_GL", "").strip().lower()
+        errors = []
+        if asked:
+            from mujoco.rendering.classic import gl_context
+            candidates = [(asked, lambda: gl_context.GLContext)]
+        else:
+            candidates = [(name, lambda name=name: importlib.import_module(
+                f"mujoco.{name}").GLContext) for name in ("egl", "osmesa")]
+        for name, load in candidates:
+            try:
+                cls = load()
+                context = cls(1, 1)  # proves the platform works: a context can be made
+                context.free()
+                _PLATFORM = (cls, name)
+                return _PLATFORM
+            except Exception as e:  # noqa: BLE001 - every failure is reported below
+                errors.append(f"{name}: {type(e).__name__}: {e}")
+        raise RuntimeError(
+            "record: simloader.Camera needs OpenGL to render on the CPU backend, and none "
+            "works here (" + "; ".join(errors) + "). Install EGL (Debian/Ubuntu: libegl1 "
+            "libgl1-mesa-dri libegl-mesa0; a GPU's driver provides its own) or OSMesa "
+            "(libosmesa6), or set MUJOCO_GL")
+
+
+def check(model: mujoco.MjModel, images: Sequence[observe.CameraImage]) -> None:
+    """Refuses cameras larger than the model's offscreen framebuffer, with the fix.
+
+    Raises:
+      ValueError: naming the camera, its size and the buffer's.
+    """
+    width, height = model.vis.global_.offwidth, model.vis.global_.offheight
+    for o in images:
+        if o.camera.width > width or o.camera.height > height:
+            raise ValueError(
+                f"record: {o.key} is {o.camera.height}x{o.camera.width} (height x width), larger "
+                f"than the model's offscreen framebuffer {height}x{width}; give the model "
+                f"<visual><global offwidth=\"{max(width, o.camera.width)}\" "
+                f"offheight=\"{max(height, o.camera.height)}\"/></visual>, or a smaller Camera")
+
+
+def _scene(renderer: mujoco.Renderer, model: mujoco.MjModel, data: mujoco.MjData,
+           camera: int, option: mujoco.MjvOption) -> None:
+    """`renderer.update_scene(data, camera)` for `model` (which may be another trajectory's
+    model than the renderer was made with: same assets, its own colours and cameras)."""
+    cam = mujoco.MjvCamera()
+    cam.fixedcamid = camera
+    if camera == -1:
+        cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        mujoco.mjv_defaultFreeCamera(model, cam)
+    else:
+        cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+    mujoco.mjv_updateScene(model, data, option, None, cam, mujoco.mjtCatBit.mjCAT_ALL.value,
+                           renderer.scene)
+
+
+class RenderPool:
+    """Threads that render recorded states into image buffers.
+
+    Args:
+      model: the batch's model (renderers are made from it: sizes, meshes, textures).
+      images: the camera images to render.
+      nthread: render threads.
+    """
+
+    def __init__(self, model: mujoco.MjModel, images: Sequence[observe.CameraImage],
+                 nthread: int):
+        self.gl, self.platform = gl_platform()
+        self.model = model
+        self.images = tuple(images)
+        self.sizes = sorted({(o.camera.height, o.camera.width) for o in images})
+        self.local = threading.local()
+        self.pool = concurrent.futures.ThreadPoolExecutor(
+            nthread, thread_name_prefix="simloader-render")
+        self.nthread = nthread
+
+    def _renderers(self) -> tuple[dict, mujoco.MjData, mujoco.MjvOption]:
+        """This thread's renderers (one per image size), MjData and scene options."""
+        local = self.local
+        if not hasattr(local, "renderers"):
+            with _swapped_gl(self.gl):
+                local.renderers = {size: mujoco.Renderer(self.model, *size)
+                                   for size in self.sizes}
+            local.data = mujoco.MjData(self.model)
+            local.option = mujoco.MjvOption()
+        return local.renderers, local.data, local.option
+
+    def render(self, states: np.ndarray, model_of: Callable[[int], mujoco.MjModel],
+               out: dict[str, np.ndarray]) -> list[concurrent.futures.Future]:
+        """Starts rendering every frame of every trajectory; returns the futures to wait on.
+
+        Args:
+          states: (nbatch, nframes, nintegration) the recorded `mjSTATE_INTEGRATION` rows.
+          model_of: trajectory i's model (called in the render threads).
+          out: {image key: (nbatch, nframes, *shape)} buffers to render into.
+        """
+        nbatch = states.shape[0]
+        chunks = np.array_split(np.arange(nbatch), min(nbatch, 4 * self.nthread))
+        return [self.pool.submit(self._render_rows, rows, states, model_of, out)
+                for rows in chunks if len(rows)]
+
+    def _render_rows(self, rows: np.ndarray, states: np.ndarray,
+                     model_of: Callable[[int], mujoco.MjModel], out: dict) -> None:
+        renderers, data, option = self._renderers()
+        for i in rows:
+            model = model_of(int(i))
+            for j in range(states.shape[1]):
+                mujoco.mj_setState(model, data, states[i, j], mujoco.mjtState.mjSTATE_INTEGRATION)
+                mujoco.mj_forward(model, data)
+                for o in self.images:
+                    r = renderers[(o.camera.height, o.camera.width)]
+                    _scene(r, model, data, o.camera_id, option)
+                    target = out[o.key][i, j]
+                    if o.kind == "rgb":
+                        r.render(out=target)
+                    elif o.kind == "depth":
+                        r.enable_depth_rendering()
+                        r.render(out=target)
+                        r.disable_depth_rendering()
+                    else:
+                        r.enable_segmentation_rendering()
+                        seg = r.render()
+                        r.disable_segmentation_rendering()
+                        np.copyto(target, np.where(seg[..., 1] == mujoco.mjtObj.mjOBJ_GEOM,
+                                                   seg[..., 0], -1))
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _swapped_gl:
+    """MuJoCo's Renderer takes its GL context class from `gl_context.GLContext`, fixed when
+    mujoco was imported from MUJOCO_GL (glfw when unset, which needs a display): lend it the
+    chosen class while a renderer is made (under a lock: renderers are made in threads)."""
+
+    _lock = threading.Lock()
+
+    def __init__(self, cls: Any):
+        self.cls = cls
+
+    def __enter__(self):
+        from mujoco.rendering.classic import gl_context
+        self._lock.acquire()
+        self.module, self.before = gl_context, gl_context.GLContext
+        gl_context.GLContext = self.cls
+
+    def __exit__(self, *exc):
+        self.module.GLContext = self.before
+        self._lock.release()

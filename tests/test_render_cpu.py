@@ -1,0 +1,144 @@
+"""Cameras on the rollout backend (`backends/cpu_render.py`): every image equals a plain
+`mujoco.Renderer` of the same model and state (after `mj_forward`) bit for bit.
+
+These render for real with OpenGL (EGL: Mesa's software rasterizer on a CPU-only machine).
+Without a working GL they skip, unless SIMLOADER_REQUIRE_GL=1 (CI sets it) makes them fail.
+"""
+
+import os
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+import simloader
+from simloader import controls
+from simloader import randomize as dr
+from simloader.backends import cpu_render
+
+
+@pytest.fixture(scope="module", autouse=True)
+def gl():
+    try:
+        return cpu_render.gl_platform()
+    except RuntimeError as e:
+        if os.environ.get("SIMLOADER_REQUIRE_GL") == "1":
+            raise
+        pytest.skip(f"no OpenGL here: {e}")
+
+
+def reference(model, state, camera, height, width, kind):
+    """A plain mujoco.Renderer's image of `model` at FULLPHYSICS `state`."""
+    data = mujoco.MjData(model)
+    mujoco.mj_setState(model, data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    mujoco.mj_forward(model, data)
+    with cpu_render._swapped_gl(cpu_render.gl_platform()[0]):
+        renderer = mujoco.Renderer(model, height, width)
+    try:
+        renderer.update_scene(data, camera)
+        if kind == "depth":
+            renderer.enable_depth_rendering()
+        if kind == "segmentation":
+            renderer.enable_segmentation_rendering()
+            seg = renderer.render()
+            return np.where(seg[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, seg[..., 0], -1)
+        return renderer.render()
+    finally:
+        renderer.close()
+
+
+def check_images(batch, models, cams, frames=None):
+    states = batch["state"].numpy()
+    for cam in cams:
+        name = cam.camera if isinstance(cam.camera, str) else "free"
+        for kind in cam.kinds:
+            images = batch[f"camera/{name}/{kind}"].numpy()
+            for i in range(images.shape[0]):
+                for j in frames or range(images.shape[1]):
+                    ref = reference(models[i], states[i, j], cam.camera, cam.height, cam.width,
+                                    kind)
+                    assert np.array_equal(images[i, j], ref), (name, kind, i, j)
+
+
+CARTPOLE_CAMS = (simloader.Camera("front", depth=True, segmentation=True),
+                 simloader.Camera(-1, height=24, width=40))
+
+
+def test_images_equal_a_plain_renderer():
+    model = simloader.load_model("cartpole")
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=3, nstep=9, record_every=3,
+                              record=("state", *CARTPOLE_CAMS), control=controls.Uniform(),
+                              initial_state=simloader.initial.Perturbed(qpos_std=0.5),
+                              nthread=2)
+    batch = next(iter(ds))
+    assert batch["camera/front/rgb"].shape == (3, 3, 64, 64, 3)
+    assert batch["camera/front/rgb"].dtype == torch.uint8
+    assert batch["camera/front/depth"].dtype == torch.float32
+    assert batch["camera/front/segmentation"].dtype == torch.int32
+    assert batch["camera/free/rgb"].shape == (3, 3, 24, 40, 3)
+    check_images(batch, [model] * 3, CARTPOLE_CAMS)
+    # the cart and pole are seen, and move between frames
+    seg = batch["camera/front/segmentation"].numpy()
+    assert {model.geom("cart").id, model.geom("pole").id} <= set(np.unique(seg))
+    assert not np.array_equal(batch["camera/front/rgb"][:, 0], batch["camera/front/rgb"][:, 2])
+
+
+def test_humanoid_tracking_cameras_continuing():
+    model = simloader.load_model("humanoid")
+    cams = (simloader.Camera("back", 32, 32), simloader.Camera("egocentric", 24, 24,
+                                                               segmentation=True))
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=10, record_every=5,
+                              record=("state", *cams), control=controls.Uniform(),
+                              continue_episodes=True, nthread=2)
+    it = iter(ds)
+    next(it)
+    check_images(next(it), [model] * 2, cams)
+
+
+def test_randomized_colours_and_model_lists_render_per_trajectory():
+    model = simloader.load_model("cartpole")
+    cam = (simloader.Camera("front", 32, 32),)
+    spec = [dr.set("geom_rgba", dr.Uniform(0.0, 1.0), on="cart", index=[0, 1, 2])]
+    batch = next(iter(simloader.SimDataset(model, backend="rollout", nbatch=3, nstep=2,
+                                           randomize=spec, record=("state", *cam), nthread=2)))
+    rgba = batch["params"]["geom_rgba[cart]"].numpy()
+    models = []
+    for i in range(3):
+        m = simloader.load_model("cartpole")
+        m.geom_rgba[m.geom("cart").id, :3] = rgba[i]
+        models.append(m)
+    check_images(batch, models, cam)
+    assert not np.array_equal(batch["camera/front/rgb"][0], batch["camera/front/rgb"][1])
+    # a model list: trajectory i on models[i]
+    batch = next(iter(simloader.SimDataset(model, backend="rollout", nbatch=3, nstep=2,
+                                           randomize=models, record=("state", *cam))))
+    check_images(batch, models, cam)
+
+
+def test_in_spawned_workers():
+    model = simloader.load_model("cartpole")
+    cam = (simloader.Camera("front", 16, 16),)
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=2, num_batches=2,
+                              record=("state", *cam), control=controls.Uniform(), nthread=1)
+    batches = list(DataLoader(ds, batch_size=None, num_workers=2,
+                              multiprocessing_context="spawn"))
+    assert len(batches) == 2
+    for batch in batches:
+        check_images(batch, [model] * 2, cam)
+
+
+def test_refusals():
+    model = simloader.load_model("cartpole")
+    with pytest.raises(ValueError, match=r"offscreen framebuffer 480x640.*offwidth=\"1000\""):
+        simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=2,
+                             record=(simloader.Camera("front", height=100, width=1000),))
+    with pytest.raises(ValueError, match="policy, record"):
+        simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=2,
+                             record=("qpos", simloader.Camera("front")),
+                             policy=lambda obs: torch.zeros(2, 1))
+    # 1e6 trajectories x 100 frames of 64x64 RGB: 1.1 TiB, refused with the numbers
+    with pytest.raises(ValueError, match=r"nbatch, record: a batch needs .* GiB"):
+        simloader.SimDataset(model, backend="rollout", nbatch=10**6, nstep=100,
+                             record=(simloader.Camera("front"),))
