@@ -3,6 +3,7 @@ the step. The CPU backend equals a plain loop of `mj_step` + the same policy bit
 (both implementations) follows it within float32 tolerances; noise, extras, the weights'
 version, workers and the refusals."""
 
+import copy
 import json
 
 import mujoco
@@ -144,6 +145,8 @@ def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
     kwargs = dict(nbatch=4, nstep=10, record=("qpos", "qvel"), policy=policy, seed=2,
                   dtype=torch.float32, initial_state=simloader.initial.Perturbed())
     cpu = next(iter(simloader.SimDataset(model, backend="rollout", **kwargs)))
+    if torch.cuda.is_available():  # the policy lives where the simulation runs
+        kwargs["policy"] = copy.deepcopy(policy).cuda()
     ds = simloader.SimDataset(model, backend="mjx", impl=impl, compilation_cache=cache_dir,
                               **kwargs)
     it = iter(DataLoader(ds, batch_size=None))

@@ -220,7 +220,7 @@ class MjxBackend(Backend):
             self.caller = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep,
                                         c.device or runtime.torch_device(self.device))
             outputs, carry, self.previous = p.closed_loop.run(
-                args, self._policy_step, c.nbatch, c.nstep, p.data0, self.previous)
+                args, self._policy_step, c.nstep, self.previous)
             extras = {**self.caller.extras,
                       policy.VERSION: torch.tensor(version, dtype=torch.int64)}
         else:

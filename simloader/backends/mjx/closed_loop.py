@@ -106,25 +106,28 @@ class ClosedLoop:
         self.start = jax.jit(start, donate_argnums=(10,))
         self.advance = jax.jit(advance, donate_argnums=(1,))
         self.finish = jax.jit(finish, donate_argnums=(1,))
+        # data of the batch's structure for the first batch's `start` to take: reset rows, as
+        # `start` makes them (MuJoCo Warp keeps its contact pool shared by the batch, which a
+        # plain broadcast of one trajectory's data would copy per trajectory)
+        self.blank = jax.jit(lambda *args: pieces.begin(*args)[1])
 
-    def run(self, args: tuple, policy: Callable[[dict[str, Any], int], Any], nbatch: int,
-            nstep: int, data0: Any, previous: Any) -> tuple[dict[str, Any], Any, Any]:
+    def run(self, args: tuple, policy: Callable[[dict[str, Any], int], Any], nstep: int,
+            previous: Any) -> tuple[dict[str, Any], Any, Any]:
         """One batch: `policy(observations, t) -> control rows` (JAX arrays in, a JAX array
         out) before every step. Only dispatches: nothing here waits for the device.
 
         Args:
           args: the open loop's batch function's arguments (`batch_function`).
-          data0: one trajectory's data as `make_data` leaves it.
           previous: the data the last batch of this iterator returned (donated), or None.
 
         Returns:
           (outputs, carry) as the open loop's, and the data for the next batch's `previous`.
         """
-        if previous is None:  # data of the batch's shapes, to be donated to the first batch
-            previous = jax.tree.map(
-                lambda x: jnp.array(jnp.broadcast_to(x, (nbatch, *x.shape)), copy=True), data0)
         # true float32 dot products, as the open loop (JAX's GPU default is TF32)
         with jax.default_matmul_precision("float32"):
+            if previous is None:
+                control, bounds, seeds, variant, carry, restart = args[4:]
+                previous = self.blank(*args[:5], seeds, variant, carry, restart)
             m, loop, obs, delivered = self.start(*args, previous)
             for t in range(nstep):
                 loop, obs = self.advance(m, loop, policy(obs, t))
