@@ -108,8 +108,9 @@ def test_only_the_randomized_fields_vary():
      "(did you mean 'body_mass'"),
     (dr.scale("body_mass", dr.Uniform(1, 2), on="pol"),
      "randomize: body_mass: no body named 'pol' (did you mean 'pole'"),
-    (dr.set("geom_friction", dr.Uniform(0.3, 1.2), on="floor", index=0),  # the old README's
-     "randomize: geom_friction: no geom named 'floor'; its geoms are ['rail', 'cart', 'pole']"),
+    (dr.set("geom_friction", dr.Uniform(0.3, 1.2), on="ground", index=0),
+     "randomize: geom_friction: no geom named 'ground'; its geoms are ['floor', 'rail', 'cart', "
+     "'pole']"),
     (dr.add("dof_damping", dr.Uniform(0.0, 1.0), on="pole"),
      "randomize: dof_damping: no joint named 'pole'; its joints are ['slider', 'hinge']"),
     (dr.scale("body_mass", dr.Uniform(2, 1), on="pole"),
