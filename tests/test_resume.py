@@ -126,7 +126,7 @@ def test_mismatched_configuration_is_a_clear_error():
     with pytest.raises(ValueError, match="state_dict: the saved stream has another "
                                          "configuration: seed is 1 here but 0 in the state"):
         make(5, seed=1).load_state_dict(saved)
-    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 3"):
+    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 4"):
         make(5).load_state_dict({"version": 99})
 
 
