@@ -6,6 +6,9 @@ Rows (every one records the state after each step and the controls):
   open loop              simloader, per-step uniform controls (no policy)
   fused JAX MLP          raw: the MLP in JAX inside one jitted scan
   raw torch per step     raw: jitted single steps, the torch MLP between them, DLPack both ways
+  raw Warp graph + torch raw (impl warp, GPU): MuJoCo Warp's step as one CUDA graph replayed
+                         on torch's stream, the torch MLP between replays, nothing else (the
+                         scheme simloader's Warp closed loop uses, without its checks)
   simloader policy=      simloader, the torch MLP as `policy=`
 
     python benchmarks/bench_policy_mjx.py --quick                      # CPU smoke run
@@ -25,6 +28,7 @@ DEFAULT = [common.Workload("humanoid", 8192, 200), common.Workload("cartpole", 4
 QUICK = [common.Workload("cartpole", 8, 10)]
 # the implementations to run per model: the humanoid (contacts) on Warp; the cart-pole on both
 IMPLS = {"humanoid": ("warp",), "cartpole": ("jax", "warp")}
+GRAPH = "raw Warp graph + torch"
 
 
 def main() -> None:
@@ -55,6 +59,9 @@ def main() -> None:
                                                  naconmax=options.naconmax, njmax=options.njmax)
                     for name, mode in (("fused JAX MLP", "fused"),
                                        ("raw torch per step", "torch"))}
+            if impl == "warp" and device == "cuda":
+                raws[GRAPH] = bench.RawWarpGraphLoop(model, w, net, naconmax=options.naconmax,
+                                                     njmax=options.njmax)
             slowest = max([s.first_s / 10 for s in sims.values()]
                           + [r.measure(1) * w.steps for r in raws.values()])
             nbatches = common.batches_for(args, slowest)
@@ -62,8 +69,10 @@ def main() -> None:
             measures.update({name: (lambda s=s: s.measure(nbatches))
                              for name, s in sims.items()})
             results = common.interleave(measures, args.repeats, desc=f"{w} {impl}")
-            for name in ("open loop", "fused JAX MLP", "raw torch per step",
+            for name in ("open loop", "fused JAX MLP", "raw torch per step", GRAPH,
                          "simloader policy="):
+                if name not in results:
+                    continue
                 s = results[name]
                 rows.append([str(w), impl, name, common.ns(s), common.rate(1 / s),
                              f"{results['fused JAX MLP'] / s:.3f}",

@@ -509,6 +509,75 @@ class RawClosedLoopMjx:
         return (time.perf_counter() - start) / (nbatches * self.w.steps)
 
 
+class RawWarpGraphLoop:
+    """Raw closed loop on MuJoCo Warp itself, without MJX or simloader: MuJoCo Warp's step
+    captured once as a CUDA graph on its own arrays and replayed every step on torch's
+    stream, the torch MLP between replays on zero-copy views, recording the state after every
+    step and the controls (the scheme simloader's Warp closed loop uses, with nothing else:
+    no checks, no noise, no resets beyond the batch's start). GPU only.
+
+    Args:
+      net: the torch MLP (`mlp`), on the GPU.
+      naconmax, njmax: MuJoCo Warp's buffer sizes, as simloader sizes them.
+    """
+
+    def __init__(self, model: mujoco.MjModel, w: Workload, net: Any,
+                 naconmax: Optional[int] = None, njmax: Optional[int] = None):
+        import torch
+        import warp as wp
+        from simloader.backends.mjx.runtime import mjx  # noqa: F401 (MJX's Warp set up)
+        from mujoco.mjx.third_party import mujoco_warp as mjw
+
+        self.w, self.torch, self.wp = w, torch, wp
+        self.policy = StatePolicy(net, model)
+        start = time.perf_counter()
+        self.wm = mjw.put_model(model)
+        self.wm.opt.warn_overflow = 0
+        self.wd = mjw.make_data(model, nworld=w.nbatch, naconmax=naconmax, njmax=njmax)
+        stream = wp.Stream(wp.get_device())
+        with wp.ScopedStream(stream):
+            mjw.step(self.wm, self.wd)  # loads the kernels before the capture
+            with wp.ScopedCapture(stream=stream) as capture:
+                mjw.step(self.wm, self.wd)
+        wp.synchronize_stream(stream)
+        self.graph = capture.graph
+        view = lambda name: wp.to_torch(getattr(self.wd, name))  # noqa: E731
+        self.time, self.qpos, self.qvel, self.act, self.ctrl, self.warmstart = (
+            view(n) for n in ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart"))
+        self.reset = {name: view(name).clone() for name in _READ}
+        self.nq = model.nq
+        self.compile_s = time.perf_counter() - start
+        self()
+        self.first_s = time.perf_counter() - start
+
+    def __call__(self) -> dict[str, Any]:
+        torch, w = self.torch, self.w
+        for name, value in self.reset.items():
+            getattr(self, "warmstart" if name == "qacc_warmstart" else name).copy_(value)
+        state = torch.empty((w.nbatch, w.nstep, 1 + self.qpos.shape[1] + self.qvel.shape[1]
+                             + self.act.shape[1]), device=self.qpos.device)
+        control = torch.empty((w.nbatch, w.nstep, self.ctrl.shape[1]), device=self.qpos.device)
+        stream = self.wp.stream_from_torch(torch.cuda.current_stream())
+        with torch.no_grad():
+            for t in range(w.nstep):
+                u = self.policy({"qpos": self.qpos, "qvel": self.qvel})
+                self.ctrl.copy_(u)
+                control[:, t] = u
+                self.wp.capture_launch(self.graph, stream=stream)
+                state[:, t] = torch.cat([self.time[:, None], self.qpos, self.qvel, self.act],
+                                        dim=1)
+        torch.cuda.synchronize()
+        return {"state": state, "control": control}
+
+    def measure(self, nbatches: int) -> float:
+        """Seconds per step of `nbatches` back-to-back blocked batches."""
+        start = time.perf_counter()
+        for _ in range(nbatches):
+            out = self()
+            del out
+        return (time.perf_counter() - start) / (nbatches * self.w.steps)
+
+
 # -- simloader, measured the same way ---------------------------------------------------------
 
 class SimloaderMeasure:

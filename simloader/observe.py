@@ -101,6 +101,16 @@ class Observation:
         or None."""
         return None
 
+    def fields(self) -> tuple[str, ...]:
+        """The MjData fields its value is made of."""
+        return (self.key,)
+
+    def torch_value(self, fields: dict[str, Any]) -> Any:
+        """The value of one frame of a whole batch, `(nbatch, *shape)`, as a fresh torch
+        tensor, from torch tensors `(nbatch, ...)` of the MjData fields named by `fields()`
+        (MuJoCo Warp's arrays, for the Warp closed loop)."""
+        raise NotImplementedError
+
 
 @dataclasses.dataclass(frozen=True)
 class State(Observation):
@@ -110,6 +120,14 @@ class State(Observation):
         from mujoco import mjx
         return mjx.get_state(m, d, _MJX_PHYSICS)
 
+    def fields(self):
+        return ("time", "qpos", "qvel", "act")
+
+    def torch_value(self, fields):
+        import torch
+        time, *rest = (fields[name] for name in self.fields())
+        return torch.cat([time.reshape(-1, 1), *rest], dim=1)
+
 
 @dataclasses.dataclass(frozen=True)
 class Field(Observation):
@@ -118,6 +136,10 @@ class Field(Observation):
     def jax_value(self, m, d):
         # rotation matrices are (n, 3, 3) in MJX, (n, 9) in MuJoCo: the same values, row-major
         return _mjx_field(d, self.key).reshape(self.shape)
+
+    def torch_value(self, fields):
+        value = fields[self.key]
+        return value.reshape(value.shape[0], *self.shape).clone()
 
     def mjx_refusal(self, data, impl):
         import jax
@@ -143,6 +165,12 @@ class Sensor(Observation):
 
     def jax_value(self, m, d):
         return d.sensordata[self.columns[0]:self.columns[1]]
+
+    def fields(self):
+        return ("sensordata",)
+
+    def torch_value(self, fields):
+        return fields["sensordata"][:, self.columns[0]:self.columns[1]].clone()
 
 
 CAMERA_PREFIX = "camera/"

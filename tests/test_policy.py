@@ -263,18 +263,24 @@ def test_spawned_workers_share_the_weights():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-def test_mjx_closed_loop_never_waits_on_the_host(cache_dir):
+@pytest.mark.parametrize("impl", ["jax", "warp"])
+def test_mjx_closed_loop_never_waits_on_the_host(impl, cache_dir):
     """Dispatching a closed-loop batch makes no host synchronisation: torch's sync debug
     mode raises on any synchronising torch call, JAX's transfer guard on any device-to-host
-    transfer."""
+    transfer. On Warp: MuJoCo Warp's own loop, its graph replayed on torch's stream."""
     import jax
     from simloader import sharding
+    if impl == "warp":
+        pytest.importorskip("warp")
     model, policy = cartpole_policy()
     policy.float().cuda()
-    ds = simloader.SimDataset(model, backend="mjx", nbatch=64, nstep=20, policy=policy,
-                              record=("qpos", "qvel"), compilation_cache=cache_dir)
+    ds = simloader.SimDataset(model, backend="mjx", impl=impl, nbatch=64, nstep=20,
+                              policy=policy, record=("qpos", "qvel"),
+                              compilation_cache=cache_dir)
     next(iter(ds))  # compiles
     backend = ds.make_backend(sharding.current_shard(0))
+    assert type(backend.program.closed_loop).__name__ == {"jax": "ClosedLoop",
+                                                          "warp": "WarpLoop"}[impl]
     backend.produce(0)  # the first batch of an iterator sets its buffers up
     torch.cuda.set_sync_debug_mode("error")
     try:
@@ -283,3 +289,100 @@ def test_mjx_closed_loop_never_waits_on_the_host(cache_dir):
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert backend.deliver(produced)["qpos"].shape == (64, 20, 2)
+
+
+# -- MuJoCo Warp's own closed loop (`backends/mjx/warp_loop.py`) ----------------------------
+
+class Pusher(torch.nn.Module):
+    """A deterministic float32 policy for the rich model's six inputs (`EVERY_INPUT`): bounded
+    controls and forces of (qpos, qvel), the grab switched on after 0.015 s, and a torque of
+    1e9 on trajectory 1's ball from its fourth step on: a legal control (under mjMAXVAL) whose
+    acceleration is not (it diverges, is flagged and restarted)."""
+
+    def __init__(self, nq, nv, ncontrol, ctrl_columns):
+        super().__init__()
+        torch.manual_seed(3)
+        self.lin = torch.nn.Linear(nq + nv, ncontrol)
+        self.ctrl, self.nv = ctrl_columns, nv
+
+    def forward(self, obs):
+        u = 2 * torch.tanh(self.lin(torch.cat([obs["qpos"], obs["qvel"]], -1)))
+        late = obs["time"] > 0.015
+        u[:, -1] = late.to(u.dtype)  # eq_active: the last column
+        fault = torch.zeros_like(u)
+        fault[1, self.ctrl + 3] = 1e9 * late[1].to(u.dtype)  # qfrc_applied[3]: a ball dof
+        return u + fault, {"late": late}
+
+
+def _both_drivers(monkeypatch, cache_dir, model, nbatches, **kwargs):
+    """The batches of MuJoCo Warp's own closed loop, and of the MJX closed loop (jitted
+    single steps through MJX's Warp FFI) on the same configuration."""
+    from simloader.backends.mjx import backend, warp_loop
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")  # on a GPU: the GPU, CUDA graphs
+    if torch.cuda.is_available():
+        kwargs["policy"] = kwargs["policy"].cuda()
+    runs = {}
+    for driver in ("warp", "mjx"):
+        with monkeypatch.context() as patch:
+            if driver == "mjx":
+                patch.setattr(warp_loop, "WarpLoop", lambda pieces, closed, *args: closed)
+            ds = simloader.SimDataset(model, backend="mjx", impl="warp",
+                                      compilation_cache=cache_dir, **kwargs)
+            it = iter(ds)
+            runs[driver] = [next(it) for _ in range(nbatches)]
+            (loop,) = [p.closed_loop for p in backend._PROGRAMS[ds.config].values()]
+            assert type(loop).__name__ == {"warp": "WarpLoop", "mjx": "ClosedLoop"}[driver]
+    return runs["warp"], runs["mjx"]
+
+
+def _assert_same_batches(ours, theirs, atol):
+    for a, b in zip(ours, theirs):
+        assert sorted(a) == sorted(b)
+        for key in a:
+            if key == "params":
+                for k in a[key]:
+                    assert torch.equal(a[key][k], b[key][k]), k
+            elif key == "policy/version" or not a[key].is_floating_point():
+                assert torch.equal(a[key], b[key]), key
+            else:
+                np.testing.assert_allclose(a[key].cpu().numpy(), b[key].cpu().numpy(),
+                                           atol=atol, rtol=0, err_msg=key)
+
+
+def test_warp_loop_equals_the_mjx_driver_continuing_randomized_noisy(monkeypatch, cache_dir):
+    """MuJoCo Warp's own loop computes what the MJX closed loop computes (the same MuJoCo
+    Warp kernels, here on the CPU): reset, randomized damping, noise around the policy,
+    MuJoCo's clamp, frames every 2nd step of a state, fields and sensors, continuation."""
+    pytest.importorskip("warp")
+    model, policy = cartpole_policy()
+    policy.float()
+    ours, theirs = _both_drivers(
+        monkeypatch, cache_dir, model, 2, nbatch=4, nstep=8, record_every=2,
+        record=("state", "qpos", "qvel", "xpos", "qacc", "sensor:pole_angle", "sensordata"),
+        policy=policy, policy_noise=controls.Normal(std=0.3), continue_episodes=True,
+        randomize=[dr.scale("dof_damping", dr.Uniform(50.0, 200.0))], seed=5,
+        initial_state=simloader.initial.Perturbed(qvel_std=1.0))
+    _assert_same_batches(ours, theirs, atol=1e-5)
+    first, second = ours
+    assert first["qpos"].shape == (4, 4, 2) and first["policy/value"].shape == (4, 8)
+    assert np.abs(first["control"].cpu().numpy()).max() == 1.0  # clamped where MuJoCo clamps
+    assert torch.equal(second["initial_state"], first["state"][:, -1])  # continued
+
+
+def test_warp_loop_equals_the_mjx_driver_on_contacts_every_input_and_a_fault(
+        monkeypatch, cache_dir, rich_model):
+    """Contacts (the ball on the floor), every control_spec input, and a trajectory driven
+    to divergence: flagged, restarted, and the others as the MJX driver has them."""
+    pytest.importorskip("warp")
+    spec = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED | S.mjSTATE_XFRC_APPLIED
+               | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT | S.mjSTATE_EQ_ACTIVE)
+    m = rich_model
+    policy = Pusher(m.nq, m.nv, mujoco.mj_stateSize(m, spec), m.nu)
+    ours, theirs = _both_drivers(
+        monkeypatch, cache_dir, m, 1, nbatch=3, nstep=12, control_spec=spec, policy=policy,
+        record=("time", "qpos", "qvel", "qfrc_constraint", "sensordata"), seed=1)
+    _assert_same_batches(ours, theirs, atol=1e-4)
+    (batch,) = ours
+    assert batch["diverged"].tolist() == [False, True, False]
+    assert torch.isfinite(batch["qpos"]).all()  # restarted, never NaN
+    assert (batch["qfrc_constraint"][0, :, :6].abs().sum() > 0).item()  # the ball is on the floor

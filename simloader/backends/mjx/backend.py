@@ -188,19 +188,18 @@ class MjxBackend(Backend):
         self.previous: Any = None  # closed loop: the last batch's data (donated to the next)
         self.caller: Optional[policy.Caller] = None  # closed loop: this batch's policy calls
 
-    def _policy_step(self, obs: dict[str, jax.Array], t: int) -> jax.Array:
-        """The policy's control rows for step `t`, from the observations before it: JAX
-        arrays to torch and back through DLPack, which orders them on the device (each side's
-        stream waits on an event of the other's), never on the host."""
+    def _policy_step(self, obs: dict[str, torch.Tensor], t: int) -> torch.Tensor:
+        """The policy's control rows for step `t`, from the observations before it (tensors
+        on the simulation's device, as the closed loop hands them over), on that device."""
         c = self.config
-        tensors = {k: self._tensor(v, c.dtype if k not in self.program.rendered and
-                                   jnp.issubdtype(v.dtype, jnp.floating) else None)
+        tensors = {k: handoff.to_target(v, c.device, c.dtype if k not in self.program.rendered
+                                        and v.is_floating_point() else None)
                    for k, v in obs.items()}
         control = self.caller(tensors, t).detach()
         here = runtime.torch_device(self.device)
         if control.device != here:  # a policy on another device than the simulation
             control = control.to(here, non_blocking=True)
-        return jax.dlpack.from_dlpack(control.contiguous())
+        return control
 
     def produce(self, index: int) -> _Produced:
         c, p = self.config, self.program

@@ -22,6 +22,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import torch
 
 from simloader import controls
 from simloader.backends.mjx.runtime import mjx
@@ -86,35 +87,42 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                 "control": control}
         return loop, obs
 
-    def finish(m, loop, delivered):
-        """The batch's outputs, the carry of `continue_episodes`, and the data (whose buffers
-        the next batch's `start` takes)."""
-        outputs = {**loop["frames"], "control": loop["control"],
-                   "initial_state": delivered["initial_state"], "diverged": loop["diverged"]}
-        outputs, carry = P.finish(m, loop["d"], outputs, delivered["params"])
-        return outputs, carry, loop["d"]
+    def finish_outputs(m, d, outputs, delivered):
+        """The batch's outputs (frames, control, diverged; the initial state and parameters
+        added) and the carry of `continue_episodes`, from the final data `d`."""
+        outputs = {**outputs, "initial_state": delivered["initial_state"]}
+        return P.finish(m, d, outputs, delivered["params"])
 
-    return start, advance, finish
+    def finish(m, loop, delivered):
+        """`finish_outputs` of the loop state, and the data (whose buffers the next batch's
+        `start` takes)."""
+        outputs = {**loop["frames"], "control": loop["control"], "diverged": loop["diverged"]}
+        return (*finish_outputs(m, loop["d"], outputs, delivered), loop["d"])
+
+    return start, advance, finish, finish_outputs
 
 
 class ClosedLoop:
     """A configuration's closed-loop batch, compiled on first use; one per program."""
 
     def __init__(self, pieces: Any, noise_drivers: tuple):
-        start, advance, finish = functions(pieces, noise_drivers)
+        start, advance, finish, finish_outputs = functions(pieces, noise_drivers)
         # donated: the previous data to `start`, the loop state to `advance` and `finish`
         self.start = jax.jit(start, donate_argnums=(10,))
         self.advance = jax.jit(advance, donate_argnums=(1,))
         self.finish = jax.jit(finish, donate_argnums=(1,))
+        # for the Warp closed loop (`warp_loop.py`), whose outputs are torch's buffers
+        self.finish_outputs = jax.jit(finish_outputs)
         # data of the batch's structure for the first batch's `start` to take: reset rows, as
         # `start` makes them (MuJoCo Warp keeps its contact pool shared by the batch, which a
         # plain broadcast of one trajectory's data would copy per trajectory)
         self.blank = jax.jit(lambda *args: pieces.begin(*args)[1])
 
-    def run(self, args: tuple, policy: Callable[[dict[str, Any], int], Any], nstep: int,
-            previous: Any) -> tuple[dict[str, Any], Any, Any]:
-        """One batch: `policy(observations, t) -> control rows` (JAX arrays in, a JAX array
-        out) before every step. Only dispatches: nothing here waits for the device.
+    def run(self, args: tuple, policy: Callable[[dict[str, torch.Tensor], int], torch.Tensor],
+            nstep: int, previous: Any) -> tuple[dict[str, Any], Any, Any]:
+        """One batch: `policy(observations, t) -> control rows` (torch tensors in and out,
+        exchanged with JAX through DLPack) before every step. Only dispatches: nothing here
+        waits for the device.
 
         Args:
           args: the open loop's batch function's arguments (`batch_function`).
@@ -130,5 +138,6 @@ class ClosedLoop:
                 previous = self.blank(*args[:5], seeds, variant, carry, restart)
             m, loop, obs, delivered = self.start(*args, previous)
             for t in range(nstep):
-                loop, obs = self.advance(m, loop, policy(obs, t))
+                u = policy({k: torch.from_dlpack(v) for k, v in obs.items()}, t)
+                loop, obs = self.advance(m, loop, jax.dlpack.from_dlpack(u.contiguous()))
             return self.finish(m, loop, delivered)

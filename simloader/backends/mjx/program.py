@@ -39,7 +39,7 @@ import numpy as np
 from simloader import controls, layout, observe
 from simloader.backends.base import Stats
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import runtime
+from simloader.backends.mjx import runtime, warp_loop
 from simloader.backends.mjx.closed_loop import ClosedLoop
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import PHYSICS, pool, pooled, put_models
@@ -85,7 +85,8 @@ class Pieces:
         self.randomizer, self.dtype, self.renderer = randomizer, dtype, renderer
         self.nbatch, self.nstep, self.control_spec = c.nbatch, c.nstep, c.control_spec
         self.drivers = c.control.drivers
-        self.inputs = tuple(component.name for component in c.control.components)
+        self.control_components = tuple(c.control.components)
+        self.inputs = tuple(component.name for component in self.control_components)
         self.observations, self.every, self.nframes = c.observations, c.record_every, c.nframes
         # control=None leaves inputs alone; a policy always sets them
         self.given = (c.control.fixed is not None or bool(self.drivers)
@@ -328,8 +329,14 @@ class Program:
         self.jitted = jax.jit(batch_function(self.pieces))
         policy = getattr(c, "policy", None)
         noise = getattr(c, "policy_noise", None)
-        self.closed_loop = None if policy is None else ClosedLoop(
-            self.pieces, () if noise is None else noise.drivers)
+        self.closed_loop: Any = None
+        if policy is not None:
+            self.closed_loop = ClosedLoop(self.pieces, () if noise is None else noise.drivers)
+            if impl.name == "warp" and warp_loop.supports(c.observations):
+                # MuJoCo Warp's own CUDA graph per step, the checks in torch (`warp_loop.py`);
+                # cameras, and fields MJX maps from elsewhere, keep MJX's jitted steps
+                self.closed_loop = warp_loop.WarpLoop(self.pieces, self.closed_loop, c.model,
+                                                      impl.naconmax, impl.njmax, device)
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
 
