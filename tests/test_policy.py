@@ -386,3 +386,16 @@ def test_warp_loop_equals_the_mjx_driver_on_contacts_every_input_and_a_fault(
     assert batch["diverged"].tolist() == [False, True, False]
     assert torch.isfinite(batch["qpos"]).all()  # restarted, never NaN
     assert (batch["qfrc_constraint"][0, :, :6].abs().sum() > 0).item()  # the ball is on the floor
+
+
+def test_auto_takes_warps_own_loop_for_a_policy(monkeypatch, cache_dir):
+    """impl="auto" runs a contact-free model on MJX-JAX open loop, but a policy in the loop
+    on MuJoCo Warp's own driver (one graph replay per step instead of a jitted MJX call)."""
+    pytest.importorskip("warp")
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+    model, policy = cartpole_policy()
+    kwargs = dict(backend="mjx", nbatch=2, nstep=2, compilation_cache=cache_dir)
+    assert simloader.SimDataset(model, **kwargs).config.options.impl == "jax"
+    ds = simloader.SimDataset(model, policy=policy, record=("qpos", "qvel"), **kwargs)
+    assert ds.config.options.impl == "warp"
+    assert "a policy in the loop runs fastest on MuJoCo Warp's own CUDA graph" in ds.describe()

@@ -32,7 +32,7 @@ from simloader import handoff, observe, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import render, runtime, warp_impl
+from simloader.backends.mjx import render, runtime, warp_impl, warp_loop
 from simloader.backends.mjx.impls import Implementation, choose
 from simloader.backends.mjx.pool import put_models
 from simloader.backends.mjx.program import Program
@@ -112,7 +112,11 @@ def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
     runtime.configure_cache(cache)
     device = runtime.jax_device(config.device)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
-    choice = choose(asked, config.model, runtime.warp_missing(device), cameras=bool(images))
+    warp_missing = runtime.warp_missing(device)
+    warp_closed_loop = (config.policy is not None and not warp_missing
+                        and warp_loop.supports(config.observations))
+    choice = choose(asked, config.model, warp_missing, cameras=bool(images),
+                    warp_closed_loop=warp_closed_loop)
     if choice.impl != "warp" and (naconmax is not None or njmax is not None):
         raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need impl='warp', "
                          f"but impl resolved to {choice.impl!r} ({choice.reason})")
