@@ -251,7 +251,25 @@ def raw_rollout(model: Any, w: Workload, nthread: int,
 _READ = ("time", "qpos", "qvel", "act", "qacc_warmstart")
 
 
-class RawMjx:
+class RawBaseline:
+    """A raw baseline: calling it simulates one batch and returns once its results are
+    ready (blocked on the device); `w` is its workload."""
+
+    w: Workload
+
+    def __call__(self) -> Any:
+        raise NotImplementedError
+
+    def measure(self, nbatches: int) -> float:
+        """Seconds per step of `nbatches` back-to-back batches."""
+        start = time.perf_counter()
+        for _ in range(nbatches):
+            out = self()
+            del out
+        return (time.perf_counter() - start) / (nbatches * self.w.steps)
+
+
+class RawMjx(RawBaseline):
     """The raw MJX baseline: one jitted function per workload, `f(key, index) -> arrays`.
 
     Args:
@@ -355,14 +373,6 @@ class RawMjx:
         self.index += 1
         return jax.block_until_ready(out)
 
-    def measure(self, nbatches: int) -> float:
-        """Seconds per step of `nbatches` back-to-back blocked calls."""
-        start = time.perf_counter()
-        for _ in range(nbatches):
-            out = self()
-            del out
-        return (time.perf_counter() - start) / (nbatches * self.w.steps)
-
 
 # -- closed loop: a policy picks every step's controls -----------------------------------------
 
@@ -394,7 +404,45 @@ class StatePolicy:
         return self.mid + self.half * self.net(x)
 
 
-class RawClosedLoopMjx:
+class RawClosedLoopBatch(RawBaseline):
+    """Raw CPU closed loop: `mujoco.batch.Batch` on all cores as its docstring writes it
+    (`ctrl[:] = policy(qpos, qvel); batch.step()`), the torch policy on float32 copies of the
+    bound state, recording the state after every step and the controls. No clamping, noise,
+    divergence checks or hand-off: the floor simloader's `policy=` is measured against.
+
+    Args:
+      policy: `StatePolicy` (a CPU torch MLP).
+      nthread: the batch's threads.
+    """
+
+    def __init__(self, model: mujoco.MjModel, w: Workload, policy: Any, nthread: int):
+        import torch
+        from mujoco import batch as mj_batch
+        self.w, self.policy, self.torch = w, policy, torch
+        self.batch = mj_batch.Batch(model, nsim=w.nbatch, nthread=nthread)
+        self.fields = {name: self.batch.bind(name)
+                       for name in ("time", "qpos", "qvel", "act", "ctrl")}
+        self.start = self.batch.state.copy()
+        self.nstate = 1 + model.nq + model.nv + model.na
+
+    def __call__(self) -> dict[str, np.ndarray]:
+        torch, w, f = self.torch, self.w, self.fields
+        self.batch.state[:] = self.start
+        state = np.empty((w.nbatch, w.nstep, self.nstate))
+        control = np.empty((w.nbatch, w.nstep, f["ctrl"].shape[1]))
+        with torch.no_grad():
+            for t in range(w.nstep):
+                u = self.policy({"qpos": torch.from_numpy(f["qpos"]).float(),
+                                 "qvel": torch.from_numpy(f["qvel"]).float()})
+                f["ctrl"][:] = u.numpy()
+                control[:, t] = f["ctrl"]
+                self.batch.step()
+                state[:, t] = np.concatenate(
+                    [f["time"][:, None], f["qpos"], f["qvel"], f["act"]], axis=1)
+        return {"state": state, "control": control}
+
+
+class RawClosedLoopMjx(RawBaseline):
     """Raw MJX closed-loop baselines, recording the state after every step and the controls.
 
     mode "fused": the policy's MLP written in JAX, inside one jitted scan (the upper bound: no
@@ -500,16 +548,7 @@ class RawClosedLoopMjx:
         self.data = d  # donated on to the next batch: the same buffers, the same graph
         return jax.block_until_ready(out)
 
-    def measure(self, nbatches: int) -> float:
-        """Seconds per step of `nbatches` back-to-back blocked batches."""
-        start = time.perf_counter()
-        for _ in range(nbatches):
-            out = self()
-            del out
-        return (time.perf_counter() - start) / (nbatches * self.w.steps)
-
-
-class RawWarpGraphLoop:
+class RawWarpGraphLoop(RawBaseline):
     """Raw closed loop on MuJoCo Warp itself, without MJX or simloader: MuJoCo Warp's step
     captured once as a CUDA graph on its own arrays and replayed every step on torch's
     stream, the torch MLP between replays on zero-copy views, recording the state after every
@@ -566,16 +605,8 @@ class RawWarpGraphLoop:
                 self.wp.capture_launch(self.graph, stream=stream)
                 state[:, t] = torch.cat([self.time[:, None], self.qpos, self.qvel, self.act],
                                         dim=1)
-        torch.cuda.synchronize()
+        torch.cuda.current_stream().synchronize()
         return {"state": state, "control": control}
-
-    def measure(self, nbatches: int) -> float:
-        """Seconds per step of `nbatches` back-to-back blocked batches."""
-        start = time.perf_counter()
-        for _ in range(nbatches):
-            out = self()
-            del out
-        return (time.perf_counter() - start) / (nbatches * self.w.steps)
 
 
 # -- simloader, measured the same way ---------------------------------------------------------

@@ -1,15 +1,16 @@
 """The closed-loop driver for MuJoCo Warp: one CUDA graph per step, the policy in torch.
 
 MJX runs MuJoCo Warp through JAX's FFI. Inside the open loop's scan that costs nothing, but a
-closed loop returns to Python every step, and one call of a jitted MJX-Warp step costs about
-12 ms on the host whatever the batch (measured on an H200: XLA copies the step's few hundred
-operands, Warp's callback stages them, or captures its graph anew whenever an XLA temporary
-moves), against 1.4 ms of GPU work for 8192 humanoids. So this driver keeps a MuJoCo Warp
+closed loop returns to Python every step, and one call of a jitted MJX-Warp step cost 14 to 22
+ms on the host (H200: cart-pole 4096, humanoid 8192; Warp's callback made about 140 Python
+kernel launches per step and captured its graph anew, as buffers inside the step move from
+call to call), against 1.5 ms of GPU work for 8192 humanoids. So this driver keeps a MuJoCo Warp
 `Model` and `Data` of its own, whose arrays never move, captures MuJoCo Warp's step on them as
 one CUDA graph once, and replays it on torch's stream every step. The policy, the inputs it
 sets and everything a step checks and records are torch operations on zero-copy views of
 those arrays, queued on the same stream: no host synchronisation, and the GPU runs policy and
-physics back to back.
+physics back to back (humanoid 8192 with a 2x256 MLP: 4.88M steps/s, 0.97x the MLP fused
+into MJX's scan; `benchmarks/bench_policy_mjx.py`).
 
 Everything else is the MJX closed loop's (`closed_loop.py`), so both compute the same: its
 jitted `start` resets the batch (randomization, variants, continuation, noise), MuJoCo Warp's
@@ -22,6 +23,7 @@ for `finish` (carry, overflow bits). What happens between policy and physics mir
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -103,6 +105,9 @@ class WarpLoop:
         self.gpu = device.platform == "gpu"
         self.warp_device = f"cuda:{device.local_hardware_id}" if self.gpu else "cpu"
         self.built = False
+        # MuJoCo Warp's arrays are the program's, shared by every iterator of the dataset:
+        # one batch at a time queues its work on them (the device then runs them in order)
+        self.lock = threading.Lock()
 
     def _build(self, m: Any, d: Any) -> None:
         """MuJoCo Warp's model and data for the batch, torch views of them, and the graph."""
@@ -170,6 +175,10 @@ class WarpLoop:
             nstep: int, previous: Any) -> tuple[dict[str, Any], Any, Any]:
         """One batch: `policy(observations, t) -> control rows` (torch tensors in and out)
         before every step. Only queues work: nothing here waits for the device."""
+        with self.lock:
+            return self._run(args, policy, nstep, previous)
+
+    def _run(self, args, policy, nstep, previous):
         P, closed = self.P, self.closed
         with jax.default_matmul_precision("float32"):
             if previous is None:
