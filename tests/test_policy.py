@@ -372,17 +372,20 @@ def test_warp_loop_equals_the_mjx_driver_continuing_randomized_noisy(monkeypatch
 def test_warp_loop_equals_the_mjx_driver_on_contacts_every_input_and_a_fault(
         monkeypatch, cache_dir, rich_model):
     """Contacts (the ball on the floor), every control_spec input, and a trajectory driven
-    to divergence: flagged, restarted, and the others as the MJX driver has them."""
+    to divergence: flagged, restarted, and the others as the MJX driver has them; every 4th
+    step recorded."""
     pytest.importorskip("warp")
     spec = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED | S.mjSTATE_XFRC_APPLIED
                | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT | S.mjSTATE_EQ_ACTIVE)
     m = rich_model
     policy = Pusher(m.nq, m.nv, mujoco.mj_stateSize(m, spec), m.nu)
     ours, theirs = _both_drivers(
-        monkeypatch, cache_dir, m, 1, nbatch=3, nstep=12, control_spec=spec, policy=policy,
+        monkeypatch, cache_dir, m, 1, nbatch=3, nstep=12, record_every=4, control_spec=spec,
+        policy=policy,
         record=("time", "qpos", "qvel", "qfrc_constraint", "sensordata"), seed=1)
     _assert_same_batches(ours, theirs, atol=1e-4)
     (batch,) = ours
+    assert batch["qpos"].shape == (3, 3, m.nq) and batch["control"].shape[1] == 12
     assert batch["diverged"].tolist() == [False, True, False]
     assert torch.isfinite(batch["qpos"]).all()  # restarted, never NaN
     assert (batch["qfrc_constraint"][0, :, :6].abs().sum() > 0).item()  # the ball is on the floor

@@ -107,6 +107,7 @@ class ClosedLoop:
 
     def __init__(self, pieces: Any, noise_drivers: tuple):
         start, advance, finish, finish_outputs = functions(pieces, noise_drivers)
+        self.noisy = bool(noise_drivers)  # whether `start` draws noise around the policy
         # donated: the previous data to `start`, the loop state to `advance` and `finish`
         self.start = jax.jit(start, donate_argnums=(10,))
         self.advance = jax.jit(advance, donate_argnums=(1,))

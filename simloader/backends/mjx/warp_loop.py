@@ -5,19 +5,22 @@ closed loop returns to Python every step, and one call of a jitted MJX-Warp step
 ms on the host (H200: cart-pole 4096, humanoid 8192; Warp's callback made about 140 Python
 kernel launches per step and captured its graph anew, as buffers inside the step move from
 call to call), against 1.5 ms of GPU work for 8192 humanoids. So this driver keeps a MuJoCo Warp
-`Model` and `Data` of its own, whose arrays never move, captures MuJoCo Warp's step on them as
-one CUDA graph once, and replays it on torch's stream every step. The policy, the inputs it
-sets and everything a step checks and records are torch operations on zero-copy views of
-those arrays, queued on the same stream: no host synchronisation, and the GPU runs policy and
-physics back to back (humanoid 8192 with a 2x256 MLP: 4.88M steps/s, 0.97x the MLP fused
-into MJX's scan; `benchmarks/bench_policy_mjx.py`).
+`Model` and `Data` of its own, whose arrays never move, and runs everything between two calls
+of the policy (`_step`: noise, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence
+check and restart, the observations, the recorded frames) as torch operations and MuJoCo Warp
+kernels on zero-copy views of those arrays and on buffers of its own. On a GPU `_step` is
+captured once as one CUDA graph (torch's, with MuJoCo Warp's kernels inside) and replayed on
+torch's stream every step: per step the host queues the policy, one copy of its controls and
+one graph launch; nothing waits on the host, and the GPU runs policy and physics back to back
+(humanoid 8192 with a 2x256 MLP: 0.97x the MLP fused into MJX's scan;
+`benchmarks/bench_policy_mjx.py`).
 
 Everything else is the MJX closed loop's (`closed_loop.py`), so both compute the same: its
 jitted `start` resets the batch (randomization, variants, continuation, noise), MuJoCo Warp's
 arrays are loaded from that data, and after the last step the final state goes back to JAX
-for `finish` (carry, overflow bits). What happens between policy and physics mirrors
-`closed_loop.advance` and `Pieces.restart_unstable`, in torch. Without a GPU (tests,
-`SIMLOADER_WARP_ON_CPU`) MuJoCo Warp's CPU kernels run each step directly, without a graph.
+for `finish` (carry, overflow bits). `_step` mirrors `closed_loop.advance` and
+`Pieces.restart_unstable`, in torch. Without a GPU (tests, `SIMLOADER_WARP_ON_CPU`) `_step`
+runs eagerly, MuJoCo Warp's CPU kernels included: the same code the graph captures.
 """
 
 from __future__ import annotations
@@ -101,6 +104,7 @@ class WarpLoop:
     def __init__(self, pieces: Any, closed: Any, model: mujoco.MjModel, naconmax: int,
                  njmax: int, device: jax.Device):
         self.P, self.closed, self.model = pieces, closed, model
+        self.noisy = closed.noisy
         self.naconmax, self.njmax = naconmax, njmax
         self.gpu = device.platform == "gpu"
         self.warp_device = f"cuda:{device.local_hardware_id}" if self.gpu else "cpu"
@@ -144,17 +148,6 @@ class WarpLoop:
                                for slot in _slots(d, self.wd)]
             for slot, view in self.model_views:
                 _load(view, leaves[slot.index], slot)
-            self.graph = None
-            if self.gpu:
-                # a first step loads the kernels (on data every batch overwrites); the step is
-                # then captured on a stream of its own (the default stream cannot capture)
-                stream = wp.Stream(self.warp_device)
-                with wp.ScopedStream(stream):
-                    mjw.step(self.wm, self.wd)
-                    with wp.ScopedCapture(stream=stream) as capture:
-                        mjw.step(self.wm, self.wd)
-                wp.synchronize_stream(stream)
-                self.graph = capture.graph
         field = lambda name: wp.to_torch(getattr(self.wd, name))  # noqa: E731
         self.state = {name: field(name) for name in (
             "time", "qpos", "qvel", "act", "qacc", "qacc_warmstart", "sensordata")}
@@ -167,7 +160,42 @@ class WarpLoop:
         self.unchecked = [o.key for o in self.observations
                           if o.floating and not set(o.fields()) <= _RESTARTED]
         self.overflow = field("overflow")
+        self._buffers()
+        self.graph = self._capture() if self.gpu else None
         self.built = True
+
+    def _buffers(self) -> None:
+        """The buffers `_step` reads and writes besides MuJoCo Warp's arrays; one step's
+        frame shapes come from the observations of the (blank) data."""
+        P, like = self.P, self.state["qpos"]
+        self.t = torch.zeros(1, dtype=torch.int64, device=like.device)
+        self.u = torch.zeros(P.nbatch, P.shape[2], dtype=like.dtype, device=like.device)
+        self.low, self.high = torch.empty_like(self.u), torch.empty_like(self.u)
+        self.noise = torch.zeros(P.shape, dtype=like.dtype, device=like.device) \
+            if self.noisy else None
+        self.control = torch.empty(P.shape, dtype=like.dtype, device=like.device)
+        self.diverged = torch.zeros(P.nbatch, dtype=torch.bool, device=like.device)
+        # frame j is written by every step of its `record_every` group, the due one last
+        self.frames = {}
+        for o in self.observations:
+            value = o.torch_value(self.views)
+            self.frames[o.key] = torch.empty((P.nbatch, P.nframes, *value.shape[1:]),
+                                             dtype=value.dtype, device=value.device)
+        self.obs: dict[str, torch.Tensor] = {}
+
+    def _capture(self) -> Any:
+        """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
+        MuJoCo Warp's kernels and torch's; what it changes every batch resets). Captured in
+        thread-local mode: other threads (the training loop) go on using the GPU meanwhile."""
+        stream = torch.cuda.Stream(self.state["qpos"].device)
+        stream.wait_stream(torch.cuda.current_stream(stream.device))
+        with torch.cuda.stream(stream):
+            self._step()
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
+            self._step(capturing=True)
+        torch.cuda.current_stream(stream.device).wait_stream(stream)
+        return graph
 
     # -- per batch ---------------------------------------------------------------------
 
@@ -194,56 +222,78 @@ class WarpLoop:
         leaves = jax.tree.leaves(d)
         for slot, view in self.data_views:
             _load(view, leaves[slot.index], slot)
-        low, high = (torch.from_dlpack(loop[k]) for k in ("low", "high"))
-        noise = torch.from_dlpack(loop["noise"]) if "noise" in loop else None
+        self.low.copy_(torch.from_dlpack(loop["low"]))
+        self.high.copy_(torch.from_dlpack(loop["high"]))
+        if self.noise is not None:
+            self.noise.copy_(torch.from_dlpack(loop["noise"]))
+        self.t.zero_()
+        self.diverged.zero_()
         obs = {k: torch.from_dlpack(v) for k, v in obs.items()}
-        frames = {k: torch.empty((P.nbatch, P.nframes, *v.shape[1:]), dtype=v.dtype,
-                                 device=v.device) for k, v in obs.items()}
-        control = torch.empty(P.shape, dtype=low.dtype, device=low.device)
-        diverged = torch.zeros(P.nbatch, dtype=torch.bool, device=low.device)
-        stream = None
-        if self.graph is not None:
-            import warp as wp
-            stream = wp.stream_from_torch(torch.cuda.current_stream(low.device))
         for t in range(nstep):
-            u = policy(obs, t).to(low.dtype)
-            if noise is not None:
-                u = u + noise[:, t]
-            # as the open loop: a bad row flags its trajectory, MuJoCo's clamp is applied
-            diverged |= controls.bad_controls(u)
-            u = controls.clamp_applied(u, low, high, torch)
-            control[:, t] = u
-            for columns, target, boolean in self.inputs:
-                row = u[:, columns]
-                target.view(P.nbatch, -1).copy_(row != 0 if boolean else row)
-            self._physics(stream)
-            diverged |= self._restart_unstable()
-            obs = {o.key: o.torch_value(self.views) for o in self.observations}
-            for key in self.unchecked:
-                value = obs[key]
-                diverged |= ~torch.isfinite(value.reshape(P.nbatch, -1)).all(dim=1)
-            # frame j holds the values after step (j + 1) * every
-            if t % P.every == P.every - 1:
-                for key, value in obs.items():
-                    frames[key][:, t // P.every] = value
-        # back to JAX for `finish`: fresh buffers (the next batch overwrites MuJoCo Warp's)
+            self.u.copy_(policy(obs, t))
+            if self.graph is not None:
+                self.graph.replay()
+                # the graph rewrites its outputs every replay: the policy keeps its own
+                obs = {k: v.clone() for k, v in self.obs.items()}
+            else:
+                self._step()
+                obs = self.obs
+        # back to JAX for `finish`: fresh buffers (the next batch overwrites these)
         final = {name: jax.dlpack.from_dlpack(self.state[name].clone())
                  for name in ("time", "qpos", "qvel", "act", "qacc_warmstart")}
         d_final = d.replace(**final, _impl=d._impl.replace(
             overflow=jax.dlpack.from_dlpack(self.overflow.clone())))
-        outputs = {**{k: jax.dlpack.from_dlpack(v) for k, v in frames.items()},
-                   "control": jax.dlpack.from_dlpack(control),
-                   "diverged": jax.dlpack.from_dlpack(diverged)}
+        outputs = {**{k: jax.dlpack.from_dlpack(v.clone())
+                      for k, v in self.frames.items()},
+                   "control": jax.dlpack.from_dlpack(self.control.clone()),
+                   "diverged": jax.dlpack.from_dlpack(self.diverged.clone())}
         outputs, carry = closed.finish_outputs(m, d_final, outputs, delivered)
         return outputs, carry, d
 
-    def _physics(self, stream: Any) -> None:
-        if self.graph is not None:
-            import warp as wp
-            wp.capture_launch(self.graph, stream=stream)
-        else:
-            import warp as wp
+    def _step(self, capturing: bool = False) -> None:
+        """Everything between two policy calls, on the policy's rows in `self.u` and the
+        step index in `self.t` (device tensors, so that one graph serves every step):
+        noise, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence check and
+        restart, the observations (`self.obs`) and their frames. The open loop's semantics:
+        a bad row flags its trajectory, and so does an unstable step or a non-finite value."""
+        P, n = self.P, self.P.nbatch
+        u = self.u
+        if self.noise is not None:
+            u = u + self.noise.index_select(1, self.t)[:, 0]
+        self.diverged |= controls.bad_controls(u)
+        u = controls.clamp_applied(u, self.low, self.high, torch)
+        self.control.index_copy_(1, self.t, u[:, None])
+        for columns, target, boolean in self.inputs:
+            row = u[:, columns]
+            target.view(n, -1).copy_(row != 0 if boolean else row)
+        self._physics(capturing)
+        self.diverged |= self._restart_unstable()
+        obs = {o.key: o.torch_value(self.views) for o in self.observations}
+        for key in self.unchecked:
+            self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
+        frame = self.t // P.every  # nstep is a multiple of record_every
+        for key, value in obs.items():
+            self.frames[key].index_copy_(1, frame, value[:, None])
+        self.t += 1
+        self.obs = obs
+
+    def _physics(self, capturing: bool) -> None:
+        """MuJoCo Warp's step on torch's current stream; while torch captures its graph,
+        registered with Warp as an external capture (which keeps what the step allocates)."""
+        import warp as wp
+        if not self.gpu:
             with wp.ScopedDevice(self.warp_device):
+                self.mjw.step(self.wm, self.wd)
+            return
+        stream = wp.stream_from_torch(torch.cuda.current_stream(self.state["qpos"].device))
+        with wp.ScopedDevice(self.warp_device), wp.ScopedStream(stream):
+            if capturing:
+                wp.capture_begin(stream=stream, external=True, force_module_load=False)
+                try:
+                    self.mjw.step(self.wm, self.wd)
+                finally:
+                    self.warp_graph = wp.capture_end(stream=stream)
+            else:
                 self.mjw.step(self.wm, self.wd)
 
     def _restart_unstable(self) -> torch.Tensor:
