@@ -187,7 +187,10 @@ class WarpLoop:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
         MuJoCo Warp's kernels and torch's; what it changes every batch resets). Captured in
         thread-local mode: other threads (the training loop) go on using the GPU meanwhile."""
+        import warp as wp
         stream = torch.cuda.Stream(self.state["qpos"].device)
+        # Warp's handle of the capture stream, made before the capture (not inside it)
+        self.warp_stream = wp.stream_from_torch(stream)
         stream.wait_stream(torch.cuda.current_stream(stream.device))
         with torch.cuda.stream(stream):
             self._step()
@@ -279,14 +282,16 @@ class WarpLoop:
 
     def _physics(self, capturing: bool) -> None:
         """MuJoCo Warp's step on torch's current stream; while torch captures its graph,
-        registered with Warp as an external capture (which keeps what the step allocates)."""
+        registered with Warp as an external capture (which keeps what the step allocates).
+        Warp's stream scope does not wait on Warp's previous stream (`sync_enter=False`): a
+        capture that waited on an event recorded outside it would be invalidated."""
         import warp as wp
         if not self.gpu:
             with wp.ScopedDevice(self.warp_device):
                 self.mjw.step(self.wm, self.wd)
             return
-        stream = wp.stream_from_torch(torch.cuda.current_stream(self.state["qpos"].device))
-        with wp.ScopedDevice(self.warp_device), wp.ScopedStream(stream):
+        stream = self.warp_stream  # on a GPU `_step` runs eagerly only in `_capture`
+        with wp.ScopedDevice(self.warp_device), wp.ScopedStream(stream, sync_enter=False):
             if capturing:
                 wp.capture_begin(stream=stream, external=True, force_module_load=False)
                 try:
