@@ -10,10 +10,10 @@ of the policy (`_step`: noise, MuJoCo's clamp, the inputs, MuJoCo Warp's step, t
 check and restart, the observations, the recorded frames) as torch operations and MuJoCo Warp
 kernels on zero-copy views of those arrays and on buffers of its own. On a GPU `_step` is
 captured once as one CUDA graph (torch's, with MuJoCo Warp's kernels inside) and replayed on
-torch's stream every step: per step the host queues the policy, one copy of its controls and
-one graph launch; nothing waits on the host, and the GPU runs policy and physics back to back
-(humanoid 8192 with a 2x256 MLP: 0.97x the MLP fused into MJX's scan;
-`benchmarks/bench_policy_mjx.py`).
+torch's stream every step: per step the host queues the policy, one copy of its controls, one
+graph launch and a copy of each observation for the policy; nothing waits on the host, and
+the GPU runs policy and physics back to back (humanoid 8192 with a 2x256 MLP: 0.99x the MLP
+fused into MJX's scan; `benchmarks/bench_policy_mjx.py`).
 
 Everything else is the MJX closed loop's (`closed_loop.py`), so both compute the same: its
 jitted `start` resets the batch (randomization, variants, continuation, noise), MuJoCo Warp's
