@@ -10,6 +10,8 @@ Rows (every one records the state after each step and the controls):
                          on torch's stream, the torch MLP between replays, nothing else (the
                          scheme simloader's Warp closed loop uses, without its checks)
   simloader policy=      simloader, the torch MLP as `policy=`
+  ... + camera           with --camera: open loop and policy= also rendering a camera's RGB
+                         every step (handed to the policy, which ignores it)
 
     python benchmarks/bench_policy_mjx.py --quick                      # CPU smoke run
     python benchmarks/bench_policy_mjx.py --save --results-dir $OUT    # on the GPU machine
@@ -22,6 +24,7 @@ import os
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import common  # noqa: E402
+import simloader  # noqa: E402
 from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("humanoid", 8192, 200), common.Workload("cartpole", 4096, 200)]
@@ -29,6 +32,7 @@ QUICK = [common.Workload("cartpole", 8, 10)]
 # the implementations to run per model: the humanoid (contacts) on Warp; the cart-pole on both
 IMPLS = {"humanoid": ("warp",), "cartpole": ("jax", "warp")}
 GRAPH = "raw Warp graph + torch"
+CAMERA_OPEN, CAMERA_POLICY = "open loop + camera", "simloader policy= + camera"
 
 
 def main() -> None:
@@ -37,6 +41,9 @@ def main() -> None:
                    help="MJX implementations (default: per model, " + ", ".join(
                        f"{k} {'+'.join(v)}" for k, v in IMPLS.items()) + ")")
     p.add_argument("--hidden", type=int, default=256, help="units per hidden layer")
+    p.add_argument("--camera", metavar="NAME:HxW",
+                   help="also time open loop and policy= recording this camera's RGB every "
+                        "step (the policy is handed the images; Warp only)")
     args = common.parse(p)
     import torch
 
@@ -54,6 +61,15 @@ def main() -> None:
                     model, w, "mjx", args.seed, impl=impl, control=None, policy=policy,
                     record=("state", "qpos", "qvel")),
             }
+            if args.camera and impl == "warp":
+                name, size = args.camera.split(":")
+                height, width = (int(x) for x in size.split("x"))
+                camera = simloader.Camera(name, height=height, width=width)
+                sims[CAMERA_OPEN] = bench.SimloaderMeasure(
+                    model, w, "mjx", args.seed, impl=impl, record=("state", camera))
+                sims[CAMERA_POLICY] = bench.SimloaderMeasure(
+                    model, w, "mjx", args.seed, impl=impl, control=None, policy=policy,
+                    record=("state", "qpos", "qvel", camera))
             options = sims["open loop"].ds.config.options
             raws = {name: bench.RawClosedLoopMjx(model, w, net, mode, impl=impl,
                                                  naconmax=options.naconmax, njmax=options.njmax)
@@ -70,7 +86,7 @@ def main() -> None:
                              for name, s in sims.items()})
             results = common.interleave(measures, args.repeats, desc=f"{w} {impl}")
             for name in ("open loop", "fused JAX MLP", "raw torch per step", GRAPH,
-                         "simloader policy="):
+                         "simloader policy=", CAMERA_OPEN, CAMERA_POLICY):
                 if name not in results:
                     continue
                 s = results[name]

@@ -247,6 +247,9 @@ class CameraImage(Observation):
     def select(self, recorded: Any) -> Any:
         return recorded
 
+    def fields(self):
+        return ()  # rendered from the poses, not read from an MjData field
+
 
 def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, ...]:
     """The observations of `camera`, validated against the model.

@@ -402,3 +402,36 @@ def test_auto_takes_warps_own_loop_for_a_policy(monkeypatch, cache_dir):
     ds = simloader.SimDataset(model, policy=policy, record=("qpos", "qvel"), **kwargs)
     assert ds.config.options.impl == "warp"
     assert "a policy in the loop runs fastest on MuJoCo Warp's own CUDA graph" in ds.describe()
+
+
+def test_warp_loop_renders_what_the_mjx_driver_renders(monkeypatch, cache_dir):
+    """A policy that sees a camera: MuJoCo Warp's own loop renders with MuJoCo Warp's renderer
+    after the step, as the MJX driver renders inside its jitted steps (poses brought to the
+    state, restarts included); the images and what the policy did with them agree."""
+    pytest.importorskip("warp")
+
+    class Looks(torch.nn.Module):
+        """Pushes the cart by how much of the image is lit, and keeps what it saw."""
+
+        def forward(self, obs):
+            rgb = obs["camera/front/rgb"].float().mean(dim=(1, 2, 3))
+            u = torch.tanh(rgb[:, None] / 64 - 1 + obs["qvel"][:, :1])
+            return u, {"depth": obs["camera/front/depth"].mean(dim=(1, 2))}
+
+    camera = simloader.Camera("front", height=16, width=24, depth=True, segmentation=True)
+    ours, theirs = _both_drivers(
+        monkeypatch, cache_dir, "cartpole", 1, nbatch=3, nstep=6, policy=Looks(),
+        record=("qpos", "qvel", camera), seed=3, dtype=torch.float32,
+        initial_state=simloader.initial.Perturbed(qvel_std=1.0))
+    (a,), (b,) = ours, theirs
+    seg_a, seg_b = a["camera/front/segmentation"], b["camera/front/segmentation"]
+    assert (seg_a == seg_b).float().mean() > 0.99 and (seg_a >= 0).any()
+    same = seg_a == seg_b
+    depth_a, depth_b = a["camera/front/depth"], b["camera/front/depth"]
+    assert (depth_a[same] - depth_b[same]).abs().max() < 1e-3
+    rgb_a, rgb_b = (x["camera/front/rgb"].int() for x in (a, b))
+    assert a["camera/front/rgb"].dtype == torch.uint8 and rgb_a.float().mean() > 10
+    assert (rgb_a - rgb_b).abs()[same].float().mean() < 1.0
+    for key in ("qpos", "qvel", "control", "policy/depth"):
+        np.testing.assert_allclose(a[key].cpu().numpy(), b[key].cpu().numpy(), atol=1e-3,
+                                   err_msg=key)

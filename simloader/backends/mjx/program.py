@@ -334,7 +334,7 @@ class Program:
             self.closed_loop = ClosedLoop(self.pieces, () if noise is None else noise.drivers)
             if impl.name == "warp" and warp_loop.supports(c.observations):
                 # MuJoCo Warp's own CUDA graph per step, the checks in torch (`warp_loop.py`);
-                # cameras, and fields MJX maps from elsewhere, keep MJX's jitted steps
+                # fields MJX maps from elsewhere keep MJX's jitted steps
                 self.closed_loop = warp_loop.WarpLoop(self.pieces, self.closed_loop, c.model,
                                                       impl.naconmax, impl.njmax, device)
         self.compiled: Optional[Callable] = None

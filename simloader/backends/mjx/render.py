@@ -65,14 +65,16 @@ class Renderer:
         asked = {cam: {o.kind for o in images if o.camera_id == cam} for cam in cams}
         size = {o.camera_id: (o.camera.width, o.camera.height) for o in images}
         self.segmentation = any("segmentation" in kinds for kinds in asked.values())
-        # the context lives as long as the program: MJX looks its buffers up by key, and
-        # drops them when it is collected
-        self.context = mjx.create_render_context(
-            mjm=model, nworld=nbatch, cam_active=cams, cam_res=[size[c] for c in cams],
+        # what MuJoCo Warp's render context is made of (the Warp closed loop makes its own)
+        self.context_args = dict(
+            nworld=nbatch, cam_active=cams, cam_res=[size[c] for c in cams],
             render_rgb=["rgb" in asked[c] for c in cams],
             render_depth=["depth" in asked[c] for c in cams],
             render_seg=["segmentation" in asked[c] for c in cams],
             use_precomputed_rays="cam_fovy" not in randomized)
+        # the context lives as long as the program: MJX looks its buffers up by key, and
+        # drops them when it is collected
+        self.context = mjx.create_render_context(mjm=model, **self.context_args)
         # where each image lies in Warp's packed per-world buffers, by camera's active index
         index = {cam: i for i, cam in enumerate(cams)}
         address = {"rgb": self.context.rgb_adr.numpy(), "depth": self.context.depth_adr.numpy(),

@@ -8,7 +8,8 @@ call to call), against 1.5 ms of GPU work for 8192 humanoids. So this driver kee
 `Model` and `Data` of its own, whose arrays never move, and runs everything between two calls
 of the policy (`_step`: noise, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence
 check and restart, the observations, the recorded frames) as torch operations and MuJoCo Warp
-kernels on zero-copy views of those arrays and on buffers of its own. On a GPU `_step` is
+kernels on zero-copy views of those arrays and on buffers of its own; cameras are rendered
+by MuJoCo Warp's renderer after the step, as `render.py` renders them. On a GPU `_step` is
 captured once as one CUDA graph (torch's, with MuJoCo Warp's kernels inside) and replayed on
 torch's stream every step: per step the host queues the policy, one copy of its controls, one
 graph launch and a copy of each observation for the policy; nothing waits on the host, and
@@ -25,6 +26,7 @@ runs eagerly, MuJoCo Warp's CPU kernels included: the same code the graph captur
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 from collections.abc import Callable
@@ -32,23 +34,27 @@ from typing import Any
 
 import jax
 import mujoco
+import numpy as np
 import torch
 
 from simloader import controls
 
 # mjMAXVAL, as Pieces.restart_unstable
 _MAXVAL = 1e10
+# torch's dtypes of the delivered images
+_TORCH_DTYPES = {np.dtype(np.uint8): torch.uint8, np.dtype(np.float32): torch.float32,
+                 np.dtype(np.int32): torch.int32}
 # the fields `_restart_unstable` leaves finite in every trajectory
 _RESTARTED = frozenset(("time", "qpos", "qvel", "act", "sensordata"))
 
 
 def supports(observations: Any) -> bool:
-    """Whether this driver can run a configuration recording `observations`: no cameras
-    (rendered inside MJX's jitted steps) and only fields MuJoCo Warp's Data holds by the name
-    MuJoCo gives them (MJX maps a few, e.g. efc_force, from elsewhere)."""
+    """Whether this driver can run a configuration recording `observations`: only fields
+    MuJoCo Warp's Data holds by the name MuJoCo gives them (MJX maps a few from elsewhere);
+    cameras render with MuJoCo Warp's own renderer."""
     from mujoco.mjx.third_party import mujoco_warp as mjw
     held = {f.name for f in dataclasses.fields(mjw.Data)}
-    return all(not o.rendered and set(o.fields()) <= held for o in observations)
+    return all(set(o.fields()) <= held for o in observations)
 
 
 @dataclasses.dataclass
@@ -156,6 +162,9 @@ class WarpLoop:
                        for c in P.control_components]
         self.observations = [o for o in P.observations if not o.rendered]
         self.views = {name: field(name) for o in self.observations for name in o.fields()}
+        self.images = []  # (observation, kind, torch view of its pixels in Warp's buffers)
+        if P.renderer is not None:
+            self._render_context(P.renderer)
         # what the divergence check (`_restart_unstable`) leaves finite needs no second look
         self.unchecked = [o.key for o in self.observations
                           if o.floating and not set(o.fields()) <= _RESTARTED]
@@ -163,6 +172,20 @@ class WarpLoop:
         self._buffers()
         self.graph = self._capture() if self.gpu else None
         self.built = True
+
+    def _render_context(self, renderer: Any) -> None:
+        """MuJoCo Warp's render context for the batch's cameras, as `render.Renderer` makes
+        MJX's (the same cameras, sizes and buffer layout), and torch views of its images."""
+        import warp as wp
+        with wp.ScopedDevice(self.warp_device):
+            self.rc = self.mjw.create_render_context(mjm=self.model, **renderer.context_args)
+        self.needs_com = renderer.pose.needs_com
+        buffers = {"rgb": wp.to_torch(self.rc.rgb_data).view(torch.int32),
+                   "depth": wp.to_torch(self.rc.depth_data),
+                   "segmentation": wp.to_torch(self.rc.seg_data)}
+        for o in renderer.images:
+            kind, start, n = renderer.slices[o.key]
+            self.images.append((o, kind, buffers[kind][:, start:start + n]))
 
     def _buffers(self) -> None:
         """The buffers `_step` reads and writes besides MuJoCo Warp's arrays; one step's
@@ -181,6 +204,9 @@ class WarpLoop:
             value = o.torch_value(self.views)
             self.frames[o.key] = torch.empty((P.nbatch, P.nframes, *value.shape[1:]),
                                              dtype=value.dtype, device=value.device)
+        for o, _, _ in self.images:
+            self.frames[o.key] = torch.empty((P.nbatch, P.nframes, *o.shape),
+                                             dtype=_TORCH_DTYPES[o.dtype], device=like.device)
         self.obs: dict[str, torch.Tensor] = {}
 
     def _capture(self) -> Any:
@@ -257,49 +283,81 @@ class WarpLoop:
         """Everything between two policy calls, on the policy's rows in `self.u` and the
         step index in `self.t` (device tensors, so that one graph serves every step):
         noise, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence check and
-        restart, the observations (`self.obs`) and their frames. The open loop's semantics:
-        a bad row flags its trajectory, and so does an unstable step or a non-finite value."""
+        restart, the observations (`self.obs`, cameras rendered) and their frames. The open
+        loop's semantics: a bad row flags its trajectory, and so does an unstable step or a
+        non-finite value."""
         P, n = self.P, self.P.nbatch
-        u = self.u
-        if self.noise is not None:
-            u = u + self.noise.index_select(1, self.t)[:, 0]
-        self.diverged |= controls.bad_controls(u)
-        u = controls.clamp_applied(u, self.low, self.high, torch)
-        self.control.index_copy_(1, self.t, u[:, None])
-        for columns, target, boolean in self.inputs:
-            row = u[:, columns]
-            target.view(n, -1).copy_(row != 0 if boolean else row)
-        self._physics(capturing)
-        self.diverged |= self._restart_unstable()
-        obs = {o.key: o.torch_value(self.views) for o in self.observations}
-        for key in self.unchecked:
-            self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
+        with self._warp_scope(capturing):
+            u = self.u
+            if self.noise is not None:
+                u = u + self.noise.index_select(1, self.t)[:, 0]
+            self.diverged |= controls.bad_controls(u)
+            u = controls.clamp_applied(u, self.low, self.high, torch)
+            self.control.index_copy_(1, self.t, u[:, None])
+            for columns, target, boolean in self.inputs:
+                row = u[:, columns]
+                target.view(n, -1).copy_(row != 0 if boolean else row)
+            self.mjw.step(self.wm, self.wd)
+            self.diverged |= self._restart_unstable()
+            obs = {o.key: o.torch_value(self.views) for o in self.observations}
+            for key in self.unchecked:
+                self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
+            if self.images:
+                obs.update(self._render())
         frame = self.t // P.every  # nstep is a multiple of record_every
         for key, value in obs.items():
             self.frames[key].index_copy_(1, frame, value[:, None])
         self.t += 1
         self.obs = obs
 
-    def _physics(self, capturing: bool) -> None:
-        """MuJoCo Warp's step on torch's current stream; while torch captures its graph,
-        registered with Warp as an external capture (which keeps what the step allocates).
-        Warp's stream scope does not wait on Warp's previous stream (`sync_enter=False`): a
-        capture that waited on an event recorded outside it would be invalidated."""
+    @contextlib.contextmanager
+    def _warp_scope(self, capturing: bool) -> Any:
+        """MuJoCo Warp's launches on torch's current stream (on a GPU `_step` runs only in
+        `_capture`, on its stream); while torch captures its graph, registered with Warp as
+        an external capture, which keeps what Warp allocates inside. The stream scope does
+        not wait on Warp's previous stream (`sync_enter=False`): a capture that waited on an
+        event recorded outside it would be invalidated."""
         import warp as wp
-        if not self.gpu:
-            with wp.ScopedDevice(self.warp_device):
-                self.mjw.step(self.wm, self.wd)
-            return
-        stream = self.warp_stream  # on a GPU `_step` runs eagerly only in `_capture`
-        with wp.ScopedDevice(self.warp_device), wp.ScopedStream(stream, sync_enter=False):
-            if capturing:
+        with wp.ScopedDevice(self.warp_device):
+            if not self.gpu:
+                yield
+                return
+            stream = self.warp_stream
+            with wp.ScopedStream(stream, sync_enter=False):
+                if not capturing:
+                    yield
+                    return
                 wp.capture_begin(stream=stream, external=True, force_module_load=False)
                 try:
-                    self.mjw.step(self.wm, self.wd)
+                    yield
                 finally:
                     self.warp_graph = wp.capture_end(stream=stream)
+
+    def _render(self) -> dict[str, torch.Tensor]:
+        """Every camera image at the state after the step (restarts included), as
+        `render.Renderer` renders it inside MJX's scan: poses brought to the state
+        (kinematics, centres of mass where a camera or light tracks one, cameras and lights),
+        the BVH refit, one render; then unpacked by torch, each image a fresh tensor."""
+        mjw = self.mjw
+        mjw.kinematics(self.wm, self.wd)
+        if self.needs_com:
+            mjw.com_pos(self.wm, self.wd)
+        mjw.camlight(self.wm, self.wd)
+        mjw.refit_bvh(self.wm, self.wd, self.rc)
+        mjw.render(self.wm, self.wd, self.rc)
+        out = {}
+        for o, kind, pixels in self.images:
+            if kind == "rgb":
+                # each pixel 0xAABBGGRR (see render.py): little-endian bytes B, G, R, A
+                image = pixels.view(torch.uint8).reshape(*pixels.shape, 4)[..., [2, 1, 0]]
+            elif kind == "depth":
+                image = pixels.clone()  # planar depth in metres, 0 where nothing is hit
             else:
-                self.mjw.step(self.wm, self.wd)
+                # (object id, object type) per pixel
+                geom = int(mujoco.mjtObj.mjOBJ_GEOM)
+                image = torch.where(pixels[..., 1] == geom, pixels[..., 0], -1)
+            out[o.key] = image.reshape(pixels.shape[0], *o.shape)
+        return out
 
     def _restart_unstable(self) -> torch.Tensor:
         """`Pieces.restart_unstable` on MuJoCo Warp's data, in place: the (nbatch,) rows
