@@ -183,6 +183,8 @@ class WarpLoop:
         buffers = {"rgb": wp.to_torch(self.rc.rgb_data).view(torch.int32),
                    "depth": wp.to_torch(self.rc.depth_data),
                    "segmentation": wp.to_torch(self.rc.seg_data)}
+        # R, G, B among a pixel's bytes, on the device (a graph cannot copy an index there)
+        self.rgb_bytes = torch.tensor([2, 1, 0], device=buffers["rgb"].device)
         for o in renderer.images:
             kind, start, n = renderer.slices[o.key]
             self.images.append((o, kind, buffers[kind][:, start:start + n]))
@@ -349,7 +351,8 @@ class WarpLoop:
         for o, kind, pixels in self.images:
             if kind == "rgb":
                 # each pixel 0xAABBGGRR (see render.py): little-endian bytes B, G, R, A
-                image = pixels.view(torch.uint8).reshape(*pixels.shape, 4)[..., [2, 1, 0]]
+                image = pixels.view(torch.uint8).reshape(*pixels.shape, 4).index_select(
+                    -1, self.rgb_bytes)
             elif kind == "depth":
                 image = pixels.clone()  # planar depth in metres, 0 where nothing is hit
             else:
