@@ -326,10 +326,10 @@ def _both_drivers(monkeypatch, cache_dir, model, nbatches, **kwargs):
         with monkeypatch.context() as patch:
             if driver == "mjx":
                 patch.setattr(warp_loop, "WarpLoop", lambda pieces, closed, *args: closed)
-            ds = simloader.SimDataset(model, backend="mjx", impl="warp",
+            ds = simloader.SimDataset(model, backend="mjx", impl="warp", num_batches=nbatches,
                                       compilation_cache=cache_dir, **kwargs)
-            it = iter(ds)
-            runs[driver] = [next(it) for _ in range(nbatches)]
+            # one at a time: the iterator ends (its thread joined) before the next starts
+            runs[driver] = list(ds)
             (loop,) = [p.closed_loop for p in backend._PROGRAMS[ds.config].values()]
             assert type(loop).__name__ == {"warp": "WarpLoop", "mjx": "ClosedLoop"}[driver]
     return runs["warp"], runs["mjx"]
