@@ -106,9 +106,9 @@ class Observation:
         return (self.key,)
 
     def torch_value(self, fields: dict[str, Any]) -> Any:
-        """The value of one frame of a whole batch, `(nbatch, *shape)`, as a fresh torch
-        tensor, from torch tensors `(nbatch, ...)` of the MjData fields named by `fields()`
-        (MuJoCo Warp's arrays, for the Warp closed loop)."""
+        """The value of one frame of a whole batch, `(nbatch, *shape)`, from torch tensors
+        `(nbatch, ...)` of the MjData fields named by `fields()` (MuJoCo Warp's arrays, for
+        the Warp closed loop): a view of them where the layout allows, else a new tensor."""
         raise NotImplementedError
 
 
@@ -139,7 +139,7 @@ class Field(Observation):
 
     def torch_value(self, fields):
         value = fields[self.key]
-        return value.reshape(value.shape[0], *self.shape).clone()
+        return value.reshape(value.shape[0], *self.shape)
 
     def mjx_refusal(self, data, impl):
         import jax
@@ -170,7 +170,7 @@ class Sensor(Observation):
         return ("sensordata",)
 
     def torch_value(self, fields):
-        return fields["sensordata"][:, self.columns[0]:self.columns[1]].clone()
+        return fields["sensordata"][:, self.columns[0]:self.columns[1]]
 
 
 CAMERA_PREFIX = "camera/"

@@ -264,11 +264,11 @@ class WarpLoop:
             self.u.copy_(policy(obs, t))
             if self.graph is not None:
                 self.graph.replay()
-                # the graph rewrites its outputs every replay: the policy keeps its own
-                obs = {k: v.clone() for k, v in self.obs.items()}
             else:
                 self._step()
-                obs = self.obs
+            # the observations are views of MuJoCo Warp's arrays (or the graph's outputs),
+            # which the next step rewrites: the policy keeps copies of its own
+            obs = {k: v.clone() for k, v in self.obs.items()}
         # back to JAX for `finish`: fresh buffers (the next batch overwrites these)
         final = {name: jax.dlpack.from_dlpack(self.state[name].clone())
                  for name in ("time", "qpos", "qvel", "act", "qacc_warmstart")}
@@ -285,7 +285,8 @@ class WarpLoop:
         """Everything between two policy calls, on the policy's rows in `self.u` and the
         step index in `self.t` (device tensors, so that one graph serves every step):
         noise, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence check and
-        restart, the observations (`self.obs`, cameras rendered) and their frames. The open
+        restart, the observations (`self.obs`, cameras rendered; views of Warp's arrays
+        where they can be) and their frames. The open
         loop's semantics: a bad row flags its trajectory, and so does an unstable step or a
         non-finite value."""
         P, n = self.P, self.P.nbatch
@@ -339,7 +340,7 @@ class WarpLoop:
         """Every camera image at the state after the step (restarts included), as
         `render.Renderer` renders it inside MJX's scan: poses brought to the state
         (kinematics, centres of mass where a camera or light tracks one, cameras and lights),
-        the BVH refit, one render; then unpacked by torch, each image a fresh tensor."""
+        the BVH refit, one render; then unpacked by torch (depth: a view of Warp's buffer)."""
         mjw = self.mjw
         mjw.kinematics(self.wm, self.wd)
         if self.needs_com:
@@ -354,7 +355,7 @@ class WarpLoop:
                 image = pixels.view(torch.uint8).reshape(*pixels.shape, 4).index_select(
                     -1, self.rgb_bytes)
             elif kind == "depth":
-                image = pixels.clone()  # planar depth in metres, 0 where nothing is hit
+                image = pixels  # planar depth in metres, 0 where nothing is hit
             else:
                 # (object id, object type) per pixel
                 geom = int(mujoco.mjtObj.mjOBJ_GEOM)
