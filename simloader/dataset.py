@@ -102,7 +102,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         super().__init__()
         backends.prepare(backend, backend_options)
         config = build_config(
-            model, backend=backends.resolve(backend), nbatch=nbatch, nstep=nstep,
+            model, backend=backends.resolve(backend, backend_options), nbatch=nbatch, nstep=nstep,
             control=control, control_spec=control_spec, initial_state=initial_state,
             randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
             seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
@@ -148,7 +148,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                   f"{c.record_every} step(s):\n" + self.layout.describe())
         if c.options is not None:
             text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
-                     f"({c.options.implementation().describe()}; chosen: {c.options.impl_reason})")
+                     f"({c.options.describe()}; chosen: {c.options.impl_reason})")
         else:
             text += "\nsimulated by: backend='rollout' (mujoco.batch on CPU threads)"
         return text

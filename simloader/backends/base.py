@@ -10,8 +10,13 @@ the checks that can overlap with the next batch's simulation). Both produce the 
 from __future__ import annotations
 
 import abc
+import contextlib
 import dataclasses
+import multiprocessing
+import sys
 import threading
+import time
+from collections.abc import Iterator
 from typing import Any, Optional
 
 import numpy as np
@@ -36,6 +41,8 @@ class Stats:
         sizes (impl="warp"; flagged in the batch's `overflow`).
       solver_limit: trajectories whose constraint solver stopped at its iteration limit in a
         batch (impl="warp"; MuJoCo C stops there too, silently).
+      graph_captures: CUDA graphs the Warp engine captured (impl="warp", on a GPU): one per
+        dataset and device, at its first batch, never again.
     """
 
     batches: int = 0
@@ -46,6 +53,7 @@ class Stats:
     compiles: int = 0
     overflow: int = 0
     solver_limit: int = 0
+    graph_captures: int = 0
     lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
 
     def add(self, **values: float) -> None:
@@ -98,3 +106,42 @@ class Backend(abc.ABC):
 
     def close(self) -> None:
         """Releases threads and device buffers; the backend is not used afterwards."""
+
+
+def refuse_forked_worker(what: str, why: str) -> None:
+    """Raises RuntimeError in a forked DataLoader worker, for an engine that cannot run after
+    fork (`what` names it, `why` says why)."""
+    if torch.utils.data.get_worker_info() is None:
+        return
+    # a DataLoader started with a context uses its Process class, which names its start
+    # method; a plain Process uses the global one, which a forked child inherits
+    method = (getattr(multiprocessing.current_process(), "_start_method", None)
+              or multiprocessing.get_start_method())
+    if method == "fork":
+        raise RuntimeError(
+            f"{what} cannot run in a forked DataLoader worker: {why}. Use num_workers=0 (a GPU "
+            f"batch already runs in parallel on the device) or DataLoader(..., "
+            f"multiprocessing_context='spawn').")
+
+
+@contextlib.contextmanager
+def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Iterator[None]:
+    """Says on stderr what is happening when `what` takes longer than `after` seconds (a cold
+    compilation can take a minute and must not look like a hang), and how long it took."""
+    start = time.perf_counter()
+    said = threading.Event()
+
+    def say() -> None:
+        said.set()
+        print(f"simloader: {what}...{' ' + hint if hint else ''}", file=sys.stderr, flush=True)
+
+    timer = threading.Timer(after, say)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        if said.is_set():
+            print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
+                  file=sys.stderr, flush=True)

@@ -10,7 +10,7 @@
   backend.py    options, the backend, the hand-off to torch
 """
 
-from simloader.backends.mjx.backend import OPTIONS, MjxBackend, MjxOptions, check_options
+from simloader.backends.mjx.backend import MjxBackend, MjxOptions, check_options
 from simloader.backends.mjx.runtime import configure_memory
 
-__all__ = ["OPTIONS", "MjxBackend", "MjxOptions", "check_options", "configure_memory"]
+__all__ = ["MjxBackend", "MjxOptions", "check_options", "configure_memory"]

@@ -33,13 +33,10 @@ from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import render, runtime, warp_impl, warp_loop
-from simloader.backends.mjx.impls import Implementation, choose
+from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import put_models
 from simloader.backends.mjx.program import Program
 from simloader.config import SimConfig
-
-OPTIONS = ("impl", "naconmax", "njmax", "compilation_cache", "memory_fraction")
-
 
 @dataclasses.dataclass(frozen=True)
 class MjxOptions:
@@ -64,67 +61,38 @@ class MjxOptions:
             return warp_impl.WarpImpl(self.naconmax, self.njmax)
         return Implementation()
 
-
-def _positive(name: str, value: Any) -> Optional[int]:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name}: expected None or a positive integer, got "
-                        f"{type(value).__name__} {value!r}")
-    if value < 1:
-        raise ValueError(f"{name}: expected None or a positive integer, got {value}")
-    return int(value)
+    def describe(self) -> str:
+        return self.implementation().describe()
 
 
-def check_options(config: SimConfig, options: dict[str, Any]) -> MjxOptions:
-    """Validates the mjx options and the model(s), in the constructing process.
+def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> MjxOptions:
+    """Validates the options of MJX on JAX (`impl="jax"`, chosen by the registry for
+    `reason`) and the model(s), in the constructing process.
 
     Args:
       config: the validated dataset configuration.
       options: keyword options of `SimDataset` beyond its own:
-        impl: "auto" (default: MuJoCo Warp for a model with contacts where Warp and a GPU are
-          available, else MJX-JAX), "jax" or "warp".
-        naconmax, njmax: with impl "warp", the contacts of a whole batch and the constraint
-          rows of one trajectory; None (default): sized from the model (`warp_impl`).
         compilation_cache: directory of JAX's persistent compilation cache; None (default):
           JAX's configured one, else `~/.cache/simloader/jax`; False: leave JAX's setting.
         memory_fraction: fraction of GPU memory JAX preallocates; None (default): none, JAX
           allocates as it goes (effective only if JAX has not started yet).
+      reason: why MJX on JAX simulates (asked, or what `impl="auto"` saw).
 
     Returns:
       The options, defaults resolved.
 
     Raises:
-      TypeError: an unknown option or a value of the wrong type.
-      ValueError: a bad option value, `impl="warp"` where Warp cannot run (saying what is
-        missing), a model MJX cannot simulate, models or variants that differ in what MJX
-        compiles in, or a parameter MJX cannot randomize (`randomize.py`).
+      TypeError: a value of the wrong type.
+      ValueError: a bad option value, a model MJX cannot simulate, models or variants that
+        differ in what MJX compiles in, a parameter MJX cannot randomize (`randomize.py`),
+        cameras (MJX-JAX does not render).
     """
-    unknown = sorted(set(options) - set(OPTIONS))
-    if unknown:
-        raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
-                        f"backend='mjx' (its options are {list(OPTIONS)})")
-    asked = options.get("impl", "auto")
-    naconmax = _positive("naconmax", options.get("naconmax"))
-    njmax = _positive("njmax", options.get("njmax"))
     cache = runtime.cache_dir(options.get("compilation_cache"))
     fraction = runtime.configure_memory(options.get("memory_fraction"))
     runtime.configure_cache(cache)
     device = runtime.jax_device(config.device)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
-    warp_missing = runtime.warp_missing(device)
-    warp_closed_loop = (config.policy is not None and not warp_missing
-                        and warp_loop.supports(config.observations))
-    choice = choose(asked, config.model, warp_missing, cameras=bool(images),
-                    warp_closed_loop=warp_closed_loop)
-    if choice.impl != "warp" and (naconmax is not None or njmax is not None):
-        raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need impl='warp', "
-                         f"but impl resolved to {choice.impl!r} ({choice.reason})")
-    if choice.impl == "warp":
-        x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
-        naconmax, njmax = warp_impl.buffer_sizes(config.model, config.nbatch, x0, naconmax,
-                                                 njmax)
-    resolved = MjxOptions(choice.impl, choice.reason, naconmax, njmax, cache, fraction)
+    resolved = MjxOptions("jax", reason, None, None, cache, fraction)
     impl = resolved.implementation()
     mx, _ = put_models(config, impl, device)
     observe.check_mjx(config.observations, impl.make_data(config.model, device), impl.name)

@@ -10,19 +10,16 @@ from __future__ import annotations
 
 import contextlib
 import io
-import multiprocessing
 import os
-import sys
-import threading
-import time
 import warnings
-from collections.abc import Iterator
 from typing import Any, Optional
 
 import jax
 import numpy as np
 import torch
 from jax._src import xla_bridge
+
+from simloader.backends import base
 
 _import_log = io.StringIO()
 with contextlib.redirect_stdout(_import_log):
@@ -116,17 +113,7 @@ def configure_cache(path: Any) -> None:
 
 def refuse_forked_worker() -> None:
     """JAX is multithreaded and deadlocks in a forked child (its parent already ran JAX)."""
-    if torch.utils.data.get_worker_info() is None:
-        return
-    # a DataLoader started with a context uses its Process class, which names its start
-    # method; a plain Process uses the global one, which a forked child inherits
-    method = (getattr(multiprocessing.current_process(), "_start_method", None)
-              or multiprocessing.get_start_method())
-    if method == "fork":
-        raise RuntimeError(
-            "backend='mjx' cannot run in a forked DataLoader worker: JAX is multithreaded and "
-            "deadlocks after fork. Use num_workers=0 (an MJX batch already runs in parallel on "
-            "the device) or DataLoader(..., multiprocessing_context='spawn').")
+    base.refuse_forked_worker("backend='mjx'", "JAX is multithreaded and deadlocks after fork")
 
 
 def jax_device(target: Optional[torch.device]) -> jax.Device:
@@ -156,27 +143,7 @@ def torch_device(device: jax.Device) -> torch.device:
     return torch.device("cpu")
 
 
-@contextlib.contextmanager
-def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Iterator[None]:
-    """Says on stderr what is happening when `what` takes longer than `after` seconds (a cold
-    compilation can take a minute and must not look like a hang), and how long it took."""
-    start = time.perf_counter()
-    said = threading.Event()
-
-    def say() -> None:
-        said.set()
-        print(f"simloader: {what}...{' ' + hint if hint else ''}", file=sys.stderr, flush=True)
-
-    timer = threading.Timer(after, say)
-    timer.daemon = True
-    timer.start()
-    try:
-        yield
-    finally:
-        timer.cancel()
-        if said.is_set():
-            print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
-                  file=sys.stderr, flush=True)
+slow_notice = base.slow_notice
 
 
 def memory_available(device: jax.Device) -> int:

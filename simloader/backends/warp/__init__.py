@@ -1,0 +1,14 @@
+"""The Warp engine (`backend="mjx", impl="warp"`): MuJoCo Warp (the `mujoco-warp` package)
+driven from torch, without JAX.
+
+  runtime.py   can it run, on which device, importing Warp quietly, the capture lock
+  options.py   its options and checks at construction: models, per-world arrays, buffers
+  engine.py    model and data that never move, torch views, the step captured once
+  cameras.py   MuJoCo Warp's renderer inside the step
+  backend.py   each batch: host draws, per-trajectory state on the device, the hand-off
+"""
+
+from simloader.backends.warp.backend import WarpBackend
+from simloader.backends.warp.options import WarpOptions, check_options
+
+__all__ = ["WarpBackend", "WarpOptions", "check_options"]

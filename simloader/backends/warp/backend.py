@@ -1,0 +1,343 @@
+"""The Warp engine (`backend="mjx", impl="warp"`): MuJoCo Warp driven from torch, no JAX.
+
+Each batch is drawn on the host exactly as the CPU backend draws it (initial states,
+randomized parameters, variants and controls from the same seeds, with NumPy), moved to the
+device once, and applied there: per-trajectory model arrays, the reset of the trajectories
+that start afresh, the clamp bounds. Then `nstep` replays of the engine's step graph (open
+loop), or `nstep` policy calls each followed by one replay (closed loop). Decisions that
+depend on the previous batch (which trajectories restart, the models they keep) stay on the
+device, so the host never waits for the GPU while it queues a batch. `deliver` waits for the
+batch, counts what the stats count, and hands over the outputs: tensors of their own, copied
+on the device from the engine's fixed buffers at the end of the batch (the graph writes at
+fixed addresses; the copies cost a few hundred microseconds per batch).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+import weakref
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from simloader import handoff, initial, layout, policy, resume, sharding
+from simloader import randomize as dr
+from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
+from simloader.backends.warp import options as warp_options
+from simloader.backends.warp import runtime
+from simloader.backends.warp.engine import Engine
+from simloader.config import SimConfig
+
+# engines by configuration and device: every iterator (epoch) of a dataset replays the graph
+# its first one captured; an engine goes away with its dataset's configuration
+_ENGINES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_FIRST_USE = ("MuJoCo Warp compiles its kernels for this model on first use on a machine "
+              "(about a minute for a humanoid on an H200, into ~/.cache/warp; later processes "
+              "load them in seconds). `simloader warmup` does it ahead of time.")
+
+
+class _Produced:
+    """A batch queued on the device: its outputs (maybe not computed yet) and when."""
+
+    def __init__(self, outputs: dict, params: dict, extras: dict, rows_after: Any,
+                 ready: Any, dispatched: float):
+        self.outputs, self.params, self.extras = outputs, params, extras
+        self.rows_after, self.ready, self.dispatched = rows_after, ready, dispatched
+
+
+class _Tables:
+    """Per-model host tables on the device, (nmodels, ...) each, gathered per batch by each
+    trajectory's model: reset rows (mjSTATE_INTEGRATION as mj_resetData leaves them), undriven
+    control columns, clamp bounds, and with variants the initial states from the model."""
+
+    def __init__(self, config: SimConfig, device: torch.device):
+        c = config
+        models = c.models or c.variants or [c.model]
+        f32 = dict(dtype=torch.float32, device=device)
+        self.reset_rows = torch.as_tensor(layout.reset_rows(models, layout.INTEGRATION), **f32)
+        defaults = c.control.default_rows if c.variants is None else c.variant_defaults()[0]
+        self.control_defaults = torch.as_tensor(defaults, **f32)
+        low, high = _bounds_of(models, c.control_spec)
+        self.low, self.high = torch.as_tensor(low, **f32), torch.as_tensor(high, **f32)
+        self.variant_states = None
+        if c.variants is not None and c.initial.from_model:
+            self.variant_states = torch.as_tensor(
+                initial.default_states(c.variants, c.initial.keyframe), **f32)
+        self.physics_cols = torch.as_tensor(layout.component_columns(
+            c.model, layout.INTEGRATION, layout.FULLPHYSICS), device=device)
+        # the control columns the generators draw (the others hold each model's defaults)
+        driven = np.zeros(c.ncontrol, dtype=bool)
+        for d in c.control.drivers:
+            driven[d.columns] = True
+        if c.control.fixed is not None:
+            driven[:] = True
+        self.driven = torch.as_tensor(driven, device=device)
+        self.clamped = torch.as_tensor(c.model.actuator_ctrllimited.astype(bool), device=device)
+
+
+def _bounds_of(models, control_spec):
+    from simloader import controls
+    return controls.applied_bounds(models, control_spec)
+
+
+class WarpBackend(Backend):
+    """`backend="mjx", impl="warp"`.
+
+    Raises:
+      RuntimeError: in a forked DataLoader worker on a GPU (CUDA cannot start after fork).
+    """
+
+    def __init__(self, config: SimConfig, shard: sharding.Shard, stats: Stats,
+                 options: warp_options.WarpOptions):
+        super().__init__(config, shard, stats)
+        self.options = options
+        self.device = runtime.sim_device(config.device)
+        if self.device.type == "cuda":
+            refuse_forked_worker("impl='warp'", "CUDA cannot start in a forked child of a "
+                                 "process that started it")
+        engines = _ENGINES.setdefault(config, {})
+        self.engine: Engine = engines.get(self.device)
+        if self.engine is None:
+            with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE):
+                self.engine = engines[self.device] = Engine(
+                    config, options, self.device,
+                    on_capture=lambda: stats.add(graph_captures=1))
+            self.engine.tables = _Tables(config, self.device)
+        self.tables: _Tables = self.engine.tables
+        n = config.nbatch
+        self.restart: Optional[torch.Tensor] = None  # continuing: rows that start afresh
+        self.model_index = (torch.arange(n, device=self.device) if config.models is not None
+                            else torch.zeros(n, dtype=torch.int64, device=self.device))
+        self.params: dict[str, torch.Tensor] = {}  # what each trajectory runs with
+        self.restored: Optional[torch.Tensor] = None  # resumed rows, applied at the next batch
+        self.fixed: Optional[torch.Tensor] = None  # an explicit control array, on the device
+        self.last_ready = 0.0
+        self.warned_overflow = False
+        self.last: Optional[_Produced] = None
+
+    # -- host draws ------------------------------------------------------------------------
+
+    def _upload(self, array: np.ndarray) -> torch.Tensor:
+        """A host array on the simulation device in float32 (through pinned memory, queued)."""
+        host = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+        if self.device.type == "cuda":
+            host = host.pin_memory()
+        return host.to(self.device, non_blocking=True)
+
+    def _controls(self, index: int) -> Optional[torch.Tensor]:
+        """The open loop's (nbatch, nstep, ncontrol) draws (undriven columns: 0), or None."""
+        c = self.config
+        if c.control.fixed is not None:
+            if self.fixed is None:
+                self.fixed = self._upload(c.control.fixed)
+            return self.fixed
+        if not c.control.random:
+            return None
+        out = np.empty((c.nbatch, c.nstep, c.ncontrol), dtype=np.float32)
+        c.control.sample_numpy(self.seed(index, sharding.CONTROL), out,
+                               np.zeros((1, c.ncontrol)))
+        return self._upload(out)
+
+    # -- one batch -------------------------------------------------------------------------
+
+    def produce(self, index: int) -> _Produced:
+        c, e, tables = self.config, self.engine, self.tables
+        x0 = self._upload(c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch))
+        randomize_seed = self.seed(index, sharding.RANDOMIZE)
+        drawn = {}
+        if c.variants is not None:
+            drawn["variant"] = torch.as_tensor(dr.draw_variants(
+                randomize_seed, len(c.variants), c.nbatch)).to(self.device, non_blocking=True)
+        if c.randomization is not None:
+            drawn.update({k: self._upload(v) for k, v in
+                          c.randomization.sample(randomize_seed, c.nbatch).items()})
+        draws = self._controls(index) if c.policy is None else None
+        noise = None
+        if c.policy_noise is not None:
+            host = np.empty((c.nbatch, c.nstep, c.ncontrol))
+            c.policy_noise.sample_numpy(self.seed(index, sharding.CONTROL), host,
+                                        c.policy_noise.default_rows)
+            noise = self._upload(host)
+        version = policy.version(c.policy) if c.policy is not None else None
+        dispatched = time.perf_counter()
+        with e.queued():
+            fresh = self._start_trajectories(drawn, x0)
+            initial_state = e.physics()
+            e.low.copy_(self._per_trajectory(tables.low))
+            e.high.copy_(self._per_trajectory(tables.high))
+            if "actuator_ctrlrange" in self.params or any(
+                    r.field == "actuator_ctrlrange" for r in
+                    (c.randomization.resolved if c.randomization else ())):
+                self._randomized_bounds()
+            if c.policy is None:
+                defaults = self._per_trajectory(tables.control_defaults)[:, None]
+                e.controls.copy_(defaults if draws is None else
+                                 torch.where(tables.driven, draws, defaults))
+            if noise is not None:
+                e.noise.copy_(noise)
+            e.start()
+            extras = {}
+            if c.policy is not None:
+                extras = self._closed_loop()
+                extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
+            else:
+                for _ in range(c.nstep):
+                    e.advance()
+            outputs = {k: v.clone() for k, v in e.frames.items()}
+            outputs.update(control=e.control.clone(), diverged=e.diverged.clone(),
+                           initial_state=initial_state,
+                           overflow=e.views["overflow"][:, 0].clone())
+            params = {k: v.clone() for k, v in self.params.items()}
+            rows_after = e.integration() if c.continue_episodes else None
+            ready = torch.cuda.Event() if e.gpu else None
+            if ready is not None:
+                ready.record()
+        del fresh
+        if c.continue_episodes:
+            self.restart = outputs["diverged"]
+        produced = _Produced(outputs, params, extras, rows_after, ready, dispatched)
+        self.last = produced
+        return produced
+
+    def _start_trajectories(self, drawn: dict[str, torch.Tensor],
+                            x0: torch.Tensor) -> torch.Tensor:
+        """Trajectories that start afresh (all, unless continuing) take their newly drawn
+        model (variant) and parameters and restart from their initial state; the others keep
+        theirs. Returns the (nbatch,) fresh rows."""
+        c, e, tables = self.config, self.engine, self.tables
+        fresh = (self.restart if self.restart is not None
+                 else torch.ones(c.nbatch, dtype=torch.bool, device=self.device))
+        if self.restored is not None:  # resumed: the saved rows, before any restart
+            e.reset(self.restored, torch.ones_like(fresh))
+            self.restored = None
+        if "variant" in drawn:
+            self.model_index = torch.where(fresh, drawn["variant"], self.model_index)
+            self.params["variant"] = self.model_index
+        for key, value in drawn.items():
+            if key != "variant":
+                old = self.params.get(key, value)
+                self.params[key] = torch.where(fresh[:, None], value, old)
+        e.set_model(self.model_index, self.params)
+        rows = self._per_trajectory(tables.reset_rows).clone()
+        if tables.variant_states is not None:
+            x0 = self._per_trajectory(tables.variant_states)
+        rows[:, tables.physics_cols] = x0
+        e.reset(rows, fresh)
+        return fresh
+
+    def _per_trajectory(self, table: torch.Tensor) -> torch.Tensor:
+        """(nbatch, ...): each trajectory's row of a per-model table."""
+        if table.shape[0] == 1:
+            return table.expand(self.config.nbatch, *table.shape[1:])
+        return table.index_select(0, self.model_index)
+
+    def _randomized_bounds(self) -> None:
+        """Clamp bounds of `ctrl` columns from each trajectory's own (randomized)
+        `actuator_ctrlrange`, where MuJoCo clamps."""
+        c, e = self.config, self.engine
+        if not c.control_spec & int(layout.S.mjSTATE_CTRL):
+            return
+        ranges = e.model_views["actuator_ctrlrange"].reshape(c.nbatch, c.model.nu, 2)
+        limited = self.tables.clamped
+        if c.model.opt.disableflags & int(__import__("mujoco").mjtDisableBit.mjDSBL_CLAMPCTRL):
+            return
+        e.low[:, :c.model.nu] = torch.where(limited, ranges[..., 0], -torch.inf)
+        e.high[:, :c.model.nu] = torch.where(limited, ranges[..., 1], torch.inf)
+
+    def _closed_loop(self) -> dict[str, torch.Tensor]:
+        """The batch's steps with the policy before each: its rows into the engine's input,
+        one replay. Nothing waits on the host. Returns the policy's extras."""
+        c, e = self.config, self.engine
+        target = c.device or self.device
+        caller = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep, target)
+        obs = e.observe_now()
+        rendered = {o.key for o in c.observations if o.rendered}
+        for t in range(c.nstep):
+            tensors = {k: handoff.to_target(v, c.device, c.dtype if k not in rendered
+                                            and v.is_floating_point() else None)
+                       for k, v in obs.items()}
+            control = caller(tensors, t).detach()
+            e.u.copy_(control.to(self.device, non_blocking=True))
+            e.advance()
+            # the observations are views of MuJoCo Warp's arrays (or the graph's outputs),
+            # which the next step rewrites: the policy keeps copies of its own
+            obs = {k: v.clone() for k, v in e.obs.items()}
+        return caller.extras
+
+    def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
+        c = self.config
+        if produced.ready is not None:
+            produced.ready.synchronize()
+        ready = time.perf_counter()
+        out = produced.outputs
+        self.stats.add(simulate_s=ready - max(produced.dispatched, self.last_ready),
+                       batches=1, steps=c.nbatch * c.nstep,
+                       diverged=int(out["diverged"].sum()))
+        self.last_ready = ready
+        rendered = {o.key for o in c.observations if o.rendered}
+        batch = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point()
+                                      and k not in rendered else None)
+                 for k, v in out.items() if k != "overflow"}
+        batch["overflow"] = handoff.to_target(self._overflow(out["overflow"]), c.device, None)
+        batch.update({k: handoff.to_target(v, c.device, None)
+                      for k, v in produced.extras.items()})
+        if produced.params:
+            batch["params"] = {k: handoff.to_target(v, c.device, None if k == "variant"
+                                                    else c.dtype)
+                               for k, v in produced.params.items()}
+        _used_here(batch)
+        return batch
+
+    def _overflow(self, bits: torch.Tensor) -> torch.Tensor:
+        """MuJoCo Warp's overflow bits of a batch: counted in `stats` (solver iteration limits
+        apart), warned about once with what to raise; the per-trajectory flag delivered."""
+        host = bits.cpu().numpy()
+        dropped = (host & ~warp_options.SOLVER_LIMIT) != 0
+        self.stats.add(overflow=int(dropped.sum()),
+                       solver_limit=int(((host & warp_options.SOLVER_LIMIT) != 0).sum()))
+        if dropped.any() and not self.warned_overflow:
+            self.warned_overflow = True
+            o = self.options
+            warnings.warn(
+                f"simloader: {int(dropped.sum())} of {len(host)} trajectories lost contacts or "
+                f"constraints to MuJoCo Warp's buffer sizes (flagged in batch['overflow']): "
+                f"{warp_options.overflow_message(int(np.bitwise_or.reduce(host)), o.naconmax, o.njmax)}",
+                RuntimeWarning, stacklevel=2)
+        return torch.from_numpy(dropped)
+
+    def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
+        if not self.config.continue_episodes:
+            return None
+        return {"rows": resume.encode_array(produced.rows_after.cpu().numpy()),
+                "fresh": resume.encode_array(produced.outputs["diverged"].cpu().numpy()),
+                "params": {k: resume.encode_array(v.cpu().numpy())
+                           for k, v in produced.params.items()}}
+
+    def restore(self, trajectories: dict[str, Any]) -> None:
+        to = dict(device=self.device)
+        self.restored = torch.as_tensor(resume.decode_array(trajectories["rows"]), **to)
+        self.restart = torch.as_tensor(resume.decode_array(trajectories["fresh"]), **to)
+        self.params = {k: torch.as_tensor(resume.decode_array(v), **to)
+                       for k, v in trajectories["params"].items()}
+        if "variant" in self.params:
+            self.model_index = self.params["variant"]
+
+    def close(self) -> None:
+        # batches queued but never delivered would keep the GPU busy after the iterator is
+        # gone; the stream runs them in order, so waiting for the last waits for all
+        if self.last is not None and self.last.ready is not None:
+            self.last.ready.synchronize()
+        self.last = None
+
+
+def _used_here(batch: dict) -> None:
+    """Tells torch's allocator that the consumer's stream uses the delivered tensors (made on
+    the engine's stream): their memory is not reused until the consumer's work on them is
+    done."""
+    for value in batch.values():
+        if isinstance(value, dict):
+            _used_here(value)
+        elif value.is_cuda:
+            value.record_stream(torch.cuda.current_stream(value.device))

@@ -1,0 +1,113 @@
+"""Cameras on the Warp engine: MuJoCo Warp's ray-traced renderer inside the step graph.
+
+A render context, made once per engine, holds each camera's rays and the scene's BVH for
+`nbatch` worlds. After every step the poses are brought to the state (kinematics, centres of
+mass where a camera or light tracks one, cameras and lights: `mj_step` leaves the poses of the
+step's start), the BVH is refit and every camera of every world rendered in one call; torch
+unpacks the images from Warp's buffers: RGB from Warp's packed 32-bit pixels to uint8, depth as
+planar metres (0 where nothing is hit), segmentation as geom ids (-1 elsewhere). A step
+recomputes every pose from the state, so the physics is unchanged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+import torch
+
+from simloader import observe
+
+_TORCH_DTYPES = {np.dtype(np.uint8): torch.uint8, np.dtype(np.float32): torch.float32,
+                 np.dtype(np.int32): torch.int32}
+
+
+def refusal(images: Sequence[observe.CameraImage]) -> Optional[str]:
+    """Why MuJoCo Warp cannot render these camera images, or None."""
+    if any(o.camera_id < 0 for o in images):
+        return ("MuJoCo Warp renders the model's cameras, not the free camera (-1); add a "
+                "<camera> to the model, or use backend='rollout'")
+    sizes: dict[int, set] = {}
+    for o in images:
+        sizes.setdefault(o.camera_id, set()).add((o.camera.height, o.camera.width))
+    for cam, shapes in sizes.items():
+        if len(shapes) > 1:
+            return (f"camera {cam} is asked at {len(shapes)} sizes {sorted(shapes)}: MuJoCo Warp "
+                    f"renders each camera at one size; ask each camera once")
+    return None
+
+
+class Cameras:
+    """The cameras of an engine: MuJoCo Warp's render context and torch views of its images.
+
+    Args:
+      engine: the `Engine` (its MuJoCo Warp model and data).
+      images: the camera images `record` asks for.
+    """
+
+    def __init__(self, engine: Any, images: Sequence[observe.CameraImage]):
+        self.engine, self.images = engine, tuple(images)
+        c = engine.config
+        cams = sorted({o.camera_id for o in images})
+        asked = {cam: {o.kind for o in images if o.camera_id == cam} for cam in cams}
+        size = {o.camera_id: (o.camera.width, o.camera.height) for o in images}
+        randomized = {r.field for r in c.randomization.resolved} if c.randomization else set()
+        with engine.wp.ScopedDevice(engine.wdevice):
+            self.context = engine.mjw.create_render_context(
+                mjm=c.model, nworld=c.nbatch, cam_active=cams,
+                cam_res=[size[cam] for cam in cams],
+                render_rgb=["rgb" in asked[cam] for cam in cams],
+                render_depth=["depth" in asked[cam] for cam in cams],
+                render_seg=["segmentation" in asked[cam] for cam in cams],
+                use_precomputed_rays="cam_fovy" not in randomized)
+        L = mujoco.mjtCamLight
+        com = (L.mjCAMLIGHT_TRACKCOM, L.mjCAMLIGHT_TARGETBODYCOM)
+        self.needs_com = bool(np.isin(c.model.cam_mode, com).any()
+                              or np.isin(c.model.light_mode, com).any())
+        wp = engine.wp
+        buffers = {"rgb": wp.to_torch(self.context.rgb_data).view(torch.int32),
+                   "depth": wp.to_torch(self.context.depth_data),
+                   "segmentation": wp.to_torch(self.context.seg_data)}
+        address = {"rgb": self.context.rgb_adr.numpy(), "depth": self.context.depth_adr.numpy(),
+                   "segmentation": self.context.seg_adr.numpy()}
+        index = {cam: i for i, cam in enumerate(cams)}
+        # R, G, B among a pixel's bytes, on the device (a graph cannot copy an index there)
+        self.rgb_bytes = torch.tensor([2, 1, 0], device=buffers["rgb"].device)
+        self.pixels = []  # (observation, kind, torch view of its pixels in Warp's buffers)
+        for o in images:
+            start, n = int(address[o.kind][index[o.camera_id]]), o.camera.height * o.camera.width
+            self.pixels.append((o, o.kind, buffers[o.kind][:, start:start + n]))
+
+    def frames(self, nbatch: int, nframes: int) -> dict[str, torch.Tensor]:
+        """The recorded frames' buffers, (nbatch, nframes, *shape) per image."""
+        return {o.key: torch.empty((nbatch, nframes, *o.shape), dtype=_TORCH_DTYPES[o.dtype],
+                                   device=pixels.device) for o, _, pixels in self.pixels}
+
+    def render(self) -> dict[str, torch.Tensor]:
+        """Every camera image at the state now, {key: (nbatch, *shape)} (depth: a view of
+        Warp's buffer)."""
+        e = self.engine
+        mjw, m, d = e.mjw, e.m, e.d
+        mjw.kinematics(m, d)
+        if self.needs_com:
+            mjw.com_pos(m, d)
+        mjw.camlight(m, d)
+        mjw.refit_bvh(m, d, self.context)
+        mjw.render(m, d, self.context)
+        out = {}
+        for o, kind, pixels in self.pixels:
+            if kind == "rgb":
+                # red in bits 16-23, blue in 0-7 (as MJX's get_rgb reads Warp's pixels):
+                # little-endian bytes B, G, R, A
+                image = pixels.view(torch.uint8).reshape(*pixels.shape, 4).index_select(
+                    -1, self.rgb_bytes)
+            elif kind == "depth":
+                image = pixels  # planar depth in metres, 0 where nothing is hit
+            else:
+                # (object id, object type) per pixel
+                geom = int(mujoco.mjtObj.mjOBJ_GEOM)
+                image = torch.where(pixels[..., 1] == geom, pixels[..., 0], -1)
+            out[o.key] = image.reshape(pixels.shape[0], *o.shape)
+        return out

@@ -1,0 +1,318 @@
+"""One configuration's MuJoCo Warp on one device: a model and data whose arrays never move,
+torch views of them, and the step between two control rows captured once as a CUDA graph.
+
+MuJoCo Warp's kernels read and write fixed addresses, so a CUDA graph of them stays valid as
+long as nothing moves. Here nothing does: the model, the data, the per-step inputs (the open
+loop's controls of a whole batch, or the policy's rows), the step index and the recorded frames
+are arrays allocated once, and everything between two control rows (`_step`: noise, the
+bad-control check, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence check and
+restart, the observations, cameras, the frames) runs as torch operations and MuJoCo Warp
+kernels on zero-copy views of them. On a GPU `_step` is captured once as one torch CUDA graph
+with MuJoCo Warp's kernels inside (Warp's external capture), in the thread that builds the
+engine (the consumer's, at the first batch), on a stream of its own; afterwards the producer
+thread only replays it. A training loop's `torch.cuda.synchronize()`, allocations or another
+dataset's work cannot invalidate a graph that is never captured again.
+
+Work outside the graph (each batch's reset, per-trajectory model fields, `set_const`, copies of
+the outputs) is queued on the same stream, so the device runs everything in order and the host
+never waits. Without a GPU (tests, SIMLOADER_WARP_ON_CPU) `_step` runs eagerly on MuJoCo Warp's
+CPU kernels: the same code the graph captures.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import threading
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+import torch
+
+from simloader import controls, layout, rules
+from simloader.backends.warp import cameras, runtime
+from simloader.backends.warp.options import CONVERTED, WarpOptions, arrays
+
+S = mujoco.mjtState
+# mjSTATE_INTEGRATION components and the MuJoCo Warp data arrays that hold them
+_STATE_ARRAYS = {S.mjSTATE_TIME: "time", S.mjSTATE_QPOS: "qpos", S.mjSTATE_QVEL: "qvel",
+                 S.mjSTATE_ACT: "act", S.mjSTATE_WARMSTART: "qacc_warmstart",
+                 S.mjSTATE_CTRL: "ctrl", S.mjSTATE_QFRC_APPLIED: "qfrc_applied",
+                 S.mjSTATE_XFRC_APPLIED: "xfrc_applied", S.mjSTATE_EQ_ACTIVE: "eq_active",
+                 S.mjSTATE_MOCAP_POS: "mocap_pos", S.mjSTATE_MOCAP_QUAT: "mocap_quat",
+                 S.mjSTATE_USERDATA: "userdata"}
+_PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
+
+
+class Engine:
+    """MuJoCo Warp's model and data for `config`, built (and its step graph captured) once.
+
+    Args:
+      config: the dataset's configuration.
+      options: its resolved `WarpOptions`.
+      device: the torch device to simulate on (`cuda:k`, or the CPU for tests).
+      on_capture: called after each graph capture (counts them in the dataset's stats).
+    """
+
+    def __init__(self, config: Any, options: WarpOptions, device: torch.device,
+                 on_capture: Any = None):
+        import mujoco_warp as mjw
+        self.mjw, self.wp = mjw, runtime.warp()
+        self.config, self.options, self.device = config, options, device
+        self.gpu = device.type == "cuda"
+        self.wdevice = runtime.warp_device(device)
+        self.lock = threading.Lock()  # one batch at a time queues its work on these arrays
+        c = config
+        n = c.nbatch
+        with self.wp.ScopedDevice(self.wdevice):
+            model_fields = [f for f in options.per_world if not f.startswith("opt.")]
+            self.m = mjw.put_model(c.model, batch_sizes={f: n for f in model_fields})
+            for field in options.per_world:  # options: MuJoCo Warp's put_model batches none
+                if field.startswith("opt."):
+                    self._batch_option(field[4:], n)
+            self.m.opt.warn_overflow = 0  # counted per batch instead
+            self.d = mjw.make_data(c.model, nworld=n, naconmax=options.naconmax,
+                                   njmax=options.njmax)
+        self.model_views = {k: self.wp.to_torch(v) for k, v in arrays(self.m).items()}
+        self.views = {name: self._data(name) for name in (
+            *_STATE_ARRAYS.values(), "qacc", "sensordata", "overflow")}
+        self.pool_tables = self._pool_tables()
+        self.observations = [o for o in c.observations if not o.rendered]
+        for o in self.observations:
+            for name in o.fields():
+                self.views.setdefault(name, self._data(name))
+        self.cameras = (cameras.Cameras(self, [o for o in c.observations if o.rendered])
+                        if any(o.rendered for o in c.observations) else None)
+        # what the divergence check (`_restart`) leaves finite needs no second look
+        self.unchecked = [o.key for o in self.observations
+                          if o.floating and not set(o.fields()) <= rules.RESTARTED]
+        self._buffers()
+        self.closed = c.policy is not None
+        self.stream = torch.cuda.Stream(device) if self.gpu else None
+        self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
+        self.graph = None
+        if self.gpu:
+            self.graph = self._capture()
+            if on_capture is not None:
+                on_capture()
+
+    # -- construction ----------------------------------------------------------------------
+
+    def _batch_option(self, name: str, n: int) -> None:
+        """Option array `name` with one row per world (MuJoCo Warp batches model arrays by
+        `put_model(batch_sizes=)`, options by replacing the array)."""
+        shared = getattr(self.m.opt, name)
+        batched = self.wp.array(np.broadcast_to(shared.numpy(), (n, *shared.numpy().shape[1:])),
+                                dtype=shared.dtype)
+        batched._is_batched = True
+        setattr(self.m.opt, name, batched)
+
+    def _data(self, name: str) -> torch.Tensor:
+        """A (nbatch, -1) torch view of MuJoCo Warp's data array `name` (vectors unrolled;
+        booleans as torch bools)."""
+        view = self.wp.to_torch(getattr(self.d, name))
+        return view.reshape(view.shape[0], -1)
+
+    def _pool_tables(self) -> dict[str, torch.Tensor]:
+        """For each per-world array that differs across a model pool (lists, variants): the
+        values of every model of the pool, (nmodels, ...), gathered per batch by model index."""
+        c = self.config
+        models = c.models or c.variants
+        if models is None:
+            return {}
+        differing = [f for f in self.options.per_world if f not in self._randomized_fields()]
+        tables: dict[str, list] = {f: [] for f in differing}
+        with self.wp.ScopedDevice("cpu"):
+            for model in models:
+                held = arrays(self.mjw.put_model(model))
+                for f in differing:
+                    tables[f].append(self.wp.to_torch(held[f])[0])
+        return {f: torch.stack(rows).to(self.device) for f, rows in tables.items()}
+
+    def _randomized_fields(self) -> set[str]:
+        plan = self.config.randomization
+        if plan is None:
+            return set()
+        from simloader.backends.warp.options import SETCONST_OUTPUTS
+        out = {CONVERTED.get(r.field, (r.field,))[0] for r in plan.resolved}
+        return out | (set(SETCONST_OUTPUTS) if plan.setconst else set())
+
+    def _buffers(self) -> None:
+        """What `_step` reads and writes besides MuJoCo Warp's arrays."""
+        c, like = self.config, self.views["qpos"]
+        shape = (c.nbatch, c.nstep, c.ncontrol)
+        self.t = torch.zeros(1, dtype=torch.int64, device=like.device)
+        self.controls = torch.zeros(shape, dtype=like.dtype, device=like.device)  # open loop
+        self.u = torch.zeros(shape[0], shape[2], dtype=like.dtype, device=like.device)
+        self.noise = (torch.zeros(shape, dtype=like.dtype, device=like.device)
+                      if c.policy_noise is not None else None)
+        self.low = torch.full_like(self.u, -torch.inf)
+        self.high = torch.full_like(self.u, torch.inf)
+        self.control = torch.empty(shape, dtype=like.dtype, device=like.device)
+        self.diverged = torch.zeros(c.nbatch, dtype=torch.bool, device=like.device)
+        self.inputs = []  # (columns of a control row, MuJoCo Warp's array, boolean)
+        for comp in layout.control_layout(c.model, c.control_spec):
+            self.inputs.append((comp.columns, self.views[comp.name], comp.name == "eq_active"))
+        self.frames = {}
+        for o in self.observations:
+            value = o.torch_value(self.views)
+            self.frames[o.key] = torch.empty((c.nbatch, c.nframes, *value.shape[1:]),
+                                             dtype=value.dtype, device=value.device)
+        if self.cameras is not None:
+            self.frames.update(self.cameras.frames(c.nbatch, c.nframes))
+        self.obs: dict[str, torch.Tensor] = {}
+
+    def _capture(self) -> Any:
+        """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
+        MuJoCo Warp's kernels and torch's; everything it changes is reset per batch).
+        Captured in thread-local mode, with garbage collection paused (a collection inside the
+        capture could free device memory), one capture at a time in the process."""
+        stream = self.stream
+        stream.wait_stream(torch.cuda.current_stream(self.device))
+        with runtime.CAPTURE_LOCK:
+            with torch.cuda.stream(stream):
+                self._step()
+            graph = torch.cuda.CUDAGraph()
+            collecting = gc.isenabled()
+            gc.disable()
+            try:
+                with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
+                    self._step(capturing=True)
+            finally:
+                if collecting:
+                    gc.enable()
+        torch.cuda.current_stream(self.device).wait_stream(stream)
+        return graph
+
+    # -- per batch -------------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def queued(self):
+        """Work queued on the engine's stream (torch's and MuJoCo Warp's), one batch at a time.
+        The stream scope does not wait on Warp's previous stream (`sync_enter=False`): the
+        engine's work is ordered by its own stream alone."""
+        with self.lock, self.wp.ScopedDevice(self.wdevice):
+            if not self.gpu:
+                yield
+                return
+            with torch.cuda.stream(self.stream), \
+                    self.wp.ScopedStream(self.warp_stream, sync_enter=False):
+                yield
+
+    def set_model(self, model_index: Optional[torch.Tensor],
+                  values: dict[str, torch.Tensor]) -> None:
+        """Per-trajectory model arrays: each pool array from trajectory i's model
+        (`model_index`, (nbatch,)), then the randomized values ({field: (nbatch, nvalues)}
+        at `elements`), then what MuJoCo derives from them (`set_const`). Inside `queued`."""
+        for field, table in self.pool_tables.items():
+            view = self.model_views[field]
+            view.copy_(table.index_select(0, model_index).reshape(view.shape))
+        plan = self.config.randomization
+        if plan is None:
+            return
+        for r in plan.resolved:
+            field, convert = CONVERTED.get(r.field, (r.field, None))
+            value = values[r.param.key]
+            flat = self.model_views[field].view(self.config.nbatch, -1)
+            flat[:, torch.as_tensor(r.elements, device=flat.device)] = (
+                convert(value) if convert else value).to(flat.dtype)
+        if plan.setconst:
+            self.mjw.set_const(self.m, self.d)
+
+    def reset(self, rows: torch.Tensor, fresh: torch.Tensor) -> None:
+        """Trajectories `fresh` ((nbatch,) bool) start from their mjSTATE_INTEGRATION `rows`
+        ((nbatch, nintegration)); the others continue. Overflow bits start afresh."""
+        c = self.config
+        for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):
+            cols = layout.component_columns(c.model, layout.INTEGRATION, int(bit))
+            if not len(cols):
+                continue
+            view = self.views[name]
+            value = rows[:, cols[0]:cols[-1] + 1].to(view.dtype) if view.dtype != torch.bool \
+                else rows[:, cols[0]:cols[-1] + 1] != 0
+            view.copy_(torch.where(fresh[:, None], value, view))
+        self.views["overflow"].zero_()
+
+    def physics(self) -> torch.Tensor:
+        """(nbatch, nstate): the mjSTATE_FULLPHYSICS rows now (a new tensor)."""
+        return torch.cat([self.views[name] for name in _PHYSICS], dim=1)
+
+    def integration(self) -> torch.Tensor:
+        """(nbatch, nintegration): the mjSTATE_INTEGRATION rows now (a new tensor)."""
+        c = self.config
+        parts = []
+        for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):  # mjtState order
+            if mujoco.mj_stateSize(c.model, int(bit)):
+                parts.append(self.views[name].to(self.views["qpos"].dtype))
+        return torch.cat(parts, dim=1)
+
+    def observe_now(self) -> dict[str, torch.Tensor]:
+        """The policy's first observations, of the state after the reset: derived fields by
+        MuJoCo Warp's forward (the warmstart kept, as mj_forward keeps it), cameras rendered.
+        Each a tensor of its own."""
+        warmstart = self.views["qacc_warmstart"].clone()
+        self.mjw.forward(self.m, self.d)
+        self.views["qacc_warmstart"].copy_(warmstart)
+        obs = {o.key: o.torch_value(self.views).clone() for o in self.observations}
+        if self.cameras is not None:
+            obs.update({k: v.clone() for k, v in self.cameras.render().items()})
+        return obs
+
+    def start(self) -> None:
+        """Before a batch's first step: step index and flags to zero."""
+        self.t.zero_()
+        self.diverged.zero_()
+
+    def advance(self) -> None:
+        """One step, as captured (the graph) or eagerly (the CPU)."""
+        if self.graph is not None:
+            self.graph.replay()
+        else:
+            self._step()
+
+    def _step(self, capturing: bool = False) -> None:
+        """Everything between two control rows, on the row of step `t` (the open loop's
+        `controls[:, t]`, or the policy's `u`): noise, the bad-control check, MuJoCo's clamp,
+        the inputs, MuJoCo Warp's step, the divergence check and restart, the observations
+        (views of Warp's arrays where they can be; cameras rendered) and their frames. Device
+        tensors only, so that one graph serves every step."""
+        c, n = self.config, self.config.nbatch
+        with self._warp_capture(capturing):
+            u = self.u if self.closed else self.controls.index_select(1, self.t)[:, 0]
+            if self.noise is not None:
+                u = u + self.noise.index_select(1, self.t)[:, 0]
+            self.diverged |= controls.bad_controls(u)
+            u = controls.clamp_applied(u, self.low, self.high, torch)
+            self.control.index_copy_(1, self.t, u[:, None])
+            for columns, target, boolean in self.inputs:
+                row = u[:, columns]
+                target.copy_(row != 0 if boolean else row)
+            self.mjw.step(self.m, self.d)
+            self.diverged |= rules.restart_unstable(self.views, self.model_views["qpos0"],
+                                                    torch)
+            obs = {o.key: o.torch_value(self.views) for o in self.observations}
+            for key in self.unchecked:
+                self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
+            if self.cameras is not None:
+                obs.update(self.cameras.render())
+        frame = rules.frame_index(self.t, c.record_every)
+        for key, value in obs.items():
+            self.frames[key].index_copy_(1, frame, value[:, None])
+        self.t += 1
+        self.obs = obs
+
+    @contextlib.contextmanager
+    def _warp_capture(self, capturing: bool):
+        """While torch captures its graph, MuJoCo Warp's launches are registered as an
+        external capture on the same stream, which keeps what Warp allocates inside."""
+        if not capturing:
+            yield
+            return
+        wp = self.wp
+        with wp.ScopedStream(self.warp_stream, sync_enter=False):
+            wp.capture_begin(stream=self.warp_stream, external=True, force_module_load=False)
+            try:
+                yield
+            finally:
+                wp.capture_end(stream=self.warp_stream)

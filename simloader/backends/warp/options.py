@@ -1,0 +1,242 @@
+"""The Warp engine's options and its checks at construction: can it run, which model fields
+differ per trajectory (model lists, variants, randomization), and MuJoCo Warp's buffer sizes.
+
+Everything is decided on the host, in the constructing process, before any thread or worker
+starts: models are put on Warp's CPU device (no kernel runs, no GPU is touched) to learn what
+MuJoCo Warp supports and which of its arrays differ between the models of a pool.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+
+from simloader import layout, observe
+from simloader.backends.warp import runtime
+from simloader.config import SimConfig
+
+S = mujoco.mjtState
+# The mjSTATE_FULLPHYSICS components the engine simulates. The others must be empty (checked
+# here), so that a FULLPHYSICS row is time, qpos, qvel, act.
+_UNSIMULATED = (
+    (S.mjSTATE_HISTORY, "actuator and sensor delays", "nhistory"),
+    (S.mjSTATE_PLUGIN, "plugins with state", "npluginstate"),
+    (S.mjSTATE_PLASTIC, "plasticity", "nplastic"),
+)
+# MuJoCo Warp's OverflowType bits: the solver stopping at its iteration limits (which MuJoCo C's
+# does silently) is counted; every other bit means a buffer overflowed and something (contacts,
+# constraint rows, collision detail) was dropped
+_NEFC, _NJMAX_NNZ, _BROADPHASE, _NARROWPHASE, _CCD, _HFIELD = (1 << i for i in range(6))
+SOLVER_LIMIT = (1 << 9) | (1 << 10)  # ITERATIONS, LS_ITERATIONS
+# calibration of the buffers: trajectories and steps of MuJoCo C, margin over what they used
+_CALIBRATION_TRAJECTORIES, _CALIBRATION_STEPS, _MARGIN = 16, 300, 2.0
+# model fields MuJoCo Warp keeps in another form: field -> (its array, value -> stored value)
+CONVERTED = {"opt.impratio": ("opt.impratio_invsqrt", lambda v: v ** -0.5)}
+# what mj_setConst derives (MuJoCo Warp's `set_const` writes these per world when they are
+# per-world arrays); batched whenever a randomized field is one of its inputs
+SETCONST_OUTPUTS = ("body_subtreemass", "body_invweight0", "dof_invweight0", "tendon_invweight0",
+                    "tendon_length0", "actuator_acc0", "actuator_lengthrange", "geom_aabb",
+                    "geom_rbound", "geom_size", "eq_data", "cam_pos0", "cam_poscom0",
+                    "cam_mat0", "light_pos0", "light_poscom0", "light_dir0")
+
+
+@dataclasses.dataclass(frozen=True)
+class WarpOptions:
+    """The Warp engine's options, resolved at construction.
+
+    Attributes:
+      impl: "warp"; `impl_reason`: why (asked, or what `impl="auto"` saw).
+      naconmax, njmax: MuJoCo Warp's contact pool (whole batch) and constraint rows (per
+        trajectory).
+      per_world: the model arrays that differ per trajectory (`opt.` for options), sorted.
+    """
+
+    impl: str
+    impl_reason: str
+    naconmax: int
+    njmax: int
+    per_world: tuple[str, ...]
+
+    def describe(self) -> str:
+        return f"MuJoCo Warp, naconmax={self.naconmax}, njmax={self.njmax}"
+
+
+def check_options(config: SimConfig, reason: str, naconmax: Optional[int],
+                  njmax: Optional[int]) -> WarpOptions:
+    """Validates a Warp configuration in the constructing process.
+
+    Raises:
+      ValueError: the engine cannot run here (saying what is missing), MuJoCo Warp cannot
+        simulate a model, models differ in an array MuJoCo Warp shares across trajectories, a
+        randomized field MuJoCo Warp cannot hold per trajectory, a record it does not keep.
+    """
+    why = runtime.missing()
+    if why:
+        raise ValueError(f"impl: 'warp' cannot run here: {why}; use impl='jax' (or 'auto')")
+    models = config.models or config.variants or (config.model,)
+    names = (["model"] if len(models) == 1 else
+             [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
+             [f"randomize: variant[{i}]" for i in range(len(models))])
+    puts = [_put(name, model) for name, model in zip(names, models)]
+    per_world = set(_differing(puts, names))
+    if config.randomization is not None:
+        per_world |= _randomized(config, puts[0])
+    _check_records(config)
+    x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
+    naconmax, njmax = buffer_sizes(config.model, config.nbatch, x0, naconmax, njmax)
+    return WarpOptions("warp", reason, naconmax, njmax, tuple(sorted(per_world)))
+
+
+def _put(name: str, model: mujoco.MjModel) -> Any:
+    """MuJoCo Warp's model of `model` on Warp's CPU device (arrays only, no kernels)."""
+    import mujoco_warp as mjw
+    wp = runtime.warp()
+    for bit, what, size in _UNSIMULATED:
+        if mujoco.mj_stateSize(model, int(bit)):
+            raise ValueError(f"{name}: the Warp engine does not simulate {what} ({size}="
+                             f"{mujoco.mj_stateSize(model, int(bit))}); use backend='rollout'")
+    try:
+        with wp.ScopedDevice("cpu"):
+            return mjw.put_model(model)
+    except NotImplementedError as e:
+        raise ValueError(f"{name}: MuJoCo Warp does not support a feature of this model: {e}; "
+                         f"use impl='jax' or backend='rollout'") from None
+
+
+def arrays(warp_model: Any) -> dict[str, Any]:
+    """MuJoCo Warp's model arrays by name (`opt.` for the options'), non-empty ones only."""
+    import warp as wp
+    out = {}
+    for prefix, obj in (("", warp_model), ("opt.", warp_model.opt)):
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name, None)
+            if isinstance(value, wp.array) and value.size:
+                out[prefix + f.name] = value
+    return out
+
+
+def batchable(name: str) -> bool:
+    """Whether MuJoCo Warp can hold model array `name` per world (its spec starts with `*`)."""
+    from mujoco_warp._src import types, warp_util
+    cls, field = (types.Option, name[4:]) if name.startswith("opt.") else (types.Model, name)
+    spec = {f.name: f.type for f in dataclasses.fields(cls)}.get(field)
+    return (spec is not None and warp_util.is_array_spec(spec)
+            and getattr(spec, "shape", ())[:1] == ("*",))
+
+
+def _differing(puts: list, names: list[str]) -> list[str]:
+    """The arrays where the models of a pool differ (each must be batchable)."""
+    if len(puts) == 1:
+        return []
+    first = {k: v.numpy() for k, v in arrays(puts[0]).items()}
+    out = []
+    for name, put in zip(names[1:], puts[1:]):
+        for field, value in arrays(put).items():
+            if field in out:
+                continue
+            if value.shape == first[field].shape and np.array_equal(value.numpy(), first[field]):
+                continue
+            if not batchable(field) or value.shape[1:] != first[field].shape[1:]:
+                raise ValueError(
+                    f"{name}: {field} differs from {names[0]}, but with impl='warp' it cannot "
+                    f"differ per trajectory (MuJoCo Warp shares it across all trajectories of "
+                    f"a batch)")
+            out.append(field)
+    return out
+
+
+def _randomized(config: SimConfig, put: Any) -> set[str]:
+    """The arrays randomization writes per trajectory (and what `set_const` derives from
+    them); refuses by name what MuJoCo Warp cannot hold per trajectory."""
+    held = arrays(put)
+    can = sorted(f for f in held if batchable(f) and held[f].dtype.__name__.startswith(
+        ("float", "vec", "quat", "mat", "spatial")))
+    out = set()
+    for r in config.randomization.resolved:
+        field = CONVERTED.get(r.field, (r.field,))[0]
+        size = np.asarray(_mujoco_field(config.model, r.field)).size
+        why = None
+        if field not in held or not batchable(field):
+            why = "MuJoCo Warp shares it across all trajectories of a batch"
+        elif _per_world_size(held[field]) != size:
+            why = f"MuJoCo Warp stores it in another layout ({held[field].shape})"
+        if why:
+            raise ValueError(f"randomize: {r.param.key}: impl='warp' cannot randomize "
+                             f"{r.field} ({why}); it can randomize {', '.join(can)} "
+                             f"(backend='rollout' any floating-point field)")
+        out.add(field)
+    if config.randomization.setconst:
+        out |= {f for f in SETCONST_OUTPUTS if f in held and batchable(f)}
+    return out
+
+
+def _mujoco_field(model: mujoco.MjModel, field: str) -> Any:
+    return getattr(model.opt, field[4:]) if field.startswith("opt.") else getattr(model, field)
+
+
+def _per_world_size(array: Any) -> int:
+    """Scalars one world holds in a (1, ...) model array (vector dtypes unrolled)."""
+    return int(np.prod(array.shape[1:])) * int(np.prod(getattr(array.dtype, "_shape_", ())))
+
+
+def _check_records(config: SimConfig) -> None:
+    """Every recorded field must be one MuJoCo Warp's Data holds under MuJoCo's name."""
+    import mujoco_warp as mjw
+    held = {f.name for f in dataclasses.fields(mjw.Data)}
+    for o in config.observations:
+        if isinstance(o, observe.CameraImage):
+            continue
+        missing = sorted(set(o.fields()) - held)
+        if missing:
+            raise ValueError(f"record: {o.key!r}: MuJoCo Warp has no field {missing[0]} "
+                             f"(impl='warp'); use impl='jax' or backend='rollout'")
+
+
+def buffer_sizes(model: mujoco.MjModel, nbatch: int, x0: np.ndarray,
+                 naconmax: Optional[int], njmax: Optional[int]) -> tuple[int, int]:
+    """(naconmax, njmax) for `nbatch` trajectories: the user's values, else measured.
+
+    Measured: MuJoCo C runs `_CALIBRATION_TRAJECTORIES` trajectories (from initial states `x0`,
+    (n, nstate)) under uniform random controls for `_CALIBRATION_STEPS` steps; each buffer gets
+    twice the most a trajectory used, and at least MuJoCo Warp's own per-world guess.
+    """
+    from mujoco_warp._src import io as warp_io
+    if naconmax is not None and njmax is not None:
+        return naconmax, njmax
+    ncon, nefc = _calibrate(model, x0)
+    per_world_contacts = max(warp_io._default_nconmax(model), int(np.ceil(_MARGIN * ncon)))
+    rows = max(warp_io._default_njmax(model), int(np.ceil(_MARGIN * nefc)))
+    return (naconmax if naconmax is not None else nbatch * per_world_contacts,
+            njmax if njmax is not None else rows)
+
+
+def _calibrate(model: mujoco.MjModel, x0: np.ndarray) -> tuple[int, int]:
+    """The most contacts and constraint rows one trajectory of MuJoCo C used."""
+    rng = np.random.default_rng(0)
+    low, high = np.where(model.actuator_ctrllimited[:, None].astype(bool), model.actuator_ctrlrange,
+                         [-1.0, 1.0]).T
+    data = mujoco.MjData(model)
+    ncon = nefc = 0
+    for i in range(min(_CALIBRATION_TRAJECTORIES, len(x0))):
+        mujoco.mj_resetData(model, data)
+        mujoco.mj_setState(model, data, x0[i], layout.FULLPHYSICS)
+        for _ in range(_CALIBRATION_STEPS):
+            data.ctrl[:] = rng.uniform(low, high)
+            mujoco.mj_step(model, data)
+            ncon, nefc = max(ncon, data.ncon), max(nefc, data.nefc)
+    return ncon, nefc
+
+
+def overflow_message(bits: int, naconmax: int, njmax: int) -> str:
+    """What overflowed, and what to raise."""
+    advice = []
+    if bits & (_BROADPHASE | _NARROWPHASE | _CCD | _HFIELD):
+        advice.append(f"contacts exceeded naconmax={naconmax} (the pool of the whole batch): "
+                      f"pass a larger naconmax=")
+    if bits & (_NEFC | _NJMAX_NNZ):
+        advice.append(f"constraint rows exceeded njmax={njmax} per trajectory: pass a larger "
+                      f"njmax=")
+    return "; ".join(advice)

@@ -1,0 +1,64 @@
+"""Process-wide concerns of the Warp engine: whether it can run, on which device, importing
+Warp quietly, and the one lock that orders graph captures.
+
+Nothing here imports JAX: a Warp dataset never starts it. Nothing here initializes CUDA at
+construction either (the checks look for packages and devices only), so that the process that
+builds a dataset can still fork.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import threading
+from typing import Any, Optional
+
+import torch
+
+# MuJoCo Warp on the CPU (Warp's LLVM backend) is slow and not offered to users; the test suite
+# sets this to run the Warp engine for real on machines without a GPU
+WARP_ON_CPU = "SIMLOADER_WARP_ON_CPU"
+# what to install for impl="warp"
+INSTALL = "pip install 'simloader[warp]'"
+
+# One capture at a time in this process: a capture in thread-local mode tolerates other threads'
+# work, but two engines capturing at once would each see the other's Warp allocations
+CAPTURE_LOCK = threading.Lock()
+
+
+def missing() -> Optional[str]:
+    """Why the Warp engine cannot run in this process (short), or None when it can."""
+    for module, package in (("warp", "warp-lang"), ("mujoco_warp", "mujoco-warp")):
+        if importlib.util.find_spec(module) is None:
+            return f"the {package} package is not installed ({INSTALL})"
+    if torch.cuda.is_available() or os.environ.get(WARP_ON_CPU) == "1":
+        return None
+    return "MuJoCo Warp needs a CUDA GPU, and torch sees none here"
+
+
+def sim_device(target: Optional[torch.device]) -> torch.device:
+    """Where to simulate: `cuda:k` for a `cuda:k` target (no copy at delivery), else this local
+    rank's GPU (torchrun's LOCAL_RANK), else the CPU (only with SIMLOADER_WARP_ON_CPU=1)."""
+    if not torch.cuda.is_available():
+        return torch.device("cpu")
+    if target is not None and target.type == "cuda":
+        index = target.index if target.index is not None else torch.cuda.current_device()
+        if index >= torch.cuda.device_count():
+            raise ValueError(f"device: {target} requested but torch sees "
+                             f"{torch.cuda.device_count()} GPU(s)")
+        return torch.device("cuda", index)
+    return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0"))
+                        % torch.cuda.device_count())
+
+
+def warp() -> Any:
+    """The `warp` module, initialized without its banner."""
+    import warp as wp
+    wp.config.quiet = True
+    wp.init()
+    return wp
+
+
+def warp_device(device: torch.device) -> str:
+    """Warp's name of a torch device."""
+    return "cpu" if device.type == "cpu" else f"cuda:{device.index}"
