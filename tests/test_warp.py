@@ -50,7 +50,7 @@ def rich():
 
 
 def dataset(model, cache_dir, **kwargs):
-    kwargs = {"backend": "mjx", "impl": "warp", "compilation_cache": cache_dir, **kwargs}
+    kwargs = {"backend": "mjx", "impl": "warp", **kwargs}
     return simloader.SimDataset(model, **kwargs)
 
 
@@ -163,18 +163,36 @@ def test_randomized_parameters_match_mujoco_c_on_the_equivalent_models(cache_dir
     assert np.abs(plain["state"].cpu().numpy() - batch["state"].cpu().numpy()).max() > 10 * CONTACT_FREE_TOL
 
 
-@pytest.mark.parametrize("spec, why", [
-    (dr.scale("body_mass", dr.Uniform(0.5, 2.0)),
-     "MuJoCo derives constants from it (mj_setConst) that simloader recomputes only with "
-     "impl='jax'"),
-    (dr.scale("opt.impratio", dr.Uniform(0.5, 2.0)),
-     "MuJoCo Warp keeps only a derived 1/sqrt(impratio)"),
-])
-def test_what_warp_cannot_randomize_is_refused_by_name(cache_dir, spec, why):
+def test_randomized_setconst_inputs_and_options_match_mujoco_c(cache_dir):
+    # body masses feed what mj_setConst derives (MuJoCo Warp's set_const recomputes it per
+    # trajectory); gravity is an option, held per trajectory as well
+    model = simloader.load_model("cartpole")
+    ds = dataset(model, cache_dir, nbatch=3, nstep=40, control=controls.Uniform(),
+                 randomize=[dr.scale("body_mass", dr.Uniform(0.3, 3.0), on="pole"),
+                            dr.scale("opt.gravity", dr.Uniform(0.5, 1.5), index=2)],
+                 num_batches=1)
+    batch = next(iter(ds))
+    params = {k: v.cpu().numpy() for k, v in batch["params"].items()}
+    models = []
+    for i in range(3):
+        m = simloader.load_model("cartpole")
+        m.body_mass[m.body("pole").id] = params["body_mass[pole]"][i, 0]
+        m.opt.gravity[2] = params["opt.gravity"][i, 0]
+        mujoco.mj_setConst(m, mujoco.MjData(m))
+        models.append(m)
+    state, _ = rollout.rollout(models, mujoco.MjData(model),
+                               batch["initial_state"].cpu().numpy().astype(np.float64),
+                               batch["control"].cpu().numpy().astype(np.float64))
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
+
+
+def test_what_warp_cannot_randomize_is_refused_by_name(cache_dir):
+    spec = dr.scale("dof_length", dr.Uniform(0.5, 2.0))
     with pytest.raises(ValueError) as info:
         dataset(simloader.load_model("cartpole"), cache_dir, nbatch=2, nstep=2,
                 randomize=[spec])
-    assert f"impl='warp' cannot randomize {spec.field} ({why})" in str(info.value)
+    assert ("impl='warp' cannot randomize dof_length (MuJoCo Warp shares it across all "
+            "trajectories of a batch)") in str(info.value)
     assert "dof_damping" in str(info.value)  # the list of what it can randomize
 
 
@@ -185,10 +203,10 @@ def test_auto_takes_jax_where_warp_cannot_run_and_says_why(rich, cache_dir, monk
     ds = simloader.SimDataset(rich, backend="mjx", nbatch=2, nstep=2,
                               compilation_cache=cache_dir)
     assert ds.config.options.impl == "jax"
-    assert "chosen: auto: MuJoCo Warp needs a CUDA GPU, and JAX simulates on cpu here" \
+    assert "chosen: auto: MuJoCo Warp needs a CUDA GPU, and torch sees none here" \
         in ds.describe()
     with pytest.raises(ValueError, match="impl: 'warp' cannot run here: MuJoCo Warp needs a "
-                                         "CUDA GPU, and JAX simulates on cpu here"):
+                                         "CUDA GPU, and torch sees none here"):
         simloader.SimDataset(rich, backend="mjx", impl="warp", nbatch=2, nstep=2)
 
 
@@ -284,18 +302,25 @@ def heavier_pole(spec, rng):
     return spec
 
 
-@pytest.mark.parametrize("variant, message", [
-    (pole_variant, r"randomize: variant\[1\]: model\._impl\.dof_length differs from randomize: "
-                   r"variant\[0\], but MJX compiles it into the simulation"),
-    (heavier_pole, r"randomize: variant\[1\]: stat\.meaninertia differs from randomize: "
-                   r"variant\[0\], but with impl='warp' it cannot differ per trajectory \(MuJoCo "
-                   r"Warp shares it across all trajectories of a batch\)"),
-])
-def test_variants_differing_in_what_warp_shares_are_refused_by_name(cache_dir, variant,
-                                                                     message):
-    with pytest.raises(ValueError, match=message):
+def test_variants_differing_in_derived_constants_run_on_their_own_models(cache_dir):
+    # heavier poles: masses, inertias and what MuJoCo derives from them differ per variant
+    ds = dataset("cartpole", cache_dir, nbatch=4, nstep=30, control=controls.Uniform(),
+                 randomize=dr.Variants(heavier_pole, count=3), num_batches=1)
+    batch = next(iter(ds))
+    models = [ds.config.variants[i] for i in batch["params"]["variant"].cpu().numpy()]
+    state, _ = rollout.rollout(models, mujoco.MjData(models[0]),
+                               batch["initial_state"].cpu().numpy().astype(np.float64),
+                               batch["control"].cpu().numpy().astype(np.float64))
+    np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
+
+
+def test_variants_differing_in_what_warp_shares_are_refused_by_name(cache_dir):
+    with pytest.raises(ValueError, match=r"randomize: variant\[1\]: dof_length differs from "
+                                         r"randomize: variant\[0\], but with impl='warp' it "
+                                         r"cannot differ per trajectory \(MuJoCo Warp shares "
+                                         r"it across all trajectories of a batch\)"):
         dataset("cartpole", cache_dir, nbatch=4, nstep=30,
-                randomize=dr.Variants(variant, count=3))
+                randomize=dr.Variants(pole_variant, count=3))
 
 
 def test_recorded_fields_every_kth_step_match_the_rollout_backend(rich, cache_dir):

@@ -134,10 +134,11 @@ def _differing(puts: list, names: list[str]) -> list[str]:
     first = {k: v.numpy() for k, v in arrays(puts[0]).items()}
     out = []
     for name, put in zip(names[1:], puts[1:]):
-        for field, value in arrays(put).items():
+        for field, array in arrays(put).items():
             if field in out:
                 continue
-            if value.shape == first[field].shape and np.array_equal(value.numpy(), first[field]):
+            value = array.numpy()
+            if value.shape == first[field].shape and np.array_equal(value, first[field]):
                 continue
             if not batchable(field) or value.shape[1:] != first[field].shape[1:]:
                 raise ValueError(

@@ -55,6 +55,8 @@ def warp() -> Any:
     """The `warp` module, initialized without its banner."""
     import warp as wp
     wp.config.quiet = True
+    # no line per kernel module loaded (the engine says when a first compile takes long)
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
     return wp
 

@@ -1,0 +1,200 @@
+"""The Warp engine next to raw MuJoCo Warp loops (the public `mujoco-warp` package), one run.
+
+Rows, per workload, all measured in this process with alternating repetitions (medians):
+
+- raw, no controls (the ceiling): one `mjw.step` captured as a CUDA graph, replayed.
+- raw, same work: the same graph, plus what simloader does per step in the plainest torch a
+  user would write: the step's controls copied into `d.ctrl` from a (nworld, nstep, nu) tensor
+  drawn once on the GPU, and the state (time, qpos, qvel, act) and sensors copied into
+  (nworld, nstep, ...) frames.
+- simloader open loop: `SimDataset(impl="warp", control=controls.Uniform())` iterated (fresh
+  controls drawn every batch, divergence checks, clamping, outputs handed over).
+- with --policy: simloader with a 2x256 MLP policy in the loop, next to its open loop.
+- with --pixels: cart-pole with one 64x64 RGB camera every step against a raw step + render
+  graph loop.
+- with --jax: the same workload on MJX-JAX through simloader (`auto` picks per model).
+
+Run on the GPU machine from the repository root:
+  python benchmarks/bench_warp.py --model-dir .models/dm_control --save --results-dir $OUT
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import torch
+
+import common
+from common import markdown_table
+
+import simloader
+from simloader import controls
+
+WORKLOADS = [common.Workload("humanoid", 8192, 200), common.Workload("humanoid", 32768, 100),
+             common.Workload("cartpole", 8192, 1000)]
+QUICK = [common.Workload("cartpole", 64, 20)]
+
+
+class RawWarp:
+    """A raw MuJoCo Warp loop: one step captured once, replayed; `same_work` adds a control
+    copy before and the state and sensor copies after every step."""
+
+    def __init__(self, model, nworld: int, nstep: int, same_work: bool, cameras: bool = False):
+        import mujoco_warp as mjw
+        import warp as wp
+        self.mjw, self.wp, self.nstep, self.same_work = mjw, wp, nstep, same_work
+        self.device = torch.device("cuda", 0)
+        with wp.ScopedDevice("cuda:0"):
+            self.m = mjw.put_model(model)
+            self.m.opt.warn_overflow = 0
+            self.d = mjw.make_data(model, nworld=nworld, naconmax=nworld * 64,
+                                   njmax=max(64, 4 * model.nv))
+            self.rc = (mjw.create_render_context(mjm=model, nworld=nworld, cam_active=[0],
+                                                 cam_res=[(64, 64)], render_rgb=[True],
+                                                 render_depth=[False], render_seg=[False])
+                       if cameras else None)
+        t = lambda a: wp.to_torch(a).reshape(nworld, -1)  # noqa: E731
+        self.ctrl, self.parts = t(self.d.ctrl), [t(getattr(self.d, f)) for f in
+                                                 ("time", "qpos", "qvel", "act")]
+        self.sensordata = t(self.d.sensordata)
+        gen = torch.Generator(self.device).manual_seed(0)
+        self.controls = torch.rand((nworld, nstep, model.nu), device=self.device,
+                                   generator=gen) * 2 - 1
+        nstate = sum(p.shape[1] for p in self.parts)
+        self.state = torch.empty((nworld, nstep, nstate), device=self.device)
+        self.sensors = torch.empty((nworld, nstep, self.sensordata.shape[1]), device=self.device)
+        self.pixels = torch.empty((nworld, nstep, 64 * 64), dtype=torch.int32,
+                                  device=self.device) if cameras else None
+        self.stream = torch.cuda.Stream(self.device)
+        with torch.cuda.stream(self.stream), wp.ScopedStream(wp.stream_from_torch(self.stream)):
+            self._physics()
+            with wp.ScopedCapture() as capture:
+                self._physics()
+        self.graph = capture.graph
+
+    def _physics(self) -> None:
+        mjw = self.mjw
+        mjw.step(self.m, self.d)
+        if self.rc is not None:
+            mjw.kinematics(self.m, self.d)
+            mjw.camlight(self.m, self.d)
+            mjw.refit_bvh(self.m, self.d, self.rc)
+            mjw.render(self.m, self.d, self.rc)
+
+    def batch(self) -> None:
+        wp = self.wp
+        with torch.cuda.stream(self.stream):
+            for t in range(self.nstep):
+                if self.same_work:
+                    self.ctrl.copy_(self.controls[:, t])
+                wp.capture_launch(self.graph, stream=wp.stream_from_torch(self.stream))
+                if self.same_work:
+                    torch.cat(self.parts, dim=1, out=self.state[:, t])
+                    self.sensors[:, t] = self.sensordata
+                if self.pixels is not None:
+                    self.pixels[:, t] = wp.to_torch(self.rc.rgb_data)
+        self.stream.synchronize()
+
+
+class Simloader:
+    """simloader's Warp (or JAX) stream, consumed batch by batch."""
+
+    def __init__(self, model, nworld: int, nstep: int, **kwargs):
+        self.ds = simloader.SimDataset(model, backend="mjx", nbatch=nworld, nstep=nstep,
+                                       **kwargs)
+        self.it = iter(self.ds)
+        next(self.it)  # the first batch: build, capture, compile
+
+    def batch(self) -> None:
+        b = next(self.it)
+        torch.cuda.synchronize()
+        del b
+
+
+def mlp(model, device) -> torch.nn.Module:
+    nobs = model.nq + model.nv + 1 + model.na
+
+    class Policy(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.net = torch.nn.Sequential(
+                torch.nn.Linear(nobs, 256), torch.nn.ReLU(), torch.nn.Linear(256, 256),
+                torch.nn.ReLU(), torch.nn.Linear(256, model.nu), torch.nn.Tanh())
+
+        def forward(self, obs):
+            return self.net(obs["state"])
+    return Policy().to(device)
+
+
+def measure(runners: dict, steps: int, repeats: int) -> dict[str, float]:
+    """Median steps/s of each runner, repetitions alternating between them."""
+    times: dict[str, list] = {k: [] for k in runners}
+    for r in runners.values():
+        r.batch()  # warm-up
+    for _ in range(repeats):
+        for name, r in runners.items():
+            start = time.perf_counter()
+            r.batch()
+            times[name].append(time.perf_counter() - start)
+    return {k: steps / statistics.median(v) for k, v in times.items()}
+
+
+def rows_for(w: common.Workload, model, args) -> list[list]:
+    steps = w.nbatch * w.nstep
+    runners = {
+        "raw MuJoCo Warp graph, no controls (ceiling)": RawWarp(model, w.nbatch, w.nstep, False),
+        "raw MuJoCo Warp graph, same work": RawWarp(model, w.nbatch, w.nstep, True),
+        "simloader impl='warp', open loop": Simloader(model, w.nbatch, w.nstep, impl="warp",
+                                                      control=controls.Uniform()),
+    }
+    if args.policy and w.name == "humanoid":
+        runners["simloader impl='warp', 2x256 MLP policy"] = Simloader(
+            model, w.nbatch, w.nstep, impl="warp", policy=mlp(model, "cuda"))
+    if args.jax and w.name == "cartpole":
+        runners["simloader impl='jax', open loop"] = Simloader(
+            model, w.nbatch, w.nstep, impl="jax", control=controls.Uniform())
+    rates = measure(runners, steps, args.repeats)
+    same = rates["raw MuJoCo Warp graph, same work"]
+    return [[str(w), name, f"{rate / 1e6:.2f}M", f"{rate / same:.3f}"]
+            for name, rate in rates.items()]
+
+
+def pixel_rows(args) -> list[list]:
+    model = simloader.load_model("cartpole")
+    nworld, nstep = (64, 10) if args.quick else (16384, 50)
+    runners = {
+        "raw MuJoCo Warp step + render graph, RGB copied out": RawWarp(
+            model, nworld, nstep, False, cameras=True),
+        "simloader impl='warp', Camera 64x64 RGB": Simloader(
+            model, nworld, nstep, impl="warp",
+            record=("state", simloader.Camera(0, height=64, width=64))),
+    }
+    rates = measure(runners, nworld * nstep, args.repeats)
+    raw = rates["raw MuJoCo Warp step + render graph, RGB copied out"]
+    return [[f"cartpole:{nworld}x{nstep}", name, f"{rate / 1e6:.2f}M frames/s",
+             f"{rate / raw:.3f}"] for name, rate in rates.items()]
+
+
+def main() -> None:
+    p = common.parser(__doc__.split("\n")[0], WORKLOADS, QUICK)
+    p.add_argument("--policy", action="store_true", help="add the closed loop (humanoid)")
+    p.add_argument("--pixels", action="store_true", help="add the camera workload")
+    p.add_argument("--jax", action="store_true", help="add MJX-JAX (cart-pole)")
+    args = common.parse(p)
+    rows = []
+    for w in common.workloads(args, WORKLOADS, QUICK):
+        model = (simloader.load_model(w.name) if w.name in ("cartpole", "humanoid")
+                 and args.model_dir is None else common.load_model(w.name, args.model_dir))
+        rows += rows_for(w, model, args)
+        print(markdown_table(["workload", "method", "steps/s", "/ raw same work"], rows),
+              flush=True)
+    sections = [markdown_table(["workload", "method", "steps/s", "/ raw same work"], rows)]
+    if args.pixels:
+        sections.append(markdown_table(["workload", "method", "throughput", "/ raw"],
+                                       pixel_rows(args)))
+    common.report(args, "bench_warp", "The Warp engine against raw MuJoCo Warp", sections)
+
+
+if __name__ == "__main__":
+    main()

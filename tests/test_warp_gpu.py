@@ -1,0 +1,156 @@
+"""The Warp engine inside training loops on the same GPU (marker `gpu`, run on the GPU machine).
+
+Every row of what users hit with the Warp path through MJX (a `torch.cuda.synchronize()` every
+step, a validation dataset read alternately, a JAX dataset beside a Warp one, open and closed
+loop alternately) must run without error, and graphs are captured once per dataset, never
+again (`stats["graph_captures"]`). Sizes are small; the humanoid has contacts and a constraint
+solver, the kernels that once broke.
+"""
+
+import warnings
+
+import pytest
+import torch
+
+import simloader
+from simloader import controls
+
+pytestmark = [pytest.mark.gpu,
+              pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")]
+pytest.importorskip("mujoco_warp")
+
+
+def warp_dataset(model="humanoid", nbatch=256, nstep=20, **kwargs):
+    kwargs.setdefault("control", None if "policy" in kwargs else controls.Uniform())
+    return simloader.SimDataset(model, backend="mjx", impl="warp", nbatch=nbatch, nstep=nstep,
+                                **kwargs)
+
+
+def trainer(nin, nout=8):
+    model = torch.nn.Sequential(torch.nn.Linear(nin, 128), torch.nn.ReLU(),
+                                torch.nn.Linear(128, nout)).cuda()
+    return model, torch.optim.Adam(model.parameters(), 1e-3)
+
+
+def train_step(model, opt, x, i):
+    """A step of a training loop that does what trainers do: loss.item(), a host sync,
+    tensors of new shapes every step, empty_cache now and then."""
+    x = x.reshape(-1, x.shape[-1])[: 1000 + 17 * i].float()
+    loss = model(x).pow(2).mean()
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    assert torch.isfinite(torch.tensor(loss.item()))
+    torch.cuda.synchronize()
+    torch.zeros(1 + i, 3 + i % 5, device="cuda").sum()
+    if i % 10 == 0:
+        torch.cuda.empty_cache()
+
+
+def test_a_training_loop_that_synchronizes_every_step():
+    ds = warp_dataset(num_batches=30)
+    model, opt = trainer(ds.config.nstate)
+    for i, batch in enumerate(ds):
+        assert not batch["diverged"].all()
+        train_step(model, opt, batch["state"], i)
+    assert ds.stats["graph_captures"] == 1 and ds.stats["batches"] == 30
+
+
+def test_train_and_validation_datasets_read_alternately_over_epochs():
+    train = warp_dataset(nbatch=512, num_batches=12)
+    valid = warp_dataset(nbatch=128, nstep=10, num_batches=4, seed=1)
+    model, opt = trainer(train.config.nstate)
+    for epoch in range(2):
+        it = iter(valid)
+        for i, batch in enumerate(train):
+            train_step(model, opt, batch["state"], i)
+            if i % 3 == 0:
+                with torch.no_grad():
+                    model(next(it)["state"].reshape(-1, train.config.nstate)).mean().item()
+    assert train.stats["graph_captures"] == 1 and valid.stats["graph_captures"] == 1
+
+
+def test_a_jax_dataset_and_a_warp_dataset_alternately():
+    pytest.importorskip("mujoco.mjx")
+    jax_ds = simloader.SimDataset("cartpole", backend="mjx", impl="jax", nbatch=256, nstep=20,
+                                  control=controls.Uniform(), num_batches=10)
+    warp_ds = warp_dataset(num_batches=10)
+    model, opt = trainer(warp_ds.config.nstate)
+    for i, (a, b) in enumerate(zip(jax_ds, warp_ds)):
+        assert a["state"].is_cuda and b["state"].is_cuda
+        train_step(model, opt, b["state"], i)
+    assert warp_ds.stats["graph_captures"] == 1
+
+
+def test_a_cpu_dataset_and_a_warp_dataset_alternately():
+    cpu_ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=20,
+                                  control=controls.Uniform(), num_batches=8, nthread=2)
+    warp_ds = warp_dataset(num_batches=8)
+    model, opt = trainer(warp_ds.config.nstate)
+    for i, (a, b) in enumerate(zip(cpu_ds, warp_ds)):
+        train_step(model, opt, b["state"], i)
+    assert warp_ds.stats["graph_captures"] == 1
+
+
+def test_open_and_closed_loop_alternately():
+    open_ds = warp_dataset(num_batches=8)
+    nobs = open_ds.config.nstate
+    policy = torch.nn.Sequential(torch.nn.Linear(nobs, 64), torch.nn.Tanh(),
+                                 torch.nn.Linear(64, open_ds.config.model.nu)).cuda()
+    closed_ds = warp_dataset(nbatch=128, policy=lambda o: policy(o["state"]), num_batches=8)
+    model, opt = trainer(nobs)
+    for i, (a, b) in enumerate(zip(open_ds, closed_ds)):
+        train_step(model, opt, a["state"], i)
+        train_step(model, opt, b["state"], i)
+    assert open_ds.stats["graph_captures"] == 1 and closed_ds.stats["graph_captures"] == 1
+
+
+def test_a_compiled_model_under_autocast():
+    ds = warp_dataset(num_batches=10)
+    model, opt = trainer(ds.config.nstate)
+    compiled = torch.compile(model)
+    for batch in ds:
+        with torch.autocast("cuda", dtype=torch.bfloat16):
+            loss = compiled(batch["state"].reshape(-1, ds.config.nstate)).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        torch.cuda.synchronize()
+    assert ds.stats["graph_captures"] == 1
+
+
+def test_spawned_workers_each_run_an_engine():
+    ds = warp_dataset(nbatch=128, num_batches=6)
+    loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2,
+                                         multiprocessing_context="spawn")
+    batches = list(loader)
+    assert len(batches) == 6
+    states = [b["state"] for b in batches]
+    assert all(s.is_cuda and torch.isfinite(s).all() for s in states)
+    # the workers' streams differ (seeds by worker)
+    assert not torch.equal(states[0][:, 0], states[1][:, 0])
+
+
+def test_graphs_are_captured_at_the_first_batch_only():
+    ds = warp_dataset(nbatch=64, nstep=5, num_batches=3)
+    assert ds.stats["graph_captures"] == 0
+    for _ in range(3):  # three epochs, each a new iterator
+        assert len(list(ds)) == 3
+    assert ds.stats["graph_captures"] == 1
+
+
+def test_delivered_tensors_survive_later_batches():
+    ds = warp_dataset(nbatch=64, nstep=5, num_batches=20)
+    it = iter(ds)
+    kept = next(it)
+    copy = {k: v.clone() for k, v in kept.items() if isinstance(v, torch.Tensor)}
+    for batch in it:
+        del batch
+    for k, v in copy.items():
+        assert torch.equal(kept[k], v), k
+
+
+def test_nothing_warns_on_the_defaults():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        next(iter(warp_dataset(nbatch=64, nstep=5, num_batches=1)))
