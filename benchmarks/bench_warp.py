@@ -40,7 +40,8 @@ class RawWarp:
     """A raw MuJoCo Warp loop: one step captured once, replayed; `same_work` adds a control
     copy before and the state and sensor copies after every step."""
 
-    def __init__(self, model, nworld: int, nstep: int, same_work: bool, cameras: bool = False):
+    def __init__(self, model, nworld: int, nstep: int, same_work: bool, sizes: tuple,
+                 cameras: bool = False):
         import mujoco_warp as mjw
         import warp as wp
         self.mjw, self.wp, self.nstep, self.same_work = mjw, wp, nstep, same_work
@@ -48,8 +49,7 @@ class RawWarp:
         with wp.ScopedDevice("cuda:0"):
             self.m = mjw.put_model(model)
             self.m.opt.warn_overflow = 0
-            self.d = mjw.make_data(model, nworld=nworld, naconmax=nworld * 64,
-                                   njmax=max(64, 4 * model.nv))
+            self.d = mjw.make_data(model, nworld=nworld, naconmax=sizes[0], njmax=sizes[1])
             self.rc = (mjw.create_render_context(mjm=model, nworld=nworld, cam_active=[0],
                                                  cam_res=[(64, 64)], render_rgb=[True],
                                                  render_depth=[False], render_seg=[False])
@@ -67,7 +67,8 @@ class RawWarp:
         self.pixels = torch.empty((nworld, nstep, 64 * 64), dtype=torch.int32,
                                   device=self.device) if cameras else None
         self.stream = torch.cuda.Stream(self.device)
-        with torch.cuda.stream(self.stream), wp.ScopedStream(wp.stream_from_torch(self.stream)):
+        self.warp_stream = wp.stream_from_torch(self.stream)
+        with torch.cuda.stream(self.stream), wp.ScopedStream(self.warp_stream):
             self._physics()
             with wp.ScopedCapture() as capture:
                 self._physics()
@@ -88,7 +89,7 @@ class RawWarp:
             for t in range(self.nstep):
                 if self.same_work:
                     self.ctrl.copy_(self.controls[:, t])
-                wp.capture_launch(self.graph, stream=wp.stream_from_torch(self.stream))
+                wp.capture_launch(self.graph, stream=self.warp_stream)
                 if self.same_work:
                     torch.cat(self.parts, dim=1, out=self.state[:, t])
                     self.sensors[:, t] = self.sensordata
@@ -98,18 +99,24 @@ class RawWarp:
 
 
 class Simloader:
-    """simloader's Warp (or JAX) stream, consumed batch by batch."""
+    """simloader's Warp (or JAX) stream: each timed run is a whole epoch of `batches`
+    batches (a fresh iterator: the prefetch thread starts with it and ends before the next
+    runner is timed, so no runner's work overlaps another's)."""
 
-    def __init__(self, model, nworld: int, nstep: int, **kwargs):
+    def __init__(self, model, nworld: int, nstep: int, batches: int = 1, **kwargs):
         self.ds = simloader.SimDataset(model, backend="mjx", nbatch=nworld, nstep=nstep,
-                                       **kwargs)
-        self.it = iter(self.ds)
-        next(self.it)  # the first batch: build, capture, compile
+                                       num_batches=batches, **kwargs)
+        self.batches = batches
+        self.batch()  # the first epoch: build, capture, compile
+
+    def sizes(self) -> tuple:
+        o = self.ds.config.options
+        return o.naconmax, o.njmax
 
     def batch(self) -> None:
-        b = next(self.it)
+        for b in self.ds:
+            del b
         torch.cuda.synchronize()
-        del b
 
 
 def mlp(model, device) -> torch.nn.Module:
@@ -128,7 +135,8 @@ def mlp(model, device) -> torch.nn.Module:
 
 
 def measure(runners: dict, steps: int, repeats: int) -> dict[str, float]:
-    """Median steps/s of each runner, repetitions alternating between them."""
+    """Median steps/s of each runner, repetitions alternating between them (`steps` per
+    batch; a simloader runner's run is `batches` batches)."""
     times: dict[str, list] = {k: [] for k in runners}
     for r in runners.values():
         r.batch()  # warm-up
@@ -136,24 +144,28 @@ def measure(runners: dict, steps: int, repeats: int) -> dict[str, float]:
         for name, r in runners.items():
             start = time.perf_counter()
             r.batch()
-            times[name].append(time.perf_counter() - start)
+            times[name].append((time.perf_counter() - start) / getattr(r, "batches", 1))
     return {k: steps / statistics.median(v) for k, v in times.items()}
 
 
 def rows_for(w: common.Workload, model, args) -> list[list]:
     steps = w.nbatch * w.nstep
+    n = max(3, int(args.seconds * 4e6 / steps))  # batches per timed simloader run
+    ours = Simloader(model, w.nbatch, w.nstep, n, impl="warp", control=controls.Uniform(),
+                     **sizes(args))
     runners = {
-        "raw MuJoCo Warp graph, no controls (ceiling)": RawWarp(model, w.nbatch, w.nstep, False),
-        "raw MuJoCo Warp graph, same work": RawWarp(model, w.nbatch, w.nstep, True),
-        "simloader impl='warp', open loop": Simloader(model, w.nbatch, w.nstep, impl="warp",
-                                                      control=controls.Uniform()),
+        "raw MuJoCo Warp graph, no controls (ceiling)": RawWarp(model, w.nbatch, w.nstep, False,
+                                                                ours.sizes()),
+        "raw MuJoCo Warp graph, same work": RawWarp(model, w.nbatch, w.nstep, True,
+                                                    ours.sizes()),
+        "simloader impl='warp', open loop": ours,
     }
     if args.policy and w.name == "humanoid":
         runners["simloader impl='warp', 2x256 MLP policy"] = Simloader(
-            model, w.nbatch, w.nstep, impl="warp", policy=mlp(model, "cuda"))
+            model, w.nbatch, w.nstep, n, impl="warp", policy=mlp(model, "cuda"), **sizes(args))
     if args.jax and w.name == "cartpole":
         runners["simloader impl='jax', open loop"] = Simloader(
-            model, w.nbatch, w.nstep, impl="jax", control=controls.Uniform())
+            model, w.nbatch, w.nstep, n, impl="jax", control=controls.Uniform())
     rates = measure(runners, steps, args.repeats)
     same = rates["raw MuJoCo Warp graph, same work"]
     return [[str(w), name, f"{rate / 1e6:.2f}M", f"{rate / same:.3f}"]
@@ -163,12 +175,12 @@ def rows_for(w: common.Workload, model, args) -> list[list]:
 def pixel_rows(args) -> list[list]:
     model = simloader.load_model("cartpole")
     nworld, nstep = (64, 10) if args.quick else (16384, 50)
+    ours = Simloader(model, nworld, nstep, 3, impl="warp",
+                     record=("state", simloader.Camera(0, height=64, width=64)))
     runners = {
         "raw MuJoCo Warp step + render graph, RGB copied out": RawWarp(
-            model, nworld, nstep, False, cameras=True),
-        "simloader impl='warp', Camera 64x64 RGB": Simloader(
-            model, nworld, nstep, impl="warp",
-            record=("state", simloader.Camera(0, height=64, width=64))),
+            model, nworld, nstep, False, ours.sizes(), cameras=True),
+        "simloader impl='warp', Camera 64x64 RGB": ours,
     }
     rates = measure(runners, nworld * nstep, args.repeats)
     raw = rates["raw MuJoCo Warp step + render graph, RGB copied out"]
@@ -176,11 +188,20 @@ def pixel_rows(args) -> list[list]:
              f"{rate / raw:.3f}"] for name, rate in rates.items()]
 
 
+def sizes(args) -> dict:
+    """MuJoCo Warp's buffer sizes asked on the command line (both loops run with them)."""
+    return {k: v for k, v in (("naconmax", args.naconmax), ("njmax", args.njmax)) if v}
+
+
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], WORKLOADS, QUICK)
     p.add_argument("--policy", action="store_true", help="add the closed loop (humanoid)")
     p.add_argument("--pixels", action="store_true", help="add the camera workload")
     p.add_argument("--jax", action="store_true", help="add MJX-JAX (cart-pole)")
+    p.add_argument("--naconmax", type=int, help="MuJoCo Warp's contact pool (default: sized)")
+    p.add_argument("--njmax", type=int, help="constraint rows per world (default: sized)")
+    p.add_argument("--seconds", type=float, default=2.0,
+                   help="about how long a timed simloader run lasts")
     args = common.parse(p)
     rows = []
     for w in common.workloads(args, WORKLOADS, QUICK):

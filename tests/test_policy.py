@@ -147,8 +147,9 @@ def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
     cpu = next(iter(simloader.SimDataset(model, backend="rollout", **kwargs)))
     if torch.cuda.is_available():  # the policy lives where the simulation runs
         kwargs["policy"] = copy.deepcopy(policy).cuda()
-    ds = simloader.SimDataset(model, backend="mjx", impl=impl, compilation_cache=cache_dir,
-                              **kwargs)
+    if impl == "jax":
+        kwargs["compilation_cache"] = cache_dir
+    ds = simloader.SimDataset(model, backend="mjx", impl=impl, **kwargs)
     it = iter(DataLoader(ds, batch_size=None))
     gpu, gpu2 = next(it), next(it)
     assert torch.equal(gpu["initial_state"].cpu(), cpu["initial_state"])
@@ -276,11 +277,9 @@ def test_mjx_closed_loop_never_waits_on_the_host(impl, cache_dir):
     policy.float().cuda()
     ds = simloader.SimDataset(model, backend="mjx", impl=impl, nbatch=64, nstep=20,
                               policy=policy, record=("qpos", "qvel"),
-                              compilation_cache=cache_dir)
+                              **({"compilation_cache": cache_dir} if impl == "jax" else {}))
     next(iter(ds))  # compiles
     backend = ds.make_backend(sharding.current_shard(0))
-    assert type(backend.program.closed_loop).__name__ == {"jax": "ClosedLoop",
-                                                          "warp": "WarpLoop"}[impl]
     backend.produce(0)  # the first batch of an iterator sets its buffers up
     torch.cuda.set_sync_debug_mode("error")
     try:
@@ -291,99 +290,113 @@ def test_mjx_closed_loop_never_waits_on_the_host(impl, cache_dir):
     assert backend.deliver(produced)["qpos"].shape == (64, 20, 2)
 
 
-# -- MuJoCo Warp's own closed loop (`backends/mjx/warp_loop.py`) ----------------------------
+# -- the Warp engine's closed loop (`backends/warp/`) ----------------------------------------
 
 class Pusher(torch.nn.Module):
-    """A deterministic float32 policy for the rich model's six inputs (`EVERY_INPUT`): bounded
-    controls and forces of (qpos, qvel), the grab switched on after 0.015 s, and a torque of
-    1e9 on trajectory 1's ball from its fourth step on: a legal control (under mjMAXVAL) whose
-    acceleration is not (it diverges, is flagged and restarted)."""
+    """A deterministic float32 policy for the rich model's six inputs (`EVERY_INPUT`, in
+    mjtState order: ctrl, qfrc_applied, xfrc_applied, eq_active, mocap_pos, mocap_quat):
+    bounded controls and forces of (qpos, qvel), a mocap pose near the model's (a unit
+    quaternion), the grab switched on after 0.015 s, and a torque of 1e9 on trajectory 1's ball from its fourth step on: a legal
+    control (under mjMAXVAL) whose acceleration is not (it diverges, is flagged and
+    restarted)."""
 
-    def __init__(self, nq, nv, ncontrol, ctrl_columns):
+    def __init__(self, model, ncontrol):
         super().__init__()
         torch.manual_seed(3)
-        self.lin = torch.nn.Linear(nq + nv, ncontrol)
-        self.ctrl, self.nv = ctrl_columns, nv
+        self.lin = torch.nn.Linear(model.nq + model.nv, ncontrol)
+        self.qfrc = model.nu
+        self.eq = model.nu + model.nv + 6 * model.nbody
+        self.register_buffer("target", torch.tensor(model.body_pos[model.body("target").id],
+                                                    dtype=torch.float32))
 
     def forward(self, obs):
         u = 2 * torch.tanh(self.lin(torch.cat([obs["qpos"], obs["qvel"]], -1)))
         late = obs["time"] > 0.015
-        u[:, -1] = late.to(u.dtype)  # eq_active: the last column
+        quat = u[:, -4:] / u[:, -4:].norm(dim=1, keepdim=True)
+        u = torch.cat([u[:, :-4], quat], dim=1)
+        u[:, self.eq] = late.to(u.dtype)
+        # the welded target moves a little around its model pose (a reachable pull)
+        u[:, self.eq + 1:self.eq + 4] = self.target + 0.05 * u[:, self.eq + 1:self.eq + 4]
         fault = torch.zeros_like(u)
-        fault[1, self.ctrl + 3] = 1e9 * late[1].to(u.dtype)  # qfrc_applied[3]: a ball dof
+        fault[1, self.qfrc + 3] = 1e9 * late[1].to(u.dtype)  # a ball dof
         return u + fault, {"late": late}
 
 
-def _both_drivers(monkeypatch, cache_dir, model, nbatches, **kwargs):
-    """The batches of MuJoCo Warp's own closed loop, and of the MJX closed loop (jitted
-    single steps through MJX's Warp FFI) on the same configuration."""
-    from simloader.backends.mjx import backend, warp_loop
+def _warp_and_cpu(monkeypatch, model, nbatches, **kwargs):
+    """The batches of the Warp engine's closed loop and of the CPU backend's on the same
+    configuration: both draw initial states, parameters and noise on the host from the same
+    seeds, so they differ only by float32 against float64 arithmetic."""
     monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")  # on a GPU: the GPU, CUDA graphs
+    cpu = list(simloader.SimDataset(model, backend="rollout", num_batches=nbatches, nthread=2,
+                                    **kwargs))
     if torch.cuda.is_available():
         kwargs["policy"] = kwargs["policy"].cuda()
-    runs = {}
-    for driver in ("warp", "mjx"):
-        with monkeypatch.context() as patch:
-            if driver == "mjx":
-                patch.setattr(warp_loop, "WarpLoop", lambda pieces, closed, *args: closed)
-            ds = simloader.SimDataset(model, backend="mjx", impl="warp", num_batches=nbatches,
-                                      compilation_cache=cache_dir, **kwargs)
-            # one at a time: the iterator ends (its thread joined) before the next starts
-            runs[driver] = list(ds)
-            (loop,) = [p.closed_loop for p in backend._PROGRAMS[ds.config].values()]
-            assert type(loop).__name__ == {"warp": "WarpLoop", "mjx": "ClosedLoop"}[driver]
-    return runs["warp"], runs["mjx"]
+    warp = list(simloader.SimDataset(model, backend="mjx", impl="warp", num_batches=nbatches,
+                                     **kwargs))
+    return warp, cpu
 
 
-def _assert_same_batches(ours, theirs, atol):
+def _assert_same_batches(ours, theirs, atol, rtol=0.0):
     for a, b in zip(ours, theirs):
-        assert sorted(a) == sorted(b)
+        assert sorted(set(a) - {"overflow"}) == sorted(b)
         for key in a:
             if key == "params":
                 for k in a[key]:
                     assert torch.equal(a[key][k], b[key][k]), k
+            elif key == "overflow":  # the Warp engine's alone
+                continue
             elif key == "policy/version" or not a[key].is_floating_point():
-                assert torch.equal(a[key], b[key]), key
+                assert torch.equal(a[key].cpu(), b[key].cpu()), key
             else:
                 np.testing.assert_allclose(a[key].cpu().numpy(), b[key].cpu().numpy(),
-                                           atol=atol, rtol=0, err_msg=key)
+                                           atol=atol, rtol=rtol, err_msg=key)
 
 
-def test_warp_loop_equals_the_mjx_driver_continuing_randomized_noisy(monkeypatch, cache_dir):
-    """MuJoCo Warp's own loop computes what the MJX closed loop computes (the same MuJoCo
-    Warp kernels, here on the CPU): reset, randomized damping, noise around the policy,
-    MuJoCo's clamp, frames every 2nd step of a state, fields and sensors, continuation."""
-    pytest.importorskip("warp")
+def test_warp_closed_loop_follows_the_cpu_continuing_randomized_noisy(monkeypatch):
+    """The Warp engine's closed loop computes what the CPU backend's does, in float32: reset,
+    randomized damping, noise around the policy, MuJoCo's clamp, frames every 2nd step of a
+    state, fields and sensors, continuation."""
+    pytest.importorskip("mujoco_warp")
     model, policy = cartpole_policy()
     policy.float()
-    ours, theirs = _both_drivers(
-        monkeypatch, cache_dir, model, 2, nbatch=4, nstep=8, record_every=2,
+    ours, theirs = _warp_and_cpu(
+        monkeypatch, model, 2, dtype=torch.float32, nbatch=4, nstep=8, record_every=2,
         record=("state", "qpos", "qvel", "xpos", "qacc", "sensor:pole_angle", "sensordata"),
         policy=policy, policy_noise=controls.Normal(std=0.3), continue_episodes=True,
         randomize=[dr.scale("dof_damping", dr.Uniform(50.0, 200.0))], seed=5,
         initial_state=simloader.initial.Perturbed(qvel_std=1.0))
-    _assert_same_batches(ours, theirs, atol=1e-5)
+    _assert_same_batches(ours, theirs, atol=2e-3)
     first, second = ours
     assert first["qpos"].shape == (4, 4, 2) and first["policy/value"].shape == (4, 8)
     assert np.abs(first["control"].cpu().numpy()).max() == 1.0  # clamped where MuJoCo clamps
     assert torch.equal(second["initial_state"], first["state"][:, -1])  # continued
 
 
-def test_warp_loop_equals_the_mjx_driver_on_contacts_every_input_and_a_fault(
-        monkeypatch, cache_dir, rich_model):
+def test_warp_closed_loop_follows_the_cpu_on_contacts_every_input_and_a_fault(
+        monkeypatch, rich_model):
     """Contacts (the ball on the floor), every control_spec input, and a trajectory driven
-    to divergence: flagged, restarted, and the others as the MJX driver has them; every 4th
+    to divergence: flagged, restarted, and the others as the CPU backend has them; every 4th
     step recorded."""
-    pytest.importorskip("warp")
+    pytest.importorskip("mujoco_warp")
     spec = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED | S.mjSTATE_XFRC_APPLIED
                | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT | S.mjSTATE_EQ_ACTIVE)
     m = rich_model
-    policy = Pusher(m.nq, m.nv, mujoco.mj_stateSize(m, spec), m.nu)
-    ours, theirs = _both_drivers(
-        monkeypatch, cache_dir, m, 1, nbatch=3, nstep=12, record_every=4, control_spec=spec,
-        policy=policy,
+    policy = Pusher(m, mujoco.mj_stateSize(m, spec))
+    ours, theirs = _warp_and_cpu(
+        monkeypatch, m, 1, nbatch=3, nstep=12, record_every=4, control_spec=spec,
+        policy=policy, dtype=torch.float32,
         record=("time", "qpos", "qvel", "qfrc_constraint", "sensordata"), seed=1)
-    _assert_same_batches(ours, theirs, atol=1e-4)
+    # compared over the first frame (4 steps, the grab engaging at the last): beyond it the
+    # weld's stiff transient parts float32 from float64 by about 1% in velocity, which the
+    # policy's feedback then amplifies; the diverged trajectory restarts where each engine's
+    # check fires (MuJoCo's mid-step), so it is left out
+    def first_frame(b):
+        return {k: (v if k in ("params", "policy/version") else
+                    v[[0, 2]] if v.ndim == 1 else
+                    v[[0, 2]][:, :4] if k in ("control", "policy/late") else v[[0, 2]][:, :1])
+                for k, v in b.items()}
+    _assert_same_batches([first_frame(b) for b in ours], [first_frame(b) for b in theirs],
+                         atol=1e-4)
     (batch,) = ours
     assert batch["qpos"].shape == (3, 3, m.nq) and batch["control"].shape[1] == 12
     assert batch["diverged"].tolist() == [False, True, False]
@@ -391,24 +404,25 @@ def test_warp_loop_equals_the_mjx_driver_on_contacts_every_input_and_a_fault(
     assert (batch["qfrc_constraint"][0, :, :6].abs().sum() > 0).item()  # the ball is on the floor
 
 
-def test_auto_takes_warps_own_loop_for_a_policy(monkeypatch, cache_dir):
+def test_auto_takes_the_warp_engine_for_a_policy(monkeypatch, cache_dir):
     """impl="auto" runs a contact-free model on MJX-JAX open loop, but a policy in the loop
-    on MuJoCo Warp's own driver (one graph replay per step instead of a jitted MJX call)."""
-    pytest.importorskip("warp")
+    on the Warp engine (one graph replay per step instead of a jitted MJX call)."""
+    pytest.importorskip("mujoco_warp")
     monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
     model, policy = cartpole_policy()
-    kwargs = dict(backend="mjx", nbatch=2, nstep=2, compilation_cache=cache_dir)
-    assert simloader.SimDataset(model, **kwargs).config.options.impl == "jax"
+    kwargs = dict(backend="mjx", nbatch=2, nstep=2)
+    assert simloader.SimDataset(model, compilation_cache=cache_dir,
+                                **kwargs).config.options.impl == "jax"
     ds = simloader.SimDataset(model, policy=policy, record=("qpos", "qvel"), **kwargs)
     assert ds.config.options.impl == "warp"
-    assert "a policy in the loop runs fastest on MuJoCo Warp's own CUDA graph" in ds.describe()
+    assert "a policy in the loop runs fastest on MuJoCo Warp's CUDA graph" in ds.describe()
 
 
-def test_warp_loop_renders_what_the_mjx_driver_renders(monkeypatch, cache_dir):
-    """A policy that sees a camera: MuJoCo Warp's own loop renders with MuJoCo Warp's renderer
-    after the step, as the MJX driver renders inside its jitted steps (poses brought to the
-    state, restarts included); the images and what the policy did with them agree."""
-    pytest.importorskip("warp")
+def test_warp_closed_loop_renders_what_the_open_loop_renders(monkeypatch):
+    """A policy that sees a camera: the Warp engine renders after every step, restarts
+    included; replaying the controls it chose open loop gives the same images and states."""
+    pytest.importorskip("mujoco_warp")
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
 
     class Looks(torch.nn.Module):
         """Pushes the cart by how much of the image is lit, and keeps what it saw."""
@@ -419,19 +433,14 @@ def test_warp_loop_renders_what_the_mjx_driver_renders(monkeypatch, cache_dir):
             return u, {"depth": obs["camera/front/depth"].mean(dim=(1, 2))}
 
     camera = simloader.Camera("front", height=16, width=24, depth=True, segmentation=True)
-    ours, theirs = _both_drivers(
-        monkeypatch, cache_dir, "cartpole", 1, nbatch=3, nstep=6, policy=Looks(),
-        record=("qpos", "qvel", camera), seed=3, dtype=torch.float32,
-        initial_state=simloader.initial.Perturbed(qvel_std=1.0))
-    (a,), (b,) = ours, theirs
-    seg_a, seg_b = a["camera/front/segmentation"], b["camera/front/segmentation"]
-    assert (seg_a == seg_b).float().mean() > 0.99 and (seg_a >= 0).any()
-    same = seg_a == seg_b
-    depth_a, depth_b = a["camera/front/depth"], b["camera/front/depth"]
-    assert (depth_a[same] - depth_b[same]).abs().max() < 1e-3
-    rgb_a, rgb_b = (x["camera/front/rgb"].int() for x in (a, b))
-    assert a["camera/front/rgb"].dtype == torch.uint8 and rgb_a.float().mean() > 10
-    assert (rgb_a - rgb_b).abs()[same].float().mean() < 1.0
-    for key in ("qpos", "qvel", "control", "policy/depth"):
-        np.testing.assert_allclose(a[key].cpu().numpy(), b[key].cpu().numpy(), atol=1e-3,
-                                   err_msg=key)
+    kwargs = dict(backend="mjx", impl="warp", nbatch=3, nstep=6, seed=3, dtype=torch.float32,
+                  record=("qpos", "qvel", camera), num_batches=1,
+                  initial_state=simloader.initial.Perturbed(qvel_std=1.0))
+    (a,) = list(simloader.SimDataset("cartpole", policy=Looks(), **kwargs))
+    (b,) = list(simloader.SimDataset("cartpole", control=a["control"].cpu(), **kwargs))
+    assert a["camera/front/rgb"].dtype == torch.uint8 and a["camera/front/rgb"].float().mean() > 10
+    assert (a["camera/front/segmentation"] >= 0).any()
+    for key in ("qpos", "qvel", "camera/front/rgb", "camera/front/depth",
+                "camera/front/segmentation"):
+        assert torch.equal(a[key], b[key]), key
+    assert a["policy/depth"].shape == (3, 6)

@@ -68,7 +68,9 @@ def cameras_model():
 
 
 def dataset(model, cache_dir, **kwargs):
-    kwargs = {"backend": "mjx", "impl": "warp", "compilation_cache": cache_dir, **kwargs}
+    kwargs = {"backend": "mjx", "impl": "warp", **kwargs}
+    if kwargs["impl"] == "jax":
+        kwargs["compilation_cache"] = cache_dir
     return simloader.SimDataset(model, **kwargs)
 
 

@@ -295,6 +295,9 @@ class Engine:
             for key in self.unchecked:
                 self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
             if self.cameras is not None:
+                # rendering brings the poses to the state: what mj_step left in the fields
+                # the observations view (poses of the step's start) is kept first
+                obs = {k: v.clone() for k, v in obs.items()}
                 obs.update(self.cameras.render())
         frame = rules.frame_index(self.t, c.record_every)
         for key, value in obs.items():

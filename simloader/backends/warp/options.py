@@ -13,9 +13,10 @@ from typing import Any, Optional
 
 import mujoco
 import numpy as np
+import torch
 
 from simloader import layout, observe
-from simloader.backends.warp import runtime
+from simloader.backends.warp import cameras, runtime
 from simloader.config import SimConfig
 
 S = mujoco.mjtState
@@ -85,6 +86,17 @@ def check_options(config: SimConfig, reason: str, naconmax: Optional[int],
     if config.randomization is not None:
         per_world |= _randomized(config, puts[0])
     _check_records(config)
+    images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
+    why = cameras.refusal(images)
+    if why:
+        raise ValueError(f"record: impl='warp' cannot render {[o.key for o in images]}: {why}")
+    # the batches in flight (prefetched, being simulated, being consumed), float32 outputs,
+    # and the engine's own buffers of one batch
+    device = runtime.sim_device(config.device)
+    available = (torch.cuda.mem_get_info(device)[0] if device.type == "cuda"
+                 else observe.host_available())
+    observe.check_batch_fits(config, available, f"{device} memory", count=config.prefetch + 3,
+                             itemsize=4)
     x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
     naconmax, njmax = buffer_sizes(config.model, config.nbatch, x0, naconmax, njmax)
     return WarpOptions("warp", reason, naconmax, njmax, tuple(sorted(per_world)))
