@@ -56,6 +56,12 @@ class Generator(abc.ABC):
     def sample_jax(self, key: Any, params: dict[str, Any], shape: tuple[int, int, int]) -> Any:
         """The same distribution with `jax.random`, in the given float dtype of `params`."""
 
+    @abc.abstractmethod
+    def sample_torch(self, generator: Any, params: dict[str, Any],
+                     shape: tuple[int, int, int]) -> Any:
+        """The same distribution with torch's `generator`, on its device, in the dtype and on
+        the device of `params` (torch tensors): the Warp engine draws on the GPU."""
+
 
 def _per_column(value: Any, component: layout.Component, columns: np.ndarray,
                 what: str) -> np.ndarray:
@@ -118,6 +124,9 @@ class Uniform(Generator):
         low, high = params["low"], params["high"]
         return jax.random.uniform(key, shape, dtype=low.dtype, minval=low, maxval=high)
 
+    def sample_torch(self, generator, params, shape):
+        return _uniform_torch(generator, params["low"], params["high"], shape)
+
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Normal(Generator):
@@ -153,6 +162,13 @@ class Normal(Generator):
         out = params["mean"] + params["std"] * jax.random.normal(key, shape, params["std"].dtype)
         return jnp.clip(out, params["low"], params["high"])
 
+    def sample_torch(self, generator, params, shape):
+        import torch
+        std = params["std"]
+        out = torch.randn(shape, generator=generator, dtype=std.dtype, device=std.device)
+        out.mul_(std).add_(params["mean"])
+        return torch.clamp(out, params["low"], params["high"])
+
 
 @dataclasses.dataclass(frozen=True)
 class Constant(Generator):
@@ -178,6 +194,9 @@ class Constant(Generator):
     def sample_jax(self, key, params, shape):
         import jax.numpy as jnp
         return jnp.broadcast_to(params["value"], shape)
+
+    def sample_torch(self, generator, params, shape):
+        return params["value"].expand(shape)
 
 
 def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Component,
@@ -255,6 +274,17 @@ class OrnsteinUhlenbeck(Generator):
         out = jnp.concatenate([x0[:, None], jnp.swapaxes(rest, 0, 1)], axis=1)
         return jnp.clip(out + params["mean"], params["low"], params["high"])
 
+    def sample_torch(self, generator, params, shape):
+        import torch
+        a, std = float(params["a"]), params["std"]
+        out = torch.randn(shape, generator=generator, dtype=std.dtype, device=std.device)
+        out[:, 1:] *= std * (1.0 - a * a) ** 0.5
+        out[:, 0] *= std
+        for t in range(1, shape[1]):  # the recurrence in time, vectorized over the batch
+            out[:, t].add_(out[:, t - 1], alpha=a)
+        out += params["mean"]
+        return torch.clamp(out, params["low"], params["high"])
+
 
 @dataclasses.dataclass(frozen=True)
 class PiecewiseConstant(Generator):
@@ -290,6 +320,12 @@ class PiecewiseConstant(Generator):
                                   params["low"], params["high"])
         return jnp.repeat(held, self.hold, axis=1)[:, :t]
 
+    def sample_torch(self, generator, params, shape):
+        n, t, k = shape
+        held = _uniform_torch(generator, params["low"], params["high"],
+                              (n, -(-t // self.hold), k))
+        return held.repeat_interleave(self.hold, dim=1)[:, :t]
+
 
 @dataclasses.dataclass(frozen=True)
 class Sinusoid(Generator):
@@ -324,7 +360,7 @@ class Sinusoid(Generator):
                 "chirp_to": np.asarray(chirp), "dt": np.asarray(model.opt.timestep)}
 
     def _wave(self, xp, params, f0, phase, nstep):
-        t = xp.arange(nstep, dtype=f0.dtype)[None, :, None] * params["dt"]
+        t = _arange(xp, nstep, f0)[None, :, None] * params["dt"]
         if self.chirp_to is None:
             angle = 2 * np.pi * f0 * t
         else:  # instantaneous frequency f0 + (f1 - f0) t / T
@@ -347,6 +383,14 @@ class Sinusoid(Generator):
         f0 = jax.random.uniform(kf, (n, 1, k), dtype, params["f_low"], params["f_high"])
         phase = jax.random.uniform(kp, (n, 1, k), dtype, 0, 2 * np.pi)
         return self._wave(jnp, params, f0, phase, t)
+
+    def sample_torch(self, generator, params, shape):
+        import torch
+        n, t, k = shape
+        f0 = _uniform_torch(generator, params["f_low"], params["f_high"], (n, 1, k))
+        zero = torch.zeros_like(params["f_low"])
+        phase = _uniform_torch(generator, zero, zero + 2 * np.pi, (n, 1, k))
+        return self._wave(torch, params, f0, phase, t)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -382,6 +426,24 @@ class FromArray(Generator):
     def sample_jax(self, key, params, shape):
         import jax.numpy as jnp
         return jnp.broadcast_to(params["values"], shape)
+
+    def sample_torch(self, generator, params, shape):
+        return params["values"].expand(shape)
+
+
+def _uniform_torch(generator: Any, low: Any, high: Any, shape: tuple[int, ...]) -> Any:
+    """Uniform in [low, high) (torch tensors or numbers broadcasting to `shape`) with torch's
+    `generator`, in the dtype and on the device of `low`."""
+    import torch
+    out = torch.rand(shape, generator=generator, dtype=low.dtype, device=low.device)
+    return out.mul_(high - low).add_(low)
+
+
+def _arange(xp: Any, n: int, like: Any) -> Any:
+    """`0, 1, ..., n - 1` in `like`'s dtype (and, for torch, on its device)."""
+    if getattr(xp, "__name__", "") == "torch":
+        return xp.arange(n, dtype=like.dtype, device=like.device)
+    return xp.arange(n, dtype=like.dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -470,6 +532,26 @@ class ControlPlan:
                 out[...] = draw
             else:
                 out[..., driver.columns] = draw
+
+    def torch_params(self, like: Any) -> list[dict[str, Any]]:
+        """Each driver's parameters as torch tensors in `like`'s dtype and on its device, for
+        `sample_torch` (made once per engine)."""
+        import torch
+        return [{k: torch.as_tensor(v, dtype=like.dtype, device=like.device)
+                 for k, v in d.params.items()} for d in self.drivers]
+
+    def sample_torch(self, seed: np.random.SeedSequence, out: Any, params: list) -> None:
+        """Fills the driven columns of `out` (nbatch, nstep, ncontrol), a torch tensor, with one
+        draw on its device (each driver a generator of its own, seeded from `seed` as
+        `sample_numpy` seeds its streams; the numbers differ, the distributions do not).
+        Undriven columns are left as they are."""
+        import torch
+        for driver, p, child in zip(self.drivers, params, seed.spawn(len(self.drivers))):
+            generator = torch.Generator(out.device)
+            generator.manual_seed(int(child.generate_state(1, np.uint64)[0] >> 1))
+            draw = driver.generator.sample_torch(generator, p, (*out.shape[:2],
+                                                                len(driver.columns)))
+            out[..., torch.as_tensor(driver.columns, device=out.device)] = draw
 
 
 # mjMAXVAL: MuJoCo's bound for a sane value (its checks of qpos, qvel, qacc and ctrl)

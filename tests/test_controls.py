@@ -1,4 +1,4 @@
-"""Control generators: statistical checks of each distribution, on NumPy and on JAX."""
+"""Control generators: statistical checks of each distribution, on NumPy, JAX and torch."""
 
 import math
 
@@ -19,6 +19,11 @@ def draw(model, control, spec=int(S.mjSTATE_CTRL), backend="numpy", seed=0, n=N,
         out = np.empty((n, t, plan.ncontrol))
         plan.sample_numpy(np.random.SeedSequence(seed), out)
         return out
+    if backend == "torch":  # the Warp engine's draws on its device (here the CPU)
+        import torch
+        out = torch.zeros((n, t, plan.ncontrol), dtype=torch.float32)
+        plan.sample_torch(np.random.SeedSequence(seed), out, plan.torch_params(out))
+        return out.numpy().astype(np.float64)
     jax = pytest.importorskip("jax")
     import jax.numpy as jnp
     (driver,) = plan.drivers
@@ -27,7 +32,7 @@ def draw(model, control, spec=int(S.mjSTATE_CTRL), backend="numpy", seed=0, n=N,
                                                   (n, t, len(driver.columns))))
 
 
-BACKENDS = ["numpy", "jax"]
+BACKENDS = ["numpy", "jax", "torch"]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

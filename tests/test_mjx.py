@@ -531,8 +531,7 @@ def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing(chec
     assert lines[0] == "impl jax", out.stdout
     assert lines[1].startswith(
         "error impl: 'warp' cannot run here: the warp-lang package is not installed (pip "
-        "install 'simloader[warp]') [Failed to import warp: import of warp halted; None in "
-        "sys.modules"), lines[1]
+        "install 'simloader[warp]')"), lines[1]
     assert len(lines) == 2 and "Failed to import" not in out.stderr
 
 

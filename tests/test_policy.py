@@ -352,17 +352,17 @@ def _assert_same_batches(ours, theirs, atol, rtol=0.0):
                                            atol=atol, rtol=rtol, err_msg=key)
 
 
-def test_warp_closed_loop_follows_the_cpu_continuing_randomized_noisy(monkeypatch):
+def test_warp_closed_loop_follows_the_cpu_continuing_randomized(monkeypatch):
     """The Warp engine's closed loop computes what the CPU backend's does, in float32: reset,
-    randomized damping, noise around the policy, MuJoCo's clamp, frames every 2nd step of a
-    state, fields and sensors, continuation."""
+    randomized damping, MuJoCo's clamp, frames every 2nd step of a state, fields and
+    sensors, continuation."""
     pytest.importorskip("mujoco_warp")
     model, policy = cartpole_policy()
     policy.float()
     ours, theirs = _warp_and_cpu(
         monkeypatch, model, 2, dtype=torch.float32, nbatch=4, nstep=8, record_every=2,
         record=("state", "qpos", "qvel", "xpos", "qacc", "sensor:pole_angle", "sensordata"),
-        policy=policy, policy_noise=controls.Normal(std=0.3), continue_episodes=True,
+        policy=policy, continue_episodes=True,
         randomize=[dr.scale("dof_damping", dr.Uniform(50.0, 200.0))], seed=5,
         initial_state=simloader.initial.Perturbed(qvel_std=1.0))
     _assert_same_batches(ours, theirs, atol=2e-3)
@@ -370,6 +370,26 @@ def test_warp_closed_loop_follows_the_cpu_continuing_randomized_noisy(monkeypatc
     assert first["qpos"].shape == (4, 4, 2) and first["policy/value"].shape == (4, 8)
     assert np.abs(first["control"].cpu().numpy()).max() == 1.0  # clamped where MuJoCo clamps
     assert torch.equal(second["initial_state"], first["state"][:, -1])  # continued
+
+
+def test_warp_closed_loop_noise_is_drawn_on_the_device_per_batch(monkeypatch):
+    """Exploration noise around a policy that says 0: the applied controls are the noise
+    (drawn by torch on the simulation's device), N(0, 0.3) clipped to the ctrlrange, fresh
+    every batch and the same for the same seed."""
+    pytest.importorskip("mujoco_warp")
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+
+    def still(obs):
+        return torch.zeros(obs["state"].shape[0], 1, device=obs["state"].device)
+
+    kwargs = dict(backend="mjx", impl="warp", nbatch=64, nstep=20, policy=still,
+                  policy_noise=controls.Normal(std=0.3), num_batches=2, seed=9)
+    first, second = list(simloader.SimDataset("cartpole", **kwargs))
+    again = next(iter(simloader.SimDataset("cartpole", **kwargs)))
+    u = first["control"].cpu().numpy()
+    assert abs(u.std() - 0.3) < 0.03 and abs(u.mean()) < 0.03 and np.abs(u).max() <= 1.0
+    assert not torch.equal(first["control"], second["control"])
+    assert torch.equal(first["control"], again["control"])
 
 
 def test_warp_closed_loop_follows_the_cpu_on_contacts_every_input_and_a_fault(

@@ -22,7 +22,9 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from simloader import handoff, initial, layout, policy, resume, sharding
+import mujoco
+
+from simloader import controls, handoff, initial, layout, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
@@ -59,7 +61,7 @@ class _Tables:
         self.reset_rows = torch.as_tensor(layout.reset_rows(models, layout.INTEGRATION), **f32)
         defaults = c.control.default_rows if c.variants is None else c.variant_defaults()[0]
         self.control_defaults = torch.as_tensor(defaults, **f32)
-        low, high = _bounds_of(models, c.control_spec)
+        low, high = controls.applied_bounds(models, c.control_spec)
         self.low, self.high = torch.as_tensor(low, **f32), torch.as_tensor(high, **f32)
         self.variant_states = None
         if c.variants is not None and c.initial.from_model:
@@ -67,19 +69,11 @@ class _Tables:
                 initial.default_states(c.variants, c.initial.keyframe), **f32)
         self.physics_cols = torch.as_tensor(layout.component_columns(
             c.model, layout.INTEGRATION, layout.FULLPHYSICS), device=device)
-        # the control columns the generators draw (the others hold each model's defaults)
-        driven = np.zeros(c.ncontrol, dtype=bool)
-        for d in c.control.drivers:
-            driven[d.columns] = True
-        if c.control.fixed is not None:
-            driven[:] = True
-        self.driven = torch.as_tensor(driven, device=device)
+        # the generators' parameters, for draws on the device
+        self.control_params = c.control.torch_params(self.reset_rows)
+        self.noise_params = (c.policy_noise.torch_params(self.reset_rows)
+                             if c.policy_noise is not None else [])
         self.clamped = torch.as_tensor(c.model.actuator_ctrllimited.astype(bool), device=device)
-
-
-def _bounds_of(models, control_spec):
-    from simloader import controls
-    return controls.applied_bounds(models, control_spec)
 
 
 class WarpBackend(Backend):
@@ -116,6 +110,8 @@ class WarpBackend(Backend):
         self.last_ready = 0.0
         self.warned_overflow = False
         self.last: Optional[_Produced] = None
+        self.randomized_ctrlrange = config.randomization is not None and any(
+            r.field == "actuator_ctrlrange" for r in config.randomization.resolved)
 
     # -- host draws ------------------------------------------------------------------------
 
@@ -126,19 +122,22 @@ class WarpBackend(Backend):
             host = host.pin_memory()
         return host.to(self.device, non_blocking=True)
 
-    def _controls(self, index: int) -> Optional[torch.Tensor]:
-        """The open loop's (nbatch, nstep, ncontrol) draws (undriven columns: 0), or None."""
-        c = self.config
+    def _controls(self, index: int) -> None:
+        """The open loop's (nbatch, nstep, ncontrol) rows into the engine's input: drawn on the
+        device (generators), or the explicit array, with each trajectory's model defaults in
+        the undriven columns. Inside `queued`: the stream orders these writes after the
+        previous batch's steps that read the input."""
+        c, e = self.config, self.engine
+        defaults = self._per_trajectory(self.tables.control_defaults)[:, None]
         if c.control.fixed is not None:
             if self.fixed is None:
                 self.fixed = self._upload(c.control.fixed)
-            return self.fixed
-        if not c.control.random:
-            return None
-        out = np.empty((c.nbatch, c.nstep, c.ncontrol), dtype=np.float32)
-        c.control.sample_numpy(self.seed(index, sharding.CONTROL), out,
-                               np.zeros((1, c.ncontrol)))
-        return self._upload(out)
+            e.controls.copy_(self.fixed)
+            return
+        e.controls.copy_(defaults.expand(e.controls.shape))
+        if c.control.random:
+            c.control.sample_torch(self.seed(index, sharding.CONTROL), e.controls,
+                                   self.tables.control_params)
 
     # -- one batch -------------------------------------------------------------------------
 
@@ -153,30 +152,21 @@ class WarpBackend(Backend):
         if c.randomization is not None:
             drawn.update({k: self._upload(v) for k, v in
                           c.randomization.sample(randomize_seed, c.nbatch).items()})
-        draws = self._controls(index) if c.policy is None else None
-        noise = None
-        if c.policy_noise is not None:
-            host = np.empty((c.nbatch, c.nstep, c.ncontrol))
-            c.policy_noise.sample_numpy(self.seed(index, sharding.CONTROL), host,
-                                        c.policy_noise.default_rows)
-            noise = self._upload(host)
         version = policy.version(c.policy) if c.policy is not None else None
         dispatched = time.perf_counter()
         with e.queued():
-            fresh = self._start_trajectories(drawn, x0)
+            self._start_trajectories(drawn, x0)
             initial_state = e.physics()
             e.low.copy_(self._per_trajectory(tables.low))
             e.high.copy_(self._per_trajectory(tables.high))
-            if "actuator_ctrlrange" in self.params or any(
-                    r.field == "actuator_ctrlrange" for r in
-                    (c.randomization.resolved if c.randomization else ())):
+            if self.randomized_ctrlrange:
                 self._randomized_bounds()
             if c.policy is None:
-                defaults = self._per_trajectory(tables.control_defaults)[:, None]
-                e.controls.copy_(defaults if draws is None else
-                                 torch.where(tables.driven, draws, defaults))
-            if noise is not None:
-                e.noise.copy_(noise)
+                self._controls(index)
+            elif c.policy_noise is not None:  # drawn as controls are (undriven columns 0)
+                e.noise.zero_()
+                c.policy_noise.sample_torch(self.seed(index, sharding.CONTROL), e.noise,
+                                            tables.noise_params)
             e.start()
             extras = {}
             if c.policy is not None:
@@ -194,18 +184,16 @@ class WarpBackend(Backend):
             ready = torch.cuda.Event() if e.gpu else None
             if ready is not None:
                 ready.record()
-        del fresh
         if c.continue_episodes:
             self.restart = outputs["diverged"]
         produced = _Produced(outputs, params, extras, rows_after, ready, dispatched)
         self.last = produced
         return produced
 
-    def _start_trajectories(self, drawn: dict[str, torch.Tensor],
-                            x0: torch.Tensor) -> torch.Tensor:
+    def _start_trajectories(self, drawn: dict[str, torch.Tensor], x0: torch.Tensor) -> None:
         """Trajectories that start afresh (all, unless continuing) take their newly drawn
         model (variant) and parameters and restart from their initial state; the others keep
-        theirs. Returns the (nbatch,) fresh rows."""
+        theirs."""
         c, e, tables = self.config, self.engine, self.tables
         fresh = (self.restart if self.restart is not None
                  else torch.ones(c.nbatch, dtype=torch.bool, device=self.device))
@@ -225,7 +213,6 @@ class WarpBackend(Backend):
             x0 = self._per_trajectory(tables.variant_states)
         rows[:, tables.physics_cols] = x0
         e.reset(rows, fresh)
-        return fresh
 
     def _per_trajectory(self, table: torch.Tensor) -> torch.Tensor:
         """(nbatch, ...): each trajectory's row of a per-model table."""
@@ -237,12 +224,11 @@ class WarpBackend(Backend):
         """Clamp bounds of `ctrl` columns from each trajectory's own (randomized)
         `actuator_ctrlrange`, where MuJoCo clamps."""
         c, e = self.config, self.engine
-        if not c.control_spec & int(layout.S.mjSTATE_CTRL):
+        if not c.control_spec & int(mujoco.mjtState.mjSTATE_CTRL) or (
+                c.model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)):
             return
         ranges = e.model_views["actuator_ctrlrange"].reshape(c.nbatch, c.model.nu, 2)
         limited = self.tables.clamped
-        if c.model.opt.disableflags & int(__import__("mujoco").mjtDisableBit.mjDSBL_CLAMPCTRL):
-            return
         e.low[:, :c.model.nu] = torch.where(limited, ranges[..., 0], -torch.inf)
         e.high[:, :c.model.nu] = torch.where(limited, ranges[..., 1], torch.inf)
 

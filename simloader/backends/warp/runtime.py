@@ -29,7 +29,11 @@ CAPTURE_LOCK = threading.Lock()
 def missing() -> Optional[str]:
     """Why the Warp engine cannot run in this process (short), or None when it can."""
     for module, package in (("warp", "warp-lang"), ("mujoco_warp", "mujoco-warp")):
-        if importlib.util.find_spec(module) is None:
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except ValueError:  # in sys.modules as None: import blocked
+            found = False
+        if not found:
             return f"the {package} package is not installed ({INSTALL})"
     if torch.cuda.is_available() or os.environ.get(WARP_ON_CPU) == "1":
         return None
