@@ -237,8 +237,7 @@ def test_gpu_humanoid_one_step_matches_mujoco_c_and_auto_takes_warp(cache_dir):
 def test_gpu_humanoid_batch_flags_overflow_and_keeps_the_rest(cache_dir):
     model = humanoid()
     ds = simloader.SimDataset(model, backend="mjx", impl="warp", nbatch=256, nstep=100,
-                              control=controls.Uniform(), naconmax=256, num_batches=1,
-                              compilation_cache=cache_dir)
+                              control=controls.Uniform(), naconmax=256, num_batches=1)
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
         batch = next(iter(ds))

@@ -286,10 +286,12 @@ class WarpBackend(Backend):
         if dropped.any() and not self.warned_overflow:
             self.warned_overflow = True
             o = self.options
+            bits = int(np.bitwise_or.reduce(host[dropped]))
             warnings.warn(
                 f"simloader: {int(dropped.sum())} of {len(host)} trajectories lost contacts or "
                 f"constraints to MuJoCo Warp's buffer sizes (flagged in batch['overflow']): "
-                f"{warp_options.overflow_message(int(np.bitwise_or.reduce(host)), o.naconmax, o.njmax)}",
+                f"{warp_options.overflow_message(bits, o.naconmax, o.njmax)} (MuJoCo Warp's "
+                f"overflow bits {bits:#x})",
                 RuntimeWarning, stacklevel=2)
         return torch.from_numpy(dropped)
 
