@@ -20,7 +20,11 @@ Run on the GPU machine from the repository root:
 
 from __future__ import annotations
 
+import json
+import os
 import statistics
+import subprocess
+import sys
 import time
 
 import torch
@@ -163,13 +167,91 @@ def rows_for(w: common.Workload, model, args) -> list[list]:
     if args.policy and w.name == "humanoid":
         runners["simloader impl='warp', 2x256 MLP policy"] = Simloader(
             model, w.nbatch, w.nstep, n, impl="warp", policy=mlp(model, "cuda"), **sizes(args))
-    if args.jax and w.name == "cartpole":
-        runners["simloader impl='jax', open loop"] = Simloader(
-            model, w.nbatch, w.nstep, n, impl="jax", control=controls.Uniform())
     rates = measure(runners, steps, args.repeats)
+    if args.jax and w.name == "cartpole":
+        # in a process of its own: JAX and torch would share one GPU's memory here
+        rates["simloader impl='jax', open loop (own process)"] = jax_rate(w, n, args.repeats)
     same = rates["raw MuJoCo Warp graph, same work"]
     return [[str(w), name, f"{rate / 1e6:.2f}M", f"{rate / same:.3f}"]
             for name, rate in rates.items()]
+
+
+_JAX_CHILD = """
+import json, statistics, sys, time
+import simloader
+from simloader import controls
+name, nbatch, nstep, n, repeats = sys.argv[1], *map(int, sys.argv[2:])
+ds = simloader.SimDataset(name, backend="mjx", impl="jax", nbatch=nbatch, nstep=nstep,
+                          control=controls.Uniform(), num_batches=n)
+for b in ds:
+    pass
+times = []
+for _ in range(repeats):
+    start = time.perf_counter()
+    for b in ds:
+        pass
+    times.append((time.perf_counter() - start) / n)
+print(json.dumps(nbatch * nstep / statistics.median(times)))
+"""
+
+
+def jax_rate(w: common.Workload, n: int, repeats: int) -> float:
+    """simloader's MJX-JAX steps/s on the workload, timed as `Simloader` times, in a child."""
+    out = subprocess.run([sys.executable, "-c", _JAX_CHILD, w.name, str(w.nbatch),
+                          str(w.nstep), str(n), str(repeats)], capture_output=True, text=True,
+                         env={**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+    if out.returncode:
+        raise SystemExit(f"the JAX child failed:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+_RAW_START = """
+import sys, time
+import numpy as np, torch, mujoco, warp as wp, mujoco_warp as mjw
+wp.config.quiet = True
+path, nworld, nstep = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+m = mujoco.MjModel.from_xml_path(path)
+with wp.ScopedDevice("cuda:0"):
+    wm = mjw.put_model(m); d = mjw.make_data(m, nworld=nworld)
+    ctrl = wp.to_torch(d.ctrl)
+    u = torch.rand((nworld, nstep, m.nu), device="cuda") * 2 - 1
+    mjw.step(wm, d)
+    with wp.ScopedCapture() as cap:
+        mjw.step(wm, d)
+    states = []
+    for t in range(nstep):
+        ctrl.copy_(u[:, t]); wp.capture_launch(cap.graph)
+        states.append(wp.to_torch(d.qpos).clone())
+    torch.cuda.synchronize()
+"""
+_OURS_START = """
+import sys
+import torch, simloader
+name, nworld, nstep = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+ds = simloader.SimDataset(name, backend="mjx", impl="warp", nbatch=nworld, nstep=nstep,
+                          control=simloader.controls.Uniform(), num_batches=1)
+batch = next(iter(ds)); torch.cuda.synchronize()
+"""
+
+
+def startup_rows(args) -> list[list]:
+    """First batch of a fresh process (process wall, warm kernel caches): a raw MuJoCo Warp
+    script and simloader, alternating."""
+    name, nworld, nstep = "humanoid", 8192, 200
+    runs = {"raw MuJoCo Warp script": (_RAW_START, str(simloader.builtin_path(name))),
+            "simloader impl='warp'": (_OURS_START, name)}
+    times: dict[str, list] = {k: [] for k in runs}
+    for i in range(args.repeats + 1):  # the first round warms the kernel caches
+        for label, (script, model) in runs.items():
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-c", script, model, str(nworld), str(nstep)],
+                           check=True, capture_output=True)
+            if i:
+                times[label].append(time.perf_counter() - start)
+    raw = statistics.median(times["raw MuJoCo Warp script"])
+    return [[f"{name}:{nworld}x{nstep}", label, f"{statistics.median(t):.2f} s "
+             f"({min(t):.2f}-{max(t):.2f})", f"{statistics.median(t) / raw:.3f}"]
+            for label, t in times.items()]
 
 
 def pixel_rows(args) -> list[list]:
@@ -198,6 +280,8 @@ def main() -> None:
     p.add_argument("--policy", action="store_true", help="add the closed loop (humanoid)")
     p.add_argument("--pixels", action="store_true", help="add the camera workload")
     p.add_argument("--jax", action="store_true", help="add MJX-JAX (cart-pole)")
+    p.add_argument("--startup", action="store_true",
+                   help="add the first batch of fresh processes (humanoid 8192 x 200)")
     p.add_argument("--naconmax", type=int, help="MuJoCo Warp's contact pool (default: sized)")
     p.add_argument("--njmax", type=int, help="constraint rows per world (default: sized)")
     p.add_argument("--seconds", type=float, default=2.0,
@@ -214,6 +298,9 @@ def main() -> None:
     if args.pixels:
         sections.append(markdown_table(["workload", "method", "throughput", "/ raw"],
                                        pixel_rows(args)))
+    if args.startup:
+        sections.append(markdown_table(["workload", "first batch of a fresh process", "wall",
+                                        "/ raw"], startup_rows(args)))
     common.report(args, "bench_warp", "The Warp engine against raw MuJoCo Warp", sections)
 
 

@@ -740,7 +740,8 @@ def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repe
             import jax
             sim = SimloaderMeasure(model, w, "mjx", seed)
             o = sim.ds.config.options  # the raw baseline runs the implementation simloader chose
-            raw_mjx = RawMjx(model, w, seed, impl=o.impl, naconmax=o.naconmax, njmax=o.njmax)
+            raw_mjx = RawMjx(model, w, seed, impl=o.impl, naconmax=getattr(o, "naconmax", None),
+                             njmax=getattr(o, "njmax", None))
             notes.append(f"mjx: impl={o.impl} ({o.impl_reason})")
             n = batches_for(raw_mjx.batch_s, min_batches, min_seconds)
             measures[RAW_MJX] = lambda raw_mjx=raw_mjx, n=n: raw_mjx.measure(n)

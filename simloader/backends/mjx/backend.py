@@ -18,7 +18,6 @@ import contextlib
 import dataclasses
 import sys
 import time
-import warnings
 import weakref
 from collections.abc import Callable
 from typing import Any, Optional
@@ -32,7 +31,7 @@ from simloader import handoff, observe, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import render, runtime, warp_impl, warp_loop
+from simloader.backends.mjx import runtime
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import put_models
 from simloader.backends.mjx.program import Program
@@ -44,21 +43,16 @@ class MjxOptions:
 
     Attributes:
       impl: "jax" or "warp" (`impl="auto"` resolved), and `impl_reason`: why.
-      naconmax, njmax: Warp's contact pool (whole batch) and constraint rows (per trajectory).
       compilation_cache: JAX's persistent compilation cache directory, or False.
       memory_fraction: GPU memory JAX preallocates, or None.
     """
 
     impl: str
     impl_reason: str
-    naconmax: Optional[int]
-    njmax: Optional[int]
     compilation_cache: Any
     memory_fraction: Optional[float]
 
     def implementation(self) -> Implementation:
-        if self.impl == "warp":
-            return warp_impl.WarpImpl(self.naconmax, self.njmax)
         return Implementation()
 
     def describe(self) -> str:
@@ -92,13 +86,14 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     runtime.configure_cache(cache)
     device = runtime.jax_device(config.device)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
-    resolved = MjxOptions("jax", reason, None, None, cache, fraction)
+    resolved = MjxOptions("jax", reason, cache, fraction)
     impl = resolved.implementation()
     mx, _ = put_models(config, impl, device)
     observe.check_mjx(config.observations, impl.make_data(config.model, device), impl.name)
-    why = render.refusal(images, impl.name)
-    if why:
-        raise ValueError(f"record: backend='mjx' cannot render {[o.key for o in images]}: {why}")
+    if images:
+        raise ValueError(f"record: impl='jax' cannot render {[o.key for o in images]}: MJX "
+                         f"renders only on MuJoCo Warp; use impl='warp' (or 'auto') on a CUDA "
+                         f"GPU, or backend='rollout'")
     # the batches in flight (prefetched, being simulated, being consumed), float32 outputs
     observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
                              f"memory", count=config.prefetch + 2, itemsize=4)
@@ -154,7 +149,6 @@ class MjxBackend(Backend):
             self.carry = jax.device_put(self.program.initial_carry(config), device)
             self.restart = np.ones(config.nbatch, dtype=bool)
         self.last_ready = 0.0
-        self.warned_overflow = False
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch
         self.in_worker = torch.utils.data.get_worker_info() is not None
         self.previous: Any = None  # closed loop: the last batch's data (donated to the next)
@@ -164,8 +158,7 @@ class MjxBackend(Backend):
         """The policy's control rows for step `t`, from the observations before it (tensors
         on the simulation's device, as the closed loop hands them over), on that device."""
         c = self.config
-        tensors = {k: handoff.to_target(v, c.device, c.dtype if k not in self.program.rendered
-                                        and v.is_floating_point() else None)
+        tensors = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
                    for k, v in obs.items()}
         control = self.caller(tensors, t).detach()
         here = runtime.torch_device(self.device)
@@ -223,35 +216,16 @@ class MjxBackend(Backend):
         # `dtype=` converts floating outputs; integer and bool records, and images (depth
         # stays float32 metres), keep their dtype
         batch = {key: self._tensor(array, c.dtype if jnp.issubdtype(array.dtype, jnp.floating)
-                                   and key not in self.program.rendered else None)
+                                   else None)
                  for key, array in outputs.items() if key not in ("params", "overflow")}
         batch.update({k: handoff.to_target(v, c.device, None)
                       for k, v in (produced.extras or {}).items()})
-        if "overflow" in outputs:
-            batch["overflow"] = handoff.to_target(
-                torch.from_numpy(self._overflow(outputs["overflow"])), c.device, None)
         if "params" in outputs:
             # variant indices as the rollout backend gives them (JAX has no int64 without x64)
             batch["params"] = {key: self._tensor(outputs["params"][key],
                                                  torch.int64 if key == "variant" else c.dtype)
                                for key in self.program.param_keys}
         return batch
-
-    def _overflow(self, bits: jax.Array) -> np.ndarray:
-        """Warp's overflow bits of a batch: counted in `stats` (solver iteration limits
-        apart), warned about once with what to raise; the per-trajectory flag delivered."""
-        host = np.asarray(bits)
-        dropped = warp_impl.dropped(host)
-        self.stats.add(overflow=int(dropped.sum()),
-                       solver_limit=int(warp_impl.solver_notices(host).sum()))
-        if dropped.any() and not self.warned_overflow:
-            self.warned_overflow = True
-            warnings.warn(
-                f"simloader: {int(dropped.sum())} of {len(host)} trajectories lost contacts or "
-                f"constraints to MuJoCo Warp's buffer sizes (flagged in batch['overflow']): "
-                f"{warp_impl.overflow_message(int(np.bitwise_or.reduce(host)), self.options.naconmax, self.options.njmax)}",
-                RuntimeWarning, stacklevel=2)
-        return dropped
 
     def _tensor(self, array: jax.Array, dtype: Optional[torch.dtype]) -> torch.Tensor:
         tensor = handoff.to_target(handoff.from_jax(array), self.config.device, dtype)

@@ -39,11 +39,10 @@ import numpy as np
 from simloader import controls, layout, observe
 from simloader.backends.base import Stats
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import runtime, warp_loop
+from simloader.backends.mjx import runtime
 from simloader.backends.mjx.closed_loop import ClosedLoop
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import PHYSICS, pool, pooled, put_models
-from simloader.backends.mjx.render import Renderer
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
@@ -79,10 +78,9 @@ class Pieces:
     """
 
     def __init__(self, c: SimConfig, impl: Implementation, model_axes: Any, pool_axes: Any,
-                 randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype,
-                 renderer: Optional[Renderer]):
+                 randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype):
         self.impl, self.model_axes, self.pool_axes = impl, model_axes, pool_axes
-        self.randomizer, self.dtype, self.renderer = randomizer, dtype, renderer
+        self.randomizer, self.dtype = randomizer, dtype
         self.nbatch, self.nstep, self.control_spec = c.nbatch, c.nstep, c.control_spec
         self.drivers = c.control.drivers
         self.control_components = tuple(c.control.components)
@@ -187,13 +185,10 @@ class Pieces:
         return m, data, control, variant, params
 
     def observe(self, m, d):
-        """One frame of every observation of the batched `d` (cameras rendered): (d, {key:
-        (nbatch, *shape)}), each in a buffer of its own (`Implementation.detach`)."""
+        """One frame of every observation of the batched `d`: (d, {key: (nbatch, *shape)}),
+        each in a buffer of its own (`Implementation.detach`)."""
         frame = jax.vmap(lambda m, d: observe.jax_frame(self.observations, m, d),
                          (self.model_axes, 0))(m, d)
-        if self.renderer is not None:  # only the recorded frames: rendering is the costly part
-            d, images = self.renderer(m, d, self.model_axes)
-            frame.update(images)
         return d, {key: self.impl.detach(value) for key, value in frame.items()}
 
     def finite(self, frame):
@@ -319,24 +314,13 @@ class Program:
         self.param_keys = (("variant",) if c.variants is not None else
                            () if c.randomization is None else
                            tuple(r.param.key for r in c.randomization.resolved))
-        images = [o for o in c.observations if o.rendered]
-        self.rendered = frozenset(o.key for o in images)
-        randomized = () if c.randomization is None else tuple(
-            r.field for r in c.randomization.resolved)
-        self.renderer = Renderer(c.model, images, c.nbatch, randomized) if images else None
-        self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype,
-                             self.renderer)
+        self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype)
         self.jitted = jax.jit(batch_function(self.pieces))
         policy = getattr(c, "policy", None)
         noise = getattr(c, "policy_noise", None)
         self.closed_loop: Any = None
         if policy is not None:
             self.closed_loop = ClosedLoop(self.pieces, () if noise is None else noise.drivers)
-            if impl.name == "warp" and warp_loop.supports(c.observations):
-                # MuJoCo Warp's own CUDA graph per step, the checks in torch (`warp_loop.py`);
-                # fields MJX maps from elsewhere keep MJX's jitted steps
-                self.closed_loop = warp_loop.WarpLoop(self.pieces, self.closed_loop, c.model,
-                                                      impl.naconmax, impl.njmax, device)
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
 

@@ -1,9 +1,9 @@
-"""Process-wide concerns of the MJX backend: importing MJX, JAX's GPU memory and compilation
-cache, Warp's kernel cache, the device to simulate on, and the fork guard.
+"""Process-wide concerns of MJX on JAX: importing MJX, JAX's GPU memory and compilation
+cache, the device to simulate on, and the fork guard.
 
-Importing `mujoco.mjx` without the `warp-lang` package prints "Failed to import warp" to stdout:
-MJX is imported here, once, with that print captured, so it reaches only a user who asks for
-`impl="warp"` (inside the error that says what is missing).
+Importing `mujoco.mjx` without the `warp-lang` package prints "Failed to import warp" to stdout
+(MJX's own optional Warp support, which simloader does not use): MJX is imported here, once,
+with that print captured.
 """
 
 from __future__ import annotations
@@ -21,28 +21,12 @@ from jax._src import xla_bridge
 
 from simloader.backends import base
 
-_import_log = io.StringIO()
-with contextlib.redirect_stdout(_import_log):
+with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx  # noqa: F401  (re-exported: the backend's modules import it from here)
-    from mujoco.mjx import warp as _mjx_warp
-WARP_IMPORT_LOG = "; ".join(_import_log.getvalue().split("\n")).strip("; ")
 
 _PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
 _FRACTION = "XLA_CLIENT_MEM_FRACTION"
 _FRACTION_DEPRECATED = "XLA_PYTHON_CLIENT_MEM_FRACTION"  # jaxlib rejects both being set
-# MuJoCo Warp on the CPU (Warp's LLVM backend) is slow and not offered to users; the test suite
-# sets this to run the Warp implementation for real on machines without a GPU
-WARP_ON_CPU = "SIMLOADER_WARP_ON_CPU"
-
-
-def warp_missing(device: jax.Device) -> Optional[str]:
-    """Why `impl="warp"` cannot run on `device` (short), or None when it can."""
-    if not _mjx_warp.WARP_INSTALLED:
-        return "the warp-lang package is not installed (pip install 'simloader[warp]')"
-    if device.platform == "gpu" or (device.platform == "cpu"
-                                    and os.environ.get(WARP_ON_CPU) == "1"):
-        return None
-    return f"MuJoCo Warp needs a CUDA GPU, and JAX simulates on {device.platform} here"
 
 
 def configure_memory(memory_fraction: Any) -> Optional[float]:

@@ -176,7 +176,7 @@ class WarpBackend(Backend):
                 for _ in range(c.nstep):
                     e.advance()
             outputs = {k: v.clone() for k, v in e.frames.items()}
-            outputs.update(control=e.control.clone(), diverged=e.diverged.clone(),
+            outputs.update(control=e.applied(), diverged=e.diverged.clone(),
                            initial_state=initial_state,
                            overflow=e.views["overflow"][:, 0].clone())
             params = {k: v.clone() for k, v in self.params.items()}

@@ -21,9 +21,11 @@ CPU kernels: the same code the graph captures.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import gc
 import threading
+import weakref
 from typing import Any, Optional
 
 import mujoco
@@ -43,6 +45,18 @@ _STATE_ARRAYS = {S.mjSTATE_TIME: "time", S.mjSTATE_QPOS: "qpos", S.mjSTATE_QVEL:
                  S.mjSTATE_MOCAP_POS: "mocap_pos", S.mjSTATE_MOCAP_QUAT: "mocap_quat",
                  S.mjSTATE_USERDATA: "userdata"}
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
+# the engines alive in this process, released at exit (`_release_all`)
+_LIVE: "weakref.WeakSet[Engine]" = weakref.WeakSet()
+
+
+@atexit.register
+def _release_all() -> None:
+    """At interpreter exit, before the CUDA runtime unloads: every engine's graph destroyed
+    while CUDA still answers. Left to garbage collection during teardown, a graph's destructor
+    calls into an unloading runtime, and torch's error there aborts the process (a spawned
+    DataLoader worker exits through this path)."""
+    for engine in list(_LIVE):
+        engine.release()
 
 
 class Engine:
@@ -87,8 +101,8 @@ class Engine:
         # what the divergence check (`_restart`) leaves finite needs no second look
         self.unchecked = [o.key for o in self.observations
                           if o.floating and not set(o.fields()) <= rules.RESTARTED]
-        self._buffers()
         self.closed = c.policy is not None
+        self._buffers()
         self.stream = torch.cuda.Stream(device) if self.gpu else None
         self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
         self.graph = None
@@ -96,6 +110,16 @@ class Engine:
             self.graph = self._capture()
             if on_capture is not None:
                 on_capture()
+        _LIVE.add(self)
+
+    def release(self) -> None:
+        """Waits for the engine's queued work and destroys its graph (the engine is not used
+        afterwards)."""
+        with self.lock:
+            if self.graph is not None:
+                self.stream.synchronize()
+                self.graph.reset()
+                self.graph = None
 
     # -- construction ----------------------------------------------------------------------
 
@@ -149,7 +173,8 @@ class Engine:
                       if c.policy_noise is not None else None)
         self.low = torch.full_like(self.u, -torch.inf)
         self.high = torch.full_like(self.u, torch.inf)
-        self.control = torch.empty(shape, dtype=like.dtype, device=like.device)
+        self.control = (torch.empty(shape, dtype=like.dtype, device=like.device)
+                        if self.closed else None)  # the closed loop's applied rows
         self.diverged = torch.zeros(c.nbatch, dtype=torch.bool, device=like.device)
         self.inputs = []  # (columns of a control row, MuJoCo Warp's array, boolean)
         for comp in layout.control_layout(c.model, c.control_spec):
@@ -260,9 +285,19 @@ class Engine:
         return obs
 
     def start(self) -> None:
-        """Before a batch's first step: step index and flags to zero."""
+        """Before a batch's first step: step index and flags to zero; in the open loop the
+        batch's control rows checked and clamped at once, as the CPU backend does (fewer
+        kernels per step)."""
         self.t.zero_()
         self.diverged.zero_()
+        if not self.closed:
+            self.diverged |= controls.bad_controls(self.controls)
+            self.controls.copy_(controls.clamp_applied(self.controls, self.low[:, None],
+                                                       self.high[:, None], torch))
+
+    def applied(self) -> torch.Tensor:
+        """(nbatch, nstep, ncontrol): the control rows as they acted (a new tensor)."""
+        return (self.control if self.closed else self.controls).clone()
 
     def advance(self) -> None:
         """One step, as captured (the graph) or eagerly (the CPU)."""
@@ -279,12 +314,15 @@ class Engine:
         tensors only, so that one graph serves every step."""
         c, n = self.config, self.config.nbatch
         with self._warp_capture(capturing):
-            u = self.u if self.closed else self.controls.index_select(1, self.t)[:, 0]
-            if self.noise is not None:
-                u = u + self.noise.index_select(1, self.t)[:, 0]
-            self.diverged |= controls.bad_controls(u)
-            u = controls.clamp_applied(u, self.low, self.high, torch)
-            self.control.index_copy_(1, self.t, u[:, None])
+            if self.closed:
+                u = self.u
+                if self.noise is not None:
+                    u = u + self.noise.index_select(1, self.t)[:, 0]
+                self.diverged |= controls.bad_controls(u)
+                u = controls.clamp_applied(u, self.low, self.high, torch)
+                self.control.index_copy_(1, self.t, u[:, None])
+            else:  # checked and clamped for the whole batch (`check_controls`)
+                u = self.controls.index_select(1, self.t)[:, 0]
             for columns, target, boolean in self.inputs:
                 row = u[:, columns]
                 target.copy_(row != 0 if boolean else row)
