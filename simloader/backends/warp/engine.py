@@ -47,6 +47,7 @@ _STATE_ARRAYS = {S.mjSTATE_TIME: "time", S.mjSTATE_QPOS: "qpos", S.mjSTATE_QVEL:
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
 # the engines alive in this process, released at exit (`_release_all`)
 _LIVE: "weakref.WeakSet[Engine]" = weakref.WeakSet()
+_LIVE_GPU: list = []  # non-empty once an engine ran on a GPU in this process
 
 
 @atexit.register
@@ -57,6 +58,10 @@ def _release_all() -> None:
     DataLoader worker exits through this path)."""
     for engine in list(_LIVE):
         engine.release()
+    if _LIVE_GPU and torch.utils.data.get_worker_info() is not None:
+        # a DataLoader worker: the blocks its batches lent the main process (CUDA IPC) and
+        # that were released there are freed now, not by torch's teardown after CUDA's
+        torch.cuda.ipc_collect()
 
 
 class Engine:
@@ -111,6 +116,8 @@ class Engine:
             if on_capture is not None:
                 on_capture()
         _LIVE.add(self)
+        if self.gpu:
+            _LIVE_GPU.append(True)
 
     def release(self) -> None:
         """Waits for the engine's queued work and destroys its graph (the engine is not used
