@@ -346,3 +346,24 @@ def test_a_bad_input_does_not_reach_later_steps(cache_dir):
     assert batch["diverged"].tolist() == [True, False]
     time = batch["state"][0, :, 0].cpu().numpy()  # restarted at step 4, then runs on
     assert time[-1] > time[4] > 0 and np.isfinite(batch["state"].cpu().numpy()).all()
+
+
+def test_a_warp_dataset_never_imports_jax(fresh_python):
+    """The Warp engine is MuJoCo Warp driven from torch: constructing, iterating and
+    describing a Warp dataset (impl asked, and chosen by "auto") starts no JAX."""
+    script = """
+import sys
+import simloader
+from simloader import controls
+for impl in ("warp", "auto"):
+    drive = ({"policy": lambda o: o["state"][:, :1] * 0} if impl == "auto"
+             else {"control": controls.Uniform()})
+    ds = simloader.SimDataset("cartpole", backend="mjx", impl=impl, nbatch=2, nstep=3,
+                              num_batches=1, **drive)
+    assert ds.config.options.impl == "warp", ds.describe()
+    batch = next(iter(ds))
+    assert batch["state"].shape == (2, 3, 5)
+print(sorted(m for m in sys.modules if m == "jax" or m.startswith(("jax.", "jaxlib"))))
+"""
+    (out,) = fresh_python(script, [((), {"SIMLOADER_WARP_ON_CPU": "1"})])
+    assert out.strip().splitlines()[-1] == "[]"

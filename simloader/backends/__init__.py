@@ -33,11 +33,12 @@ def _mjx_installed() -> bool:
 
 def prepare(backend: Any, options: dict[str, Any]) -> None:
     """Process-wide settings that must precede JAX's start, applied before the configuration
-    is validated (`backend="auto"` may ask JAX for its devices): JAX's GPU memory. Nothing for
-    a dataset that asks for the Warp engine."""
+    is validated (`backend="auto"` may ask JAX for its devices): JAX's GPU memory. With
+    `backend="mjx"` JAX's own checks set it first (`mjx.check_options`); nothing for a dataset
+    that asks for the Warp engine."""
     if options.get("impl") == "warp":
         return
-    if backend in ("auto", "mjx") and _mjx_installed() and _gpu_visible():
+    if backend == "auto" and _mjx_installed() and _gpu_visible():
         from simloader.backends.mjx import runtime
         runtime.configure_memory(options.get("memory_fraction"))
 
@@ -52,9 +53,9 @@ def _gpu_visible() -> bool:
 
 
 def resolve(backend: Any, options: Optional[dict[str, Any]] = None) -> str:
-    """"auto" is "mjx" when a GPU engine can run (`impl="warp"` asked and MuJoCo Warp can run,
-    or MJX installed and JAX sees a GPU), else "rollout"; JAX starts only where a GPU may be
-    and the Warp engine was not asked for.
+    """"auto" is "mjx" when a GPU engine can run (MuJoCo Warp and a CUDA GPU, or MJX installed
+    and JAX seeing a GPU), else "rollout"; JAX starts only to ask for its GPUs where MuJoCo
+    Warp cannot run and a GPU may be.
 
     Raises:
       TypeError, ValueError: not one of `BACKENDS`.
@@ -65,9 +66,12 @@ def resolve(backend: Any, options: Optional[dict[str, Any]] = None) -> str:
         raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if backend != "auto":
         return backend
+    from simloader.backends.warp import runtime as warp_runtime
+    import torch
+    if warp_runtime.missing() is None and torch.cuda.is_available():
+        return "mjx"  # a GPU engine runs; which one, `choose` decides (without JAX if Warp)
     if (options or {}).get("impl") == "warp":
-        from simloader.backends.warp import runtime as warp_runtime
-        return "mjx" if warp_runtime.missing() is None else "rollout"
+        return "rollout"
     if not (_mjx_installed() and _gpu_visible()):
         return "rollout"
     prepare(backend, {})  # JAX starts here: without preallocation unless told otherwise
