@@ -73,21 +73,25 @@ class Cameras:
         address = {"rgb": self.context.rgb_adr.numpy(), "depth": self.context.depth_adr.numpy(),
                    "segmentation": self.context.seg_adr.numpy()}
         index = {cam: i for i, cam in enumerate(cams)}
-        # R, G, B among a pixel's bytes, on the device (a graph cannot copy an index there)
-        self.rgb_bytes = torch.tensor([2, 1, 0], device=buffers["rgb"].device)
+        self.packed = {}  # RGB images: Warp views of their packed pixels (uint32)
         self.pixels = []  # (observation, kind, torch view of its pixels in Warp's buffers)
         for o in images:
             start, n = int(address[o.kind][index[o.camera_id]]), o.camera.height * o.camera.width
             self.pixels.append((o, o.kind, buffers[o.kind][:, start:start + n]))
+            if o.kind == "rgb":
+                self.packed[o.key] = self.context.rgb_data[:, start:start + n]
 
     def frames(self, nbatch: int, nframes: int) -> dict[str, torch.Tensor]:
         """The recorded frames' buffers, (nbatch, nframes, *shape) per image."""
         return {o.key: torch.empty((nbatch, nframes, *o.shape), dtype=_TORCH_DTYPES[o.dtype],
                                    device=pixels.device) for o, _, pixels in self.pixels}
 
-    def render(self) -> dict[str, torch.Tensor]:
-        """Every camera image at the state now, {key: (nbatch, *shape)} (depth: a view of
-        Warp's buffer)."""
+    def render(self, frames: dict[str, torch.Tensor], frame: torch.Tensor,
+               want: bool) -> dict[str, torch.Tensor]:
+        """Every camera image at the state now, into frame `frame` (a (1,) device index) of
+        `frames`; with `want`, also this step's images, {key: (nbatch, *shape)}, for the
+        policy. RGB is unpacked by one kernel from Warp's packed pixels straight into its
+        frame (one pass over the images)."""
         e = self.engine
         mjw, m, d = e.mjw, e.m, e.d
         mjw.kinematics(m, d)
@@ -98,16 +102,44 @@ class Cameras:
         mjw.render(m, d, self.context)
         out = {}
         for o, kind, pixels in self.pixels:
+            n = pixels.shape[0]
             if kind == "rgb":
-                # red in bits 16-23, blue in 0-7 (as MJX's get_rgb reads Warp's pixels):
-                # little-endian bytes B, G, R, A
-                image = pixels.view(torch.uint8).reshape(*pixels.shape, 4).index_select(
-                    -1, self.rgb_bytes)
-            elif kind == "depth":
+                stored = frames[o.key]
+                e.wp.launch(_unpack_rgb(), dim=(n, pixels.shape[1], 3), inputs=[
+                    self.packed[o.key], e.wp.from_torch(frame),
+                    e.wp.from_torch(stored.view(n, stored.shape[1], -1, 3))])
+                if want:
+                    out[o.key] = stored.index_select(1, frame)[:, 0]
+                continue
+            if kind == "depth":
                 image = pixels  # planar depth in metres, 0 where nothing is hit
             else:
                 # (object id, object type) per pixel
                 geom = int(mujoco.mjtObj.mjOBJ_GEOM)
                 image = torch.where(pixels[..., 1] == geom, pixels[..., 0], -1)
-            out[o.key] = image.reshape(pixels.shape[0], *o.shape)
+            image = image.reshape(n, *o.shape)
+            frames[o.key].index_copy_(1, frame, image[:, None])
+            if want:
+                out[o.key] = image
         return out
+
+_KERNELS: dict = {}
+
+
+def _unpack_rgb():
+    """The kernel writing Warp's packed pixels (red in bits 16-23, blue in 0-7, as MJX's
+    get_rgb reads them) as uint8 RGB into frame `frame[0]`: out[world, frame, pixel, c].
+    Defined on first use, so that importing simloader does not import Warp."""
+    if "rgb" not in _KERNELS:
+        import warp as wp
+
+        @wp.kernel
+        def unpack_rgb(packed: wp.array2d(dtype=wp.uint32), frame: wp.array(dtype=wp.int64),
+                       out: wp.array4d(dtype=wp.uint8)):
+            world, pixel, channel = wp.tid()
+            shift = wp.uint32(16 - 8 * channel)
+            value = (packed[world, pixel] >> shift) & wp.uint32(255)
+            out[world, int(frame[0]), pixel, channel] = wp.uint8(value)
+
+        _KERNELS["rgb"] = unpack_rgb
+    return _KERNELS["rgb"]

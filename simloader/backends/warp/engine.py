@@ -203,7 +203,8 @@ class Engine:
         stream = self.stream
         stream.wait_stream(torch.cuda.current_stream(self.device))
         with runtime.CAPTURE_LOCK:
-            with torch.cuda.stream(stream):
+            with torch.cuda.stream(stream), \
+                    self.wp.ScopedStream(self.warp_stream, sync_enter=False):
                 self._step()
             graph = torch.cuda.CUDAGraph()
             collecting = gc.isenabled()
@@ -288,7 +289,10 @@ class Engine:
         self.views["qacc_warmstart"].copy_(warmstart)
         obs = {o.key: o.torch_value(self.views).clone() for o in self.observations}
         if self.cameras is not None:
-            obs.update({k: v.clone() for k, v in self.cameras.render().items()})
+            # (written into frame 0 too, which the first step rewrites)
+            first = torch.zeros(1, dtype=torch.int64, device=self.t.device)
+            obs.update({k: v.clone() for k, v in
+                        self.cameras.render(self.frames, first, want=True).items()})
         return obs
 
     def start(self) -> None:
@@ -339,14 +343,16 @@ class Engine:
             obs = {o.key: o.torch_value(self.views) for o in self.observations}
             for key in self.unchecked:
                 self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
+            frame = rules.frame_index(self.t, c.record_every)
+            for key, value in obs.items():
+                self.frames[key].index_copy_(1, frame, value[:, None])
             if self.cameras is not None:
-                # rendering brings the poses to the state: what mj_step left in the fields
-                # the observations view (poses of the step's start) is kept first
-                obs = {k: v.clone() for k, v in obs.items()}
-                obs.update(self.cameras.render())
-        frame = rules.frame_index(self.t, c.record_every)
-        for key, value in obs.items():
-            self.frames[key].index_copy_(1, frame, value[:, None])
+                if self.closed:
+                    # rendering brings the poses to the state: the policy sees what mj_step
+                    # left in the fields the observations view (poses of the step's start)
+                    obs = {k: v.clone() for k, v in obs.items()}
+                # images go straight into their frames; the policy gets this step's
+                obs.update(self.cameras.render(self.frames, frame, want=self.closed))
         self.t += 1
         self.obs = obs
 
