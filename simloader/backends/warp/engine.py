@@ -110,7 +110,7 @@ class Engine:
         self._buffers()
         self.stream = torch.cuda.Stream(device) if self.gpu else None
         self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
-        self.graph = None
+        self.graph = self.warp_graph = None
         if self.gpu:
             self.graph = self._capture()
             if on_capture is not None:
@@ -126,7 +126,7 @@ class Engine:
             if self.graph is not None:
                 self.stream.synchronize()
                 self.graph.reset()
-                self.graph = None
+                self.graph = self.warp_graph = None
 
     # -- construction ----------------------------------------------------------------------
 
@@ -369,4 +369,7 @@ class Engine:
             try:
                 yield
             finally:
-                wp.capture_end(stream=self.warp_stream)
+                # kept as long as the engine: Warp's graph object owns what Warp allocated
+                # during the capture, which torch's graph reads and writes at every replay
+                # (dropped, that memory is freed and reused: illegal accesses, seen on an H200)
+                self.warp_graph = wp.capture_end(stream=self.warp_stream)
