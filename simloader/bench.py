@@ -564,8 +564,7 @@ class RawWarpGraphLoop(RawBaseline):
                  naconmax: Optional[int] = None, njmax: Optional[int] = None):
         import torch
         import warp as wp
-        from simloader.backends.mjx.runtime import mjx  # noqa: F401 (MJX's Warp set up)
-        from mujoco.mjx.third_party import mujoco_warp as mjw
+        import mujoco_warp as mjw  # the package the Warp engine runs
 
         self.w, self.torch, self.wp = w, torch, wp
         self.policy = StatePolicy(net, model)
