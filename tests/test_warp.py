@@ -367,3 +367,27 @@ print(sorted(m for m in sys.modules if m == "jax" or m.startswith(("jax.", "jaxl
 """
     (out,) = fresh_python(script, [((), {"SIMLOADER_WARP_ON_CPU": "1"})])
     assert out.strip().splitlines()[-1] == "[]"
+
+
+def test_the_warp_engine_equals_mjx_jax_within_the_named_tolerances(rich, cache_dir):
+    """The same controls and initial states on both GPU engines (here on the CPU): 60
+    contact-free cart-pole steps within CONTACT_FREE_TOL, one contact step of the rich model
+    (every input) within ONE_STEP_TOL (absolute; relative 3e-5)."""
+    control = np.random.default_rng(1).uniform(-1, 1, (3, 60, 1))
+    kwargs = dict(backend="mjx", nbatch=3, nstep=60, control=control, num_batches=1,
+                  initial_state=simloader.initial.Perturbed(), seed=4)
+    warp = next(iter(simloader.SimDataset("cartpole", impl="warp", **kwargs)))
+    jax_ = next(iter(simloader.SimDataset("cartpole", impl="jax", compilation_cache=cache_dir,
+                                          **kwargs)))
+    assert torch.equal(warp["initial_state"].cpu(), jax_["initial_state"].cpu())
+    np.testing.assert_allclose(warp["state"].cpu().numpy(), jax_["state"].cpu().numpy(),
+                               atol=CONTACT_FREE_TOL)
+    u = np.random.default_rng(2).uniform(-1, 1, (2, 1, mujoco.mj_stateSize(rich, EVERY_INPUT)))
+    kwargs = dict(backend="mjx", nbatch=2, nstep=1, control=u, control_spec=EVERY_INPUT,
+                  initial_state="raised", num_batches=1)
+    warp = next(iter(simloader.SimDataset(rich, impl="warp", **kwargs)))
+    jax_ = next(iter(simloader.SimDataset(rich, impl="jax", compilation_cache=cache_dir,
+                                          **kwargs)))
+    # (and float32's relative precision on the arm's velocities, about 50 rad/s here)
+    np.testing.assert_allclose(warp["state"].cpu().numpy(), jax_["state"].cpu().numpy(),
+                               atol=ONE_STEP_TOL, rtol=3e-5)
