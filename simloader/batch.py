@@ -3,9 +3,11 @@
 `Batch` is a `dict[str, torch.Tensor]` (the delivered `handoff.Batch`, which torch's default
 collation refuses; `pin_memory` and `default_convert` keep its type: they copy it and update
 the copy), plus `view()`, which finds a named part of a key without index arithmetic and
-without copying. A batch from a DataLoader worker arrives as an `OrderedDict` (it pickles as
-one, so that `torch.load(weights_only=True)` loads it): `Batch(batch, layout=ds.layout)` gives
-it its views back, without copies.
+without copying. A batch from a DataLoader worker arrives as a `Batch`, views included (the
+worker's queue pickles it with multiprocessing's ForkingPickler, for which a reducer is
+registered below); `torch.save`/`pickle` store it as an `OrderedDict`, so that
+`torch.load(weights_only=True)` loads it: `Batch(loaded, layout=ds.layout)` gives it its views
+back, without copies.
 
     batch.view("qpos")                     # (nbatch, nframes, nq), out of "state"
     batch.view("qpos", of="initial_state") # (nbatch, nq)
@@ -16,6 +18,7 @@ it its views back, without copies.
 
 from __future__ import annotations
 
+from multiprocessing.reduction import ForkingPickler
 from typing import Any, Optional
 
 import torch
@@ -74,3 +77,20 @@ class Batch(_Delivered):
         # `view`, not `reshape`: a view or an error, never a silent copy
         flat = tensor.view(*lead, -1) if tensor.dim() > len(lead) else tensor.unsqueeze(-1)
         return flat[..., part.start:part.stop].view(*lead, *part.shape)
+
+
+def _rebuild(items: list, layout: Optional[BatchLayout]) -> Batch:
+    return Batch(items, layout=layout)
+
+
+def _reduce_across_processes(batch: Batch):
+    # a DataLoader worker's queue (and torch.multiprocessing's) pickles with ForkingPickler: its
+    # dispatch table, looked up by exact type before `__reduce__`, keeps the type and the
+    # layout (so `view` works in the training process); the tensors still go through torch's
+    # shared-memory reducers. torch.save and plain pickle do not use this table and keep
+    # handoff.Batch's OrderedDict form, which `torch.load(weights_only=True)` accepts (a Batch
+    # with its layout, a simloader class, it would refuse).
+    return _rebuild, (list(batch.items()), batch.layout)
+
+
+ForkingPickler.register(Batch, _reduce_across_processes)

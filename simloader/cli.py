@@ -5,6 +5,9 @@ time: JAX's persistent compilation cache and MuJoCo Warp's kernel cache)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import re
 import time
 
 import mujoco
@@ -13,6 +16,52 @@ from tqdm import tqdm
 
 import simloader
 from simloader import observe, sharding
+
+DEFAULT_MODEL = "cartpole"
+DEFAULT_OUT = "simloader-results"
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """An argparse parser whose errors are one line on stderr (exit status 2): the usage is one
+    `-h` away, and a new user reads the message rather than scrolling past a usage block."""
+
+    def error(self, message: str) -> None:
+        message = re.sub(r"\s*\n\s*", " ", str(message)).strip()
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} -h')\n")
+
+
+class BadArgument(Exception):
+    """The library rejected a value that came from the command line."""
+
+
+@contextlib.contextmanager
+def from_arguments():
+    """Wraps building the model/dataset from the arguments: the library's ValueError/TypeError
+    there names the argument, what was expected and what was given, and becomes a usage error.
+    Only the building: errors raised later while simulating keep their traceback."""
+    try:
+        yield
+    except (ValueError, TypeError) as e:
+        raise BadArgument(str(e)) from None
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1, for sizes and counts."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def add_model_argument(parser: argparse.ArgumentParser) -> None:
+    """The model, the same way in every subcommand: an optional positional argument."""
+    parser.add_argument("model", nargs="?", default=None,
+                        help=f"built-in model name or MJCF/MJB path (default: the built-in "
+                             f"{DEFAULT_MODEL})")
+
 
 def parse_control_spec(text: str) -> int:
     """`ctrl|xfrc_applied` or an integer bitmask (`simloader.layout.parse_control_spec`)."""
@@ -23,12 +72,13 @@ def parse_control_spec(text: str) -> int:
 
 
 def quickstart(args: argparse.Namespace) -> None:
-    ds = simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
-                              nstep=args.nstep, control=simloader.controls.Uniform(),
-                              initial_state=simloader.initial.Perturbed(),
-                              num_batches=args.batches, seed=args.seed,
-                              # all cores: nothing here trains alongside the simulation
-                              nthread=sharding.available_cpus())
+    with from_arguments():
+        ds = simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
+                                  nstep=args.nstep, control=simloader.controls.Uniform(),
+                                  initial_state=simloader.initial.Perturbed(),
+                                  num_batches=args.batches, seed=args.seed,
+                                  # all cores: nothing here trains alongside the simulation
+                                  nthread=sharding.available_cpus())
     loader = torch.utils.data.DataLoader(ds, batch_size=None)
     print(f"simloader {simloader.__version__}: model {args.model!r}, backend "
           f"{ds.config.backend!r}, {args.nbatch} trajectories x {args.nstep} steps per batch")
@@ -52,17 +102,31 @@ def quickstart(args: argparse.Namespace) -> None:
 
 
 def info(args: argparse.Namespace) -> None:
-    print(simloader.describe(args.model, args.control_spec))
+    with from_arguments():
+        description = simloader.describe(args.model, args.control_spec)
+        if args.record:
+            model = simloader.load_model(args.model)
+            names = [name.strip() for name in args.record.split(",")]
+            observations = observe.parse(model, names)
+            recorded = simloader.layout.BatchLayout(model, args.control_spec,
+                                                    observations).describe()
+    print(description)
     if args.record:
-        model = simloader.load_model(args.model)
-        observations = observe.parse(model, [name.strip() for name in args.record.split(",")])
         print("recorded keys (nbatch, nframes, ...) and their named parts:")
-        print(simloader.layout.BatchLayout(model, args.control_spec, observations).describe())
+        print(recorded)
 
 
 def bench(args: argparse.Namespace) -> None:
     from simloader import bench as b
-    model = simloader.load_model(args.model)
+    with from_arguments():
+        model = simloader.load_model(args.model)
+    plot = os.path.join(args.out, args.plot) if args.plot else ""
+    if plot:  # before the timing, so that an unusable folder fails at once
+        try:
+            os.makedirs(os.path.dirname(plot) or ".", exist_ok=True)
+        except OSError as e:
+            raise BadArgument(f"--out: expected a folder that can be created, got {args.out!r} "
+                              f"({e.strerror})") from None
     backends = args.backends or (["rollout", "mjx"] if b.jax_has_gpu() else ["rollout"])
     name = args.model if len(args.model) < 40 else "model"
     w = b.Workload(name, args.nbatch, args.nstep)
@@ -74,9 +138,9 @@ def bench(args: argparse.Namespace) -> None:
     print(b.markdown_table(b.HEADERS, b.method_rows(w, s_per_step, runs_on, b.RAW_OF, b.PYTHON)))
     for note in notes:
         print(note)
-    if args.plot:
-        b.bar_plot(args.plot, f"{w}: simloader vs raw", s_per_step)
-        print(f"plot saved to {args.plot}")
+    if plot:
+        b.bar_plot(plot, f"{w}: simloader vs raw", s_per_step)
+        print(f"plot saved to {plot}")
 
 
 def warmup(args: argparse.Namespace) -> None:
@@ -85,9 +149,10 @@ def warmup(args: argparse.Namespace) -> None:
     about a minute to compile the first time on a machine), so that later processes start in
     seconds."""
     start = time.perf_counter()
-    ds = simloader.SimDataset(args.model, backend="mjx", impl=args.impl, nbatch=args.nbatch,
-                              nstep=args.nstep, control=simloader.controls.Uniform(),
-                              num_batches=1)
+    with from_arguments():
+        ds = simloader.SimDataset(args.model, backend="mjx", impl=args.impl, nbatch=args.nbatch,
+                                  nstep=args.nstep, control=simloader.controls.Uniform(),
+                                  num_batches=1)
     print(ds.describe().splitlines()[-1])
     next(iter(ds))
     print(f"warm: compiled in {ds.stats['compile_s']:.1f} s, first batch after "
@@ -95,12 +160,14 @@ def warmup(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="simloader", description=__doc__)
+    parser = ArgumentParser(prog="simloader", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"simloader {simloader.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     q = sub.add_parser("quickstart", help="stream batches from a model and print throughput")
-    q.add_argument("--model", default="cartpole",
-                   help="built-in model name or MJCF/MJB path (default: the built-in cartpole)")
+    add_model_argument(q)
+    q.add_argument("--model", dest="model_option", metavar="MODEL",
+                   help="the model, as the positional argument (kept for compatibility)")
     q.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
     q.add_argument("--nbatch", type=int, default=1024)
     q.add_argument("--nstep", type=int, default=200)
@@ -109,7 +176,7 @@ def main(argv: list[str] | None = None) -> None:
     q.set_defaults(run=quickstart)
 
     i = sub.add_parser("info", help="print which state/control/sensor columns mean what")
-    i.add_argument("model", help="built-in model name or MJCF/MJB path")
+    add_model_argument(i)
     i.add_argument("--control-spec", type=parse_control_spec,
                    default=int(mujoco.mjtState.mjSTATE_CTRL),
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")
@@ -118,24 +185,26 @@ def main(argv: list[str] | None = None) -> None:
     i.set_defaults(run=info)
 
     b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")
-    b.add_argument("model", nargs="?", default="cartpole",
-                   help="built-in model name or MJCF/MJB path (default: the built-in cartpole)")
+    add_model_argument(b)
     b.add_argument("--backends", nargs="+", choices=("rollout", "mjx"),
                    help="default: rollout, and mjx where JAX sees a GPU")
-    b.add_argument("--nbatch", type=int, default=1024)
-    b.add_argument("--nstep", type=int, default=200)
-    b.add_argument("--repeats", type=int, default=3, help="alternating timed repetitions")
+    b.add_argument("--nbatch", type=positive_int, default=1024)
+    b.add_argument("--nstep", type=positive_int, default=200)
+    b.add_argument("--repeats", type=positive_int, default=3,
+                   help="alternating timed repetitions")
     b.add_argument("--min-seconds", type=float, default=2.0,
                    help="each timed repetition lasts at least this long")
-    b.add_argument("--python-steps", type=int, default=5000,
+    b.add_argument("--python-steps", type=positive_int, default=5000,
                    help="steps of the single-environment Python loop per repetition")
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--out", default=DEFAULT_OUT,
+                   help=f"folder for the bar chart, created when needed (default: {DEFAULT_OUT}/)")
     b.add_argument("--plot", default="simloader-bench.png",
-                   help="where to save the bar chart ('' for none)")
+                   help="file name of the bar chart in --out ('' for none)")
     b.set_defaults(run=bench)
 
     w = sub.add_parser("warmup", help="compile the MJX backend for a model ahead of time")
-    w.add_argument("model", help="built-in model name or MJCF/MJB path")
+    add_model_argument(w)
     w.add_argument("--impl", default="auto", choices=("auto", "jax", "warp"))
     w.add_argument("--nbatch", type=int, default=1024,
                    help="trajectories per batch, as the training run will use them")
@@ -143,7 +212,16 @@ def main(argv: list[str] | None = None) -> None:
     w.set_defaults(run=warmup)
 
     args = parser.parse_args(argv)
-    args.run(args)
+    sub_parser = sub.choices[args.command]
+    option = getattr(args, "model_option", None)
+    if option is not None and args.model is not None and option != args.model:
+        sub_parser.error(f"model: given twice and differently, {args.model!r} (positional) and "
+                         f"--model {option!r}; give one")
+    args.model = args.model or option or DEFAULT_MODEL
+    try:
+        args.run(args)
+    except BadArgument as e:
+        sub_parser.error(str(e))
 
 
 if __name__ == "__main__":

@@ -8,8 +8,8 @@ thread, worker or compilation starts.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Sequence
+from types import SimpleNamespace
 from typing import Any, Optional
 
 import mujoco
@@ -99,7 +99,8 @@ def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[
         kind = "an integer or None" if allow_none else "an integer"
         raise TypeError(f"{name}: expected {kind}, got {type(value).__name__} {value!r}")
     if value < low:
-        raise ValueError(f"{name}: expected an integer >= {low}, got {value}")
+        kind = "None or an integer" if allow_none else "an integer"
+        raise ValueError(f"{name}: expected {kind} >= {low}, got {value}")
     return int(value)
 
 
@@ -172,13 +173,7 @@ def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
     except (KeyError, TypeError):
         raise ValueError(f"dtype: expected None, torch.float32 or torch.float64, got "
                          f"{dtype!r}") from None
-    if out == torch.float64 and backend == "mjx":
-        import jax
-        if not jax.config.jax_enable_x64:
-            warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
-                          "(JAX without jax_enable_x64), so the tensors are float32 values "
-                          "up-cast to float64", UserWarning, stacklevel=4)
-    return out
+    return out  # the GPU engines say what float64 means for them (their check_options)
 
 
 def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
@@ -235,6 +230,19 @@ def _check_memory(c: SimConfig) -> None:
                                  count=c.prefetch + 1)
 
 
+def _check_memory_early(model: mujoco.MjModel, backend: str, control_spec: int,
+                        observations: Sequence[observe.Observation], nbatch: int, nstep: int,
+                        record_every: int, prefetch: int) -> None:
+    """`_check_memory` from the sizes alone, before the (nbatch x ...) tables are built."""
+    if backend != "rollout":
+        return
+    sizes = SimpleNamespace(observations=observations, nbatch=nbatch, nframes=nstep // record_every,
+                            nstep=nstep, ncontrol=mujoco.mj_stateSize(model, control_spec),
+                            nstate=mujoco.mj_stateSize(model, layout.FULLPHYSICS),
+                            record_every=record_every)
+    observe.check_batch_fits(sizes, observe.host_available(), "host memory", count=prefetch + 1)
+
+
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
@@ -244,7 +252,8 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     resolved `backend` (its options are validated next, by the backend)."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
-    num_batches = _int("num_batches", num_batches, 0, allow_none=True)
+    # 0 batches would be a dataset that silently yields nothing
+    num_batches = _int("num_batches", num_batches, 1, allow_none=True)
     seed = _int("seed", seed, 0)
     nthread = _int("nthread", nthread, 1, allow_none=True)
     prefetch = _int("prefetch", prefetch, 1)
@@ -267,9 +276,13 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         base = models_[0]
     elif variants is not None:
         base = variants[0]
+    observations, record_every = _record(base, record, record_every, nstep, backend)
+    # the size check first: the plans below build (nbatch x ...) tables, seconds of work (and
+    # memory) for an nbatch that is refused anyway
+    _check_memory_early(base, backend, control_spec, observations, nbatch, nstep,
+                        record_every, prefetch)
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
-    observations, record_every = _record(base, record, record_every, nstep, backend)
     noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep, backend,
                     observations)
     config = SimConfig(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import Iterator, Sequence
 from typing import Any, Optional
 
@@ -15,6 +16,28 @@ from simloader.backends.base import Backend, Stats
 from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
 from simloader.prefetch import Prefetcher
+
+
+def _check_keywords(options: dict[str, Any]) -> None:
+    """Refuses an unknown keyword that is a typo of SimDataset's own (they would end in
+    `**backend_options`), with a did-you-mean; other unknown ones the backend refuses, listing
+    its options."""
+    names = [n for n, p in inspect.signature(SimDataset.__init__).parameters.items()
+             if p.kind == inspect.Parameter.KEYWORD_ONLY] + list(backends.OPTIONS)
+    unknown = sorted(k for k in options if k not in backends.OPTIONS)
+    hints = {k: layout.did_you_mean(k, names) for k in unknown}
+    if any(hints.values()):
+        said = "; ".join(f"{k!r}{h or ' (no close match)'}" for k, h in hints.items())
+        raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown}: {said}")
+
+
+def _params_keys(c: SimConfig) -> list[tuple[str, tuple]]:
+    """The keys of `batch["params"]` and their shapes, for describe()."""
+    if c.variants is not None:
+        return [("variant", (c.nbatch,))]
+    if c.randomization is not None:
+        return [(r.param.key, (c.nbatch, len(r.elements))) for r in c.randomization.resolved]
+    return []
 
 
 class SimDataset(torch.utils.data.IterableDataset):
@@ -100,6 +123,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                  record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
                  policy: Any = None, policy_noise: Any = None, **backend_options: Any):
         super().__init__()
+        _check_keywords(backend_options)
         backends.prepare(backend, backend_options)
         config = build_config(
             model, backend=backends.resolve(backend, backend_options), nbatch=nbatch, nstep=nstep,
@@ -146,6 +170,10 @@ class SimDataset(torch.utils.data.IterableDataset):
         text = (layout.describe(c.model, c.control_spec, self.source)
                 + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
                   f"{c.record_every} step(s):\n" + self.layout.describe())
+        params = _params_keys(c)
+        if params:
+            text += ("\nrandomized: batch[\"params\"] keys, the values each trajectory ran "
+                     "with:\n" + "\n".join(f"  {k} {shape}" for k, shape in params))
         if c.options is not None:
             text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
                      f"({c.options.describe()}; chosen: {c.options.impl_reason})")

@@ -72,6 +72,36 @@ def check_worker(policy: Any) -> None:
         "whose tensors are in shared memory (call policy.share_memory() before iterating)")
 
 
+class Observations(dict):
+    """The dict of observation tensors the policy receives: its keys are the batch keys that
+    `record=` names, and a missing key says so (a bare `KeyError: 'qpos'` does not)."""
+
+    def __missing__(self, key: Any) -> Any:
+        raise KeyError(f"policy: the observations have no key {key!r}; their keys follow "
+                       f"record= (the batch keys), here {list(self)}; add {key!r} to record= "
+                       f"to observe it")
+
+
+def _float_dtypes(tensors: Any) -> set:
+    return {t.dtype for t in tensors if isinstance(t, torch.Tensor) and t.is_floating_point()}
+
+
+def _dtype_advice(policy: Any, obs: Mapping[str, Any]) -> Optional[str]:
+    """Why a policy fails on these observations' dtype, with the fix, or None: a
+    `torch.nn.Module` whose floating parameters have another dtype than the observations."""
+    if not isinstance(policy, torch.nn.Module):
+        return None
+    params, seen = _float_dtypes(_tensors(policy)), _float_dtypes(obs.values())
+    if not params or not seen or params & seen:
+        return None
+    mine, theirs = sorted(map(str, params)), sorted(map(str, seen))
+    fix = ("SimDataset(..., dtype=torch.float32) or policy.double()"
+           if torch.float64 in seen else "SimDataset(..., dtype=torch.float64) or policy.float()")
+    return (f"policy, dtype: the policy's parameters are {', '.join(mine)} but its observations "
+            f"are {', '.join(theirs)} (the dataset's dtype; dtype=None delivers float64 on "
+            f"backend='rollout', float32 on backend='mjx'); pass {fix}")
+
+
 class Caller:
     """Calls the policy for one batch and checks what it returns.
 
@@ -91,8 +121,19 @@ class Caller:
     def __call__(self, obs: dict[str, torch.Tensor], t: int) -> torch.Tensor:
         """The control rows of step `t` (a tensor `nbatch x ncontrol`); the extras are kept in
         `self.extras` (`"policy/KEY"`: `nbatch x nstep x ...`)."""
-        with torch.no_grad():
-            out = self.policy(obs)
+        if not isinstance(obs, Observations):
+            obs = Observations(obs)
+        try:
+            with torch.no_grad():
+                out = self.policy(obs)
+        except (RuntimeError, TypeError) as e:
+            # not refused up front: a policy may convert its inputs itself (obs.float())
+            advice = _dtype_advice(self.policy, obs)
+            said = str(e).lower()
+            if advice is None or not any(w in said for w in ("dtype", "scalar type", "double",
+                                                               "float")):
+                raise
+            raise TypeError(f"{advice} (calling it raised {type(e).__name__}: {e})") from e
         control, extras = out if isinstance(out, tuple) and len(out) == 2 else (out, None)
         if t == 0:
             self._check(control, extras)

@@ -45,7 +45,7 @@ CASES = [
      "initial_state: leading dimension must be nbatch=4 or 1, got 2"),
     (dict(nbatch=0), ValueError, "nbatch: expected an integer >= 1, got 0"),
     (dict(nstep=2.0), TypeError, "nstep: expected an integer, got float 2.0"),
-    (dict(num_batches=-1), ValueError, "num_batches: expected an integer >= 0, got -1"),
+    (dict(num_batches=-1), ValueError, "num_batches: expected None or an integer >= 1, got -1"),
     (dict(seed="x"), TypeError, "seed: expected an integer, got str 'x'"),
     (dict(backend="gpu"), ValueError, "backend: expected one of ('auto', 'rollout', 'mjx'), got 'gpu'"),
     (dict(continue_episodes=1), TypeError, "continue_episodes: expected a bool, got int"),

@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 import sys
 import time
+import warnings
 import weakref
 from collections.abc import Callable
 from typing import Any, Optional
@@ -81,6 +82,11 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
         differ in what MJX compiles in, a parameter MJX cannot randomize (`randomize.py`),
         cameras (MJX-JAX does not render).
     """
+    if config.dtype == torch.float64 and not jax.config.jax_enable_x64:
+        # stacklevel: the user's line (SimDataset, the registry, here)
+        warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
+                      "(JAX without jax_enable_x64), so the tensors are float32 values "
+                      "up-cast to float64", UserWarning, stacklevel=4)
     cache = runtime.cache_dir(options.get("compilation_cache"))
     fraction = runtime.configure_memory(options.get("memory_fraction"))
     runtime.configure_cache(cache)

@@ -9,6 +9,7 @@ MuJoCo Warp supports and which of its arrays differ between the models of a pool
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any, Optional
 
 import mujoco
@@ -77,6 +78,11 @@ def check_options(config: SimConfig, reason: str, naconmax: Optional[int],
     why = runtime.missing()
     if why:
         raise ValueError(f"impl: 'warp' cannot run here: {why}; use impl='jax' (or 'auto')")
+    if config.dtype == torch.float64:
+        # stacklevel: the user's line (SimDataset, the registry, here)
+        warnings.warn("dtype=torch.float64 with impl='warp': MuJoCo Warp simulates in "
+                      "float32, so the tensors are float32 values up-cast to float64",
+                      UserWarning, stacklevel=4)
     models = config.models or config.variants or (config.model,)
     names = (["model"] if len(models) == 1 else
              [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
