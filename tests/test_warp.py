@@ -391,3 +391,32 @@ def test_the_warp_engine_equals_mjx_jax_within_the_named_tolerances(rich, cache_
     # (and float32's relative precision on the arm's velocities, about 50 rad/s here)
     np.testing.assert_allclose(warp["state"].cpu().numpy(), jax_["state"].cpu().numpy(),
                                atol=ONE_STEP_TOL, rtol=3e-5)
+
+
+def test_an_engine_goes_away_with_its_dataset():
+    """Engines are cached per configuration for every epoch of a dataset, and freed with it
+    (an engine holds device buffers and graphs)."""
+    import gc
+    import weakref
+    from simloader.backends.warp import backend
+    ds = dataset("cartpole", None, nbatch=2, nstep=3, control=controls.Uniform(), num_batches=1)
+    list(ds)
+    list(ds)  # a second epoch: the same engine
+    (engine,) = backend._ENGINES[ds.config].values()
+    alive = weakref.ref(engine)
+    del ds, engine
+    gc.collect()
+    assert alive() is None
+
+
+def test_two_iterators_of_one_continuing_dataset_keep_their_own_trajectories():
+    """Two iterators share the dataset's engine: each continues its own trajectories."""
+    kwargs = dict(nbatch=2, nstep=4, control=controls.Uniform(), continue_episodes=True,
+                  num_batches=3)
+    alone = list(dataset("cartpole", None, **kwargs))
+    ds = dataset("cartpole", None, **kwargs)
+    a, b = iter(ds), iter(ds)
+    first = [next(a), next(b), next(a), next(b)]
+    for got, want in zip([first[0], first[2]], alone[:2]):
+        assert torch.equal(got["state"], want["state"])
+    assert torch.equal(first[2]["initial_state"], first[0]["state"][:, -1])

@@ -106,6 +106,8 @@ class WarpBackend(Backend):
                             else torch.zeros(n, dtype=torch.int64, device=self.device))
         self.params: dict[str, torch.Tensor] = {}  # what each trajectory runs with
         self.restored: Optional[torch.Tensor] = None  # resumed rows, applied at the next batch
+        self.rows: Optional[torch.Tensor] = None  # continuing: the rows after the last batch
+        self.token = object()  # names this iterator as the engine's owner (holding nothing)
         self.fixed: Optional[torch.Tensor] = None  # an explicit control array, on the device
         self.last_ready = 0.0
         self.warned_overflow = False
@@ -181,6 +183,7 @@ class WarpBackend(Backend):
                            overflow=e.views["overflow"][:, 0].clone())
             params = {k: v.clone() for k, v in self.params.items()}
             rows_after = e.integration() if c.continue_episodes else None
+            self.rows = rows_after
             ready = torch.cuda.Event() if e.gpu else None
             if ready is not None:
                 ready.record()
@@ -197,9 +200,14 @@ class WarpBackend(Backend):
         c, e, tables = self.config, self.engine, self.tables
         fresh = (self.restart if self.restart is not None
                  else torch.ones(c.nbatch, dtype=torch.bool, device=self.device))
-        if self.restored is not None:  # resumed: the saved rows, before any restart
+        if self.restored is None and c.continue_episodes and e.owner is not self.token:
+            # another iterator of this dataset ran on the engine's data since: take back
+            # this one's trajectories (the rows it left, warmstart included)
+            self.restored = self.rows
+        if self.restored is not None:  # resumed or taken back: the rows, before any restart
             e.reset(self.restored, torch.ones_like(fresh))
             self.restored = None
+        e.owner = self.token
         if "variant" in drawn:
             self.model_index = torch.where(fresh, drawn["variant"], self.model_index)
             self.params["variant"] = self.model_index

@@ -78,7 +78,11 @@ class Engine:
                  on_capture: Any = None):
         import mujoco_warp as mjw
         self.mjw, self.wp = mjw, runtime.warp()
-        self.config, self.options, self.device = config, options, device
+        # a weak reference: engines are cached per configuration (`backend._ENGINES`, weak
+        # keys), and an engine that held its configuration would keep itself alive forever
+        self.config = weakref.proxy(config)
+        self.options, self.device = options, device
+        self.owner: Any = None  # the token of the iterator whose trajectories the data holds
         self.gpu = device.type == "cuda"
         self.wdevice = runtime.warp_device(device)
         self.lock = threading.Lock()  # one batch at a time queues its work on these arrays
