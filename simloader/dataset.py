@@ -245,7 +245,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                 backend.restore(loaded["trajectories"])
         prefetcher = Prefetcher(lambda i: (i, backend.produce(i)),
                                 shard.indices(self.config.num_batches, start),
-                                self.config.prefetch)
+                                self.config.prefetch, at_exit=backend.close)
         try:
             for index, produced in prefetcher:
                 batch = Batch(backend.deliver(produced), layout=self.layout)

@@ -13,7 +13,7 @@ import queue
 import threading
 import weakref
 from collections.abc import Callable, Iterable, Iterator
-from typing import Any
+from typing import Any, Optional
 
 _END = object()
 _POLL_S = 0.1
@@ -22,13 +22,23 @@ _registered = False
 
 
 def _stop_all() -> None:
-    """At interpreter exit, stops the producers still running (an iterator left open). A
+    """At interpreter exit, stops the producers still running (an iterator left open) and
+    runs their `at_exit` callbacks (the backend's `close`, which frees native thread pools). A
     daemon thread that comes back from native code (JAX's dispatch, MuJoCo's rollout) after the
-    interpreter began to finalize is killed inside it, which aborts the process ("terminate
-    called ... FATAL: exception not rethrown"). Registered when the first producer starts, so
-    after JAX's own exit handlers and hence run before them."""
-    for prefetcher in list(_LIVE):
-        prefetcher.close()
+    interpreter began to finalize is killed inside it, and a native thread pool destroyed
+    during teardown (modules half gone) may be destroyed with its threads still joinable;
+    either aborts the process ("terminate called without an active exception", exit -6).
+    Registered when the first producer starts, so after JAX's own exit handlers and hence run
+    before them. Every producer is stopped before any callback runs, and one that fails does
+    not keep the others from running."""
+    live = list(_LIVE)
+    for prefetcher in live:
+        try:
+            prefetcher.close()
+        except BaseException:  # noqa: BLE001 - at exit: stop the others regardless
+            pass
+    for prefetcher in live:
+        prefetcher._run_at_exit()
 
 
 class _Failure:
@@ -39,9 +49,14 @@ class _Failure:
 class Prefetcher:
     """Iterates `produce(i) for i in indices`, computed `depth` items ahead in a thread."""
 
-    def __init__(self, produce: Callable[[int], Any], indices: Iterable[int], depth: int):
-        self._produce = produce
+    def __init__(self, produce: Callable[[int], Any], indices: Iterable[int], depth: int,
+                 at_exit: Optional[Callable[[], None]] = None):
+        """`at_exit`: called (once) at interpreter exit if this prefetcher is still open then,
+        after its producer stopped: what `produce` needs closed before the interpreter tears
+        down (the backend's `close`)."""
+        self._produce: Optional[Callable[[int], Any]] = produce
         self._indices = indices
+        self._at_exit = at_exit
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="simloader-prefetch", daemon=True)
@@ -62,9 +77,10 @@ class Prefetcher:
         return False
 
     def _run(self) -> None:
+        produce, indices = self._produce, self._indices
         try:
-            for i in self._indices:
-                if self._stop.is_set() or not self._put(self._produce(i)):
+            for i in indices:
+                if self._stop.is_set() or not self._put(produce(i)):
                     return
             self._put(_END)
         except BaseException as e:  # re-raised in the consumer
@@ -93,3 +109,15 @@ class Prefetcher:
             except queue.Empty:
                 pass
             self._thread.join(timeout=_POLL_S)
+        # the producer is gone: drop what it referenced (the backend, through `produce`), so
+        # that a closed prefetcher kept alive by someone does not keep a thread pool alive
+        self._produce = self._indices = None
+        _LIVE.discard(self)
+
+    def _run_at_exit(self) -> None:
+        callback, self._at_exit = self._at_exit, None
+        if callback is not None:
+            try:
+                callback()
+            except BaseException:  # noqa: BLE001 - at exit: nothing left to report it to
+                pass

@@ -57,19 +57,81 @@ def test_two_ranks_draw_distinct_streams():
     assert len(torch.unique(rows, dim=0)) == len(rows) == 2 * 3 * 4
 
 
-def test_ddp_example_under_torchrun(tmp_path, checkout_env):
-    """The DDP example as a user launches it: torchrun, two ranks, gloo on the CPU."""
+def _run_ddp_example(result_file, env):
     root = pathlib.Path(__file__).parents[1]
-    result_file = tmp_path / "result.json"
-    proc = subprocess.run(
+    return subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
          str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "rollout",
          "--json", str(result_file)],
-        capture_output=True, text=True, timeout=300, cwd=root, env=checkout_env())
+        capture_output=True, text=True, timeout=300, cwd=root, env=env)
+
+
+def test_ddp_example_under_torchrun(tmp_path, checkout_env):
+    """The DDP example as a user launches it: torchrun, two ranks, gloo on the CPU."""
+    result_file = tmp_path / "result.json"
+    proc = _run_ddp_example(result_file, checkout_env())
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     result = json.loads(result_file.read_text())
     assert result["ranks"] == 2 and result["steps_per_s"] > 0
     assert "open-loop RMSE" in proc.stdout
+
+
+
+def _ddp_example_exits_zero(tmp_path, env, runs):
+    """Runs the DDP example `runs` times: every run must exit 0 (a rank that aborts at exit,
+    "terminate called without an active exception", fails the job under torchrun)."""
+    failures = []
+    for i in range(runs):
+        proc = _run_ddp_example(tmp_path / f"result{i}.json", env)
+        if proc.returncode != 0 or "terminate called" in proc.stderr:
+            failures.append(f"run {i}: exit {proc.returncode}\n{proc.stderr[-3000:]}")
+    assert not failures, f"{len(failures)} of {runs} runs failed:\n" + "\n".join(failures)
+
+
+def test_ddp_example_exits_zero_repeatedly(tmp_path, checkout_env):
+    _ddp_example_exits_zero(tmp_path, checkout_env(), runs=2)
+
+
+@pytest.mark.slow
+def test_ddp_example_exits_zero_20_times(tmp_path, checkout_env):
+    _ddp_example_exits_zero(tmp_path, checkout_env(), runs=20)
+
+
+_EXIT_SCRIPT = """
+import sys
+import torch
+import simloader
+how, nthread = sys.argv[1], int(sys.argv[2])
+ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=16, nstep=20, seed=0,
+                          nthread=nthread, control=simloader.controls.Uniform())
+if how == "open":  # an iterator left open at exit, its producer simulating ahead
+    it = iter(ds)
+    next(it)
+elif how == "break":  # broke out of the loop
+    for i, batch in enumerate(ds):
+        if i == 2:
+            break
+elif how == "loader":  # a DataLoader's iterator left open
+    it = iter(torch.utils.data.DataLoader(ds, batch_size=None))
+    next(it)
+elif how == "finished":
+    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=16, nstep=20, seed=0,
+                              nthread=nthread, num_batches=3)
+    assert len(list(ds)) == 3
+print("done")
+"""
+
+
+@pytest.mark.parametrize("how", ["open", "break", "loader", "finished"])
+def test_rollout_script_exits_zero_however_the_stream_ends(how, checkout_env):
+    # the native thread pool (nthread=2) and the producer must be gone before teardown
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT, how, "2"], capture_output=True,
+                             text=True, timeout=120, env=checkout_env())
+        assert out.returncode == 0, out.stderr[-4000:]
+        assert out.stdout.strip() == "done", out.stdout
+        assert "terminate called" not in out.stderr and "Traceback" not in out.stderr, out.stderr
+        assert "Exception ignored" not in out.stderr, out.stderr
 
 
 _RANK_DEVICE_SCRIPT = """

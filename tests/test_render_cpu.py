@@ -142,3 +142,52 @@ def test_refusals():
     with pytest.raises(ValueError, match=r"nbatch, record: a batch needs .* GiB"):
         simloader.SimDataset(model, backend="rollout", nbatch=10**6, nstep=100,
                              record=(simloader.Camera("front"),))
+
+
+# A dataset with a camera made in the main process (which probes GL there), iterated by a
+# DataLoader: argv[1] is "0" (num_workers=0) or a start method for num_workers=1; argv[2]
+# "render-first" renders a batch in the main process before the workers start. Prints one
+# line per batch: the images' checksum.
+LOADER_SCRIPT = """
+import hashlib, sys
+import simloader
+from torch.utils.data import DataLoader
+
+def main(how, first):
+    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=4, seed=7,
+                              record=("state", simloader.Camera("front", height=16, width=16)),
+                              num_batches=2, nthread=1)
+    if first == "render-first":
+        next(iter(ds))
+    kw = (dict(num_workers=0) if how == "0"
+          else dict(num_workers=1, multiprocessing_context=how))
+    try:
+        for batch in DataLoader(ds, batch_size=None, **kw):
+            rgb = batch["camera/front/rgb"].numpy()
+            assert rgb.shape == (2, 4, 16, 16, 3) and rgb.any()
+            print(hashlib.sha256(rgb.tobytes()).hexdigest(), flush=True)
+    except RuntimeError as e:
+        print("refused:", str(e).replace(chr(10), " "))
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
+"""
+
+
+def test_workers_and_start_methods(fresh_python):
+    """num_workers=0, and one worker forked (Linux's default) or spawned, yield the same
+    images: the GL probe leaves nothing in the parent that a fork breaks (it hung before)."""
+    runs = [(("0", "-"), None), (("fork", "-"), None), (("spawn", "-"), None)]
+    outs = fresh_python(LOADER_SCRIPT, runs, timeout=120)
+    expected = outs[0].split()
+    assert len(expected) == 2 and not outs[0].startswith("refused")
+    for (args, _), out in zip(runs[1:], outs[1:]):
+        assert out.split() == expected, (args, out)
+
+
+def test_fork_after_rendering_is_refused_not_hung(fresh_python):
+    """Rendering in the main process, then forking workers, is refused naming the fix (the
+    driver's state would come along without its threads and hang)."""
+    fork, = fresh_python(LOADER_SCRIPT, [(("fork", "render-first"), None)], timeout=120)
+    assert fork.startswith("refused:"), fork
+    assert "multiprocessing_context" in fork and "spawn" in fork and "num_workers=0" in fork

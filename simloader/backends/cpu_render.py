@@ -9,8 +9,10 @@ colours, lights or cameras), so the pixels equal `mujoco.Renderer(model_i).updat
 camera)` bit for bit.
 
 OpenGL contexts belong to the thread that made them current, so every render thread makes its
-renderers once and keeps them. The GL platform: `MUJOCO_GL` where set (as MuJoCo reads it);
-else EGL (a GPU's driver, or Mesa's software rasterizer on a CPU-only machine), else OSMesa.
+renderers once and keeps them. Nothing of GL is initialized before the first render (the
+probe runs in a child process), so a dataset made in a trainer works in forked DataLoader
+workers. The GL platform: `MUJOCO_GL` where set (as MuJoCo reads it); else EGL (a GPU's
+driver, or Mesa's software rasterizer on a CPU-only machine), else OSMesa.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from __future__ import annotations
 import concurrent.futures
 import importlib
 import os
+import subprocess
+import sys
 import threading
 from collections.abc import Sequence
 from typing import Any, Callable, Optional
@@ -29,10 +33,46 @@ from simloader import observe
 
 _PLATFORM_LOCK = threading.Lock()
 _PLATFORM: Optional[tuple[Any, str]] = None  # (GLContext class, name), chosen once
+_GL_PID: Optional[int] = None  # the process that made renderers (owns GL state), if any
+
+# Run in a short-lived child: makes a 1x1 context of platform argv[1] ("" for MUJOCO_GL's).
+# The probe must not run here: a context (even freed) leaves the driver's display initialized
+# in this process, with Mesa llvmpipe's rasterizer threads; a process forked from this one
+# (a DataLoader worker, fork being Linux's default) inherits that state without the threads,
+# and its first render waits for them forever.
+_PROBE = """
+import importlib, sys
+name = sys.argv[1]
+if name:
+    cls = importlib.import_module("mujoco." + name).GLContext
+else:
+    from mujoco.rendering.classic import gl_context
+    cls = gl_context.GLContext
+context = cls(1, 1)
+context.free()
+"""
+
+
+def _probe(name: str) -> Optional[str]:
+    """None if a GL context of `name` ("" for MUJOCO_GL's) can be made, else why not; run
+    in a child process so that nothing of GL is initialized in this one."""
+    try:
+        proc = subprocess.run([sys.executable, "-c", _PROBE, name], capture_output=True,
+                              text=True, timeout=120, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        return "making a 1x1 context did not finish in 120 s"
+    if proc.returncode == 0:
+        return None
+    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
+    return lines[-1] if lines else f"the probe exited with status {proc.returncode}"
 
 
 def gl_platform() -> tuple[Any, str]:
     """The GL context class renderers use, and its name ("egl", "osmesa", or MUJOCO_GL's).
+
+    Whether a platform works is proved in a short-lived child process; this process only
+    imports the platform's module (loads its library), and makes no context: renderers make
+    theirs in the process and thread that render, so the dataset can be made before a fork.
 
     Raises:
       RuntimeError: no GL platform works here, saying what to install.
@@ -45,16 +85,17 @@ def gl_platform() -> tuple[Any, str]:
         errors = []
         if asked:
             from mujoco.rendering.classic import gl_context
-            candidates = [(asked, lambda: gl_context.GLContext)]
+            candidates = [(asked, "", lambda: gl_context.GLContext)]
         else:
-            candidates = [(name, lambda name=name: importlib.import_module(
+            candidates = [(name, name, lambda name=name: importlib.import_module(
                 f"mujoco.{name}").GLContext) for name in ("egl", "osmesa")]
-        for name, load in candidates:
+        for name, module, load in candidates:
+            why = _probe(module)
+            if why is not None:
+                errors.append(f"{name}: {why}")
+                continue
             try:
-                cls = load()
-                context = cls(1, 1)  # proves the platform works: a context can be made
-                context.free()
-                _PLATFORM = (cls, name)
+                _PLATFORM = (load(), name)
                 return _PLATFORM
             except Exception as e:  # noqa: BLE001 - every failure is reported below
                 errors.append(f"{name}: {type(e).__name__}: {e}")
@@ -63,6 +104,19 @@ def gl_platform() -> tuple[Any, str]:
             "works here (" + "; ".join(errors) + "). Install EGL (Debian/Ubuntu: libegl1 "
             "libgl1-mesa-dri libegl-mesa0; a GPU's driver provides its own) or OSMesa "
             "(libosmesa6), or set MUJOCO_GL")
+
+
+def _check_not_forked_after_gl() -> None:
+    """Refuses to render in a process forked from one that had already rendered: the GL
+    driver's state came along without its threads, and rendering would hang."""
+    if _GL_PID is not None and _GL_PID != os.getpid():
+        raise RuntimeError(
+            "record: simloader.Camera cannot render in a process forked after this dataset's "
+            "process had already rendered (OpenGL's driver state does not survive fork; it "
+            "would hang). Give the DataLoader multiprocessing_context=\"spawn\" (or "
+            "\"forkserver\"), e.g. DataLoader(ds, batch_size=None, num_workers=N, "
+            "multiprocessing_context=\"spawn\"), or use num_workers=0, or iterate the "
+            "dataset in the main process only after the workers were started")
 
 
 def check(model: mujoco.MjModel, images: Sequence[observe.CameraImage]) -> None:
@@ -107,6 +161,7 @@ class RenderPool:
 
     def __init__(self, model: mujoco.MjModel, images: Sequence[observe.CameraImage],
                  nthread: int):
+        _check_not_forked_after_gl()
         self.gl, self.platform = gl_platform()
         self.model = model
         self.images = tuple(images)
@@ -120,6 +175,9 @@ class RenderPool:
         """This thread's renderers (one per image size), MjData and scene options."""
         local = self.local
         if not hasattr(local, "renderers"):
+            global _GL_PID
+            _check_not_forked_after_gl()
+            _GL_PID = os.getpid()
             with _swapped_gl(self.gl):
                 local.renderers = {size: mujoco.Renderer(self.model, *size)
                                    for size in self.sizes}

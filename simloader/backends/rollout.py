@@ -324,8 +324,11 @@ class RolloutBackend(Backend):
         self._set_params(params, np.arange(self.config.nbatch))
 
     def close(self) -> None:
-        # drops the batch's thread pool now rather than at garbage collection
-        self.batch = None
+        # frees the batch's thread pool now rather than at garbage collection: every view of
+        # its buffers (warnings, expanded fields, the closed loop's bound outputs) keeps the
+        # native mujoco._batch.Batch, and its threads, alive
+        self.batch = self.warnings = self.live = None
+        self.expanded = {}
         if self.renderer is not None:
             self.renderer.close()
 
