@@ -108,6 +108,13 @@ def main():
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.batches)
     print(f"backend {backend} on {device}: {args.batches} batches of {args.nbatch} trajectories "
           f"x {args.nstep // 2} frames of 32x32 RGB")
+    if backend == "rollout" and not args.quick:
+        # OpenGL on a CPU is Mesa's software rasterizer: about 36 frames/s at 32x32 on a
+        # 2-core machine (as fast as a plain mujoco.Renderer there), so the default run takes
+        # about 14 hours on such a machine
+        print(f"note: rendering on the CPU: {args.batches * args.nbatch * args.nstep // 2:,} "
+              f"frames, about 36 frames/s per 2 cores with Mesa; --quick runs in seconds, a "
+              f"GPU (impl='warp') renders millions per second")
 
     def actions(batch):
         # the action of frame j: the mean control of its two steps
