@@ -12,6 +12,7 @@ DataLoader workers.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Mapping
 from typing import Any, Optional
 
@@ -32,14 +33,17 @@ def check(policy: Any) -> None:
 def version(policy: Any) -> int:
     """Which update of the weights the policy is at now.
 
-    The policy's own `version` attribute (an int the training loop bumps after each update) if
-    it has one; else, for a `torch.nn.Module`, the sum of torch's version counters of its
+    The policy's own `version` attribute (an int the training loop bumps after each update, or
+    a one-element integer tensor, e.g. a buffer in shared memory that DataLoader workers
+    read) if it has one; else, for a `torch.nn.Module`, the sum of torch's version counters of its
     parameters and buffers, which every in-place update (`optimizer.step()`,
     `param.copy_()`, ...) increases; else -1 (unknown).
     """
     own = getattr(policy, "version", None)
     if isinstance(own, int) and not isinstance(own, bool):
         return own
+    if isinstance(own, torch.Tensor) and own.numel() == 1 and not own.is_floating_point():
+        return int(own)  # a shared counter buffer: what DataLoader workers can see
     if isinstance(policy, torch.nn.Module):
         return int(sum(t._version for t in _tensors(policy)))
     return -1
@@ -54,7 +58,9 @@ def check_worker(policy: Any) -> None:
 
     A worker gets a copy of the policy when it starts; updates made by the training process
     reach it only through shared memory (`module.share_memory()` before the DataLoader starts
-    its workers, CPU tensors). A module with every parameter and buffer shared is accepted.
+    its workers, CPU tensors). A module with every parameter and buffer shared is accepted if
+    it carries a shared version counter (a `version` buffer), so that its batches name the
+    update that made them.
 
     Raises:
       RuntimeError: a policy that is not a module whose tensors are all in shared memory.
@@ -64,12 +70,80 @@ def check_worker(policy: Any) -> None:
     if isinstance(policy, torch.nn.Module):
         tensors = _tensors(policy)
         if all(t.is_shared() and t.device.type == "cpu" for t in tensors):
-            return
+            counter = getattr(policy, "version", None)
+            if isinstance(counter, torch.Tensor) and counter.is_shared():
+                return
+            # torch's own version counters live in each process: a worker would name every
+            # batch with the version it started with
+            raise RuntimeError(
+                "policy: a DataLoader worker sees the shared weights but not which update "
+                "they are; give the policy a shared version counter and bump it after each "
+                "update: policy.register_buffer('version', torch.zeros((), "
+                "dtype=torch.int64)) before policy.share_memory(), then policy.version += 1 "
+                "after optimizer.step(); or use num_workers=0")
     raise RuntimeError(
         "policy: a DataLoader worker holds a copy of the policy made when it started, so the "
         "training loop's updates would never reach it; use num_workers=0 (the policy runs in "
         "a thread of the training process, on its live weights), or a CPU torch.nn.Module "
         "whose tensors are in shared memory (call policy.share_memory() before iterating)")
+
+
+class Snapshot:
+    """The weights each batch runs with: one version of them for the whole batch.
+
+    A training loop updates the live module while the producer thread simulates, so a policy
+    called step by step would mix the weights of several updates in one batch. At the start
+    of every batch the module's parameters and buffers are copied into a private copy of the
+    module (made once), which the batch calls; the copy is queued on each GPU's default stream,
+    where a training loop queues its updates, so it reads whole updates only, and it is taken
+    again if the version moved meanwhile. Cost: one copy of the weights per batch. A callable
+    that is not a module is called live (its version is its own `version`, or -1).
+    """
+
+    def __init__(self, policy: Any):
+        self.policy = policy
+        self.frozen: Optional[torch.nn.Module] = None
+
+    def take(self) -> tuple[Callable, int]:
+        """(what to call this batch, the version of its weights)."""
+        live = self.policy
+        if not isinstance(live, torch.nn.Module):
+            return live, version(live)
+        if self.frozen is None:
+            try:
+                self.frozen = copy.deepcopy(live)
+            except Exception as e:  # noqa: BLE001 - said with what to do
+                raise TypeError(f"policy: simloader runs each batch on a copy of the policy's "
+                                f"weights (one version per batch) and could not copy this "
+                                f"module ({type(e).__name__}: {e}); make it deep-copyable") \
+                    from None
+        theirs, mine = _tensors(live), _tensors(self.frozen)
+        for _ in range(_SNAPSHOT_TRIES):
+            before = version(live)
+            _copy_in_order(mine, theirs)
+            now = version(live)
+            if now == before:
+                break
+        return self.frozen, now
+
+
+_SNAPSHOT_TRIES = 10  # the version kept moving: the last copy is named by the last version
+
+
+def _copy_in_order(mine: list, theirs: list) -> None:
+    """`mine[i].copy_(theirs[i])`, GPU tensors on their device's default stream (after the
+    updates a training loop queued there), the caller's stream then waiting for the copies."""
+    with torch.no_grad():
+        for device in {t.device for t in theirs if t.is_cuda}:
+            stream = torch.cuda.default_stream(device)
+            with torch.cuda.stream(stream):
+                for a, b in zip(mine, theirs):
+                    if b.device == device:
+                        a.copy_(b)
+            torch.cuda.current_stream(device).wait_stream(stream)
+        for a, b in zip(mine, theirs):
+            if not b.is_cuda:
+                a.copy_(b)
 
 
 class Observations(dict):

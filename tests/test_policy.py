@@ -220,7 +220,9 @@ class Bias(torch.nn.Module):
 
 
 policy = Bias()
-if sys.argv[1] == "shared":
+if sys.argv[1] != "copied":
+    if sys.argv[1] == "counted":  # a shared version counter the workers read
+        policy.register_buffer("version", torch.zeros((), dtype=torch.int64))
     policy.share_memory()
 ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3, policy=policy,
                           record=("qpos",), nthread=1, num_batches=40, prefetch=1)
@@ -228,38 +230,87 @@ seen = []
 try:
     for i, batch in enumerate(DataLoader(ds, batch_size=None, num_workers=2,
                                          multiprocessing_context="fork")):
-        seen.append(float(batch["control"][0, 0, 0]))
+        seen.append([float(batch["control"][0, 0, 0]), int(batch["policy/version"])])
         if i == 2:
             with torch.no_grad():
                 policy.bias.fill_(-0.5)
+                policy.version += 1
 except RuntimeError as e:
     seen = str(e)
 print(json.dumps(seen))
 """
 
 
-def test_forked_workers_need_shared_weights(fresh_python):
-    refused, shared = (json.loads(out) for out in fresh_python(
-        FORKED_WORKERS, [(["copied"], {}), (["shared"], {})], timeout=120))
+def test_forked_workers_need_shared_weights_and_a_shared_version(fresh_python):
+    refused, uncounted, counted = (json.loads(out) for out in fresh_python(
+        FORKED_WORKERS, [(["copied"], {}), (["shared"], {}), (["counted"], {})], timeout=120))
     assert "share_memory" in refused
-    # the training process's updates reach the workers
-    assert shared[0] == 0.5 and shared[-1] == -0.5
+    # shared weights whose version the workers cannot see are refused with what to write
+    assert "register_buffer('version'" in uncounted
+    # the training process's updates reach the workers, named by the version that made them
+    assert counted[0] == [0.5, 0] and counted[-1] == [-0.5, 1]
+    assert all(version == (value < 0) for value, version in counted)
 
 
 def test_spawned_workers_share_the_weights():
     """Sending the policy to a spawned worker puts its CPU tensors in shared memory (torch's
     pickler), so updates reach the workers without share_memory()."""
     policy = Bias()
+    policy.register_buffer("version", torch.zeros((), dtype=torch.int64))
     ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3, policy=policy,
                               record=("qpos",), nthread=1, num_batches=40, prefetch=1)
     seen = []
     for i, batch in enumerate(DataLoader(ds, batch_size=None, num_workers=2,
                                          multiprocessing_context="spawn")):
-        seen.append(float(batch["control"][0, 0, 0]))
+        seen.append((float(batch["control"][0, 0, 0]), int(batch["policy/version"])))
         if i == 2:
             with torch.no_grad():
                 policy.bias.fill_(-0.5)
-    assert seen[0] == 0.5 and seen[-1] == -0.5
+                policy.version += 1
+    assert seen[0] == (0.5, 0) and seen[-1] == (-0.5, 1)
+    assert all(version == (value < 0) for value, version in seen)
+
+
+def test_a_batch_runs_one_version_of_the_weights():
+    """A trainer thread updates the weights all the time while batches are simulated: every
+    batch's controls come from one version of the weights, the one `policy/version` names."""
+    import threading
+    import time
+
+    class SlowBias(Bias):
+        def forward(self, obs):
+            time.sleep(0.002)  # a batch spans many updates
+            return super().forward(obs)
+
+    policy = SlowBias()
+    stop = threading.Event()
+
+    def train():
+        value = 0.0
+        while not stop.is_set():
+            value += 1e-4  # within the ctrlrange: no clamp hides a change
+            with torch.no_grad():
+                policy.bias.fill_(value)  # one in-place update: one version
+            time.sleep(0.0005)
+
+    trainer = threading.Thread(target=train)
+    trainer.start()
+    try:
+        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=20,
+                                  policy=policy, record=("qpos",), nthread=1, num_batches=8)
+        batches = list(ds)
+    finally:
+        stop.set()
+        trainer.join()
+    values = {}
+    for b in batches:
+        u = b["control"][..., 0]
+        assert (u == u[0, 0]).all(), "a batch mixed several versions of the weights"
+        version = int(b["policy/version"])
+        values.setdefault(version, float(u[0, 0]))
+        assert values[version] == float(u[0, 0])
+    # the updates went on during the batches: later batches ran later weights
+    assert len(values) > 1 and sorted(values) == sorted(values, key=values.get)
 
 
 @pytest.mark.gpu

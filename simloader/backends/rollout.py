@@ -18,7 +18,7 @@ import copy
 import dataclasses
 import threading
 import time
-from typing import Optional, Union
+from typing import Any, Optional, Union
 
 import mujoco
 import numpy as np
@@ -79,6 +79,7 @@ class RolloutBackend(Backend):
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
         self.live: Optional[_LiveSources] = None  # closed loop: what the policy observes
+        self.snapshot = policy.Snapshot(c.policy) if c.policy is not None else None
         # cameras: rendered by a pool of renderer threads from recorded state rows
         self.images = [o for o in c.observations if o.rendered]
         self.renderer = (cpu_render.RenderPool(c.model, self.images, self.nthread)
@@ -100,7 +101,8 @@ class RolloutBackend(Backend):
 
         # a new buffer per batch, also for a fixed array: a consumer may edit its batch
         control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
-        version = policy.version(c.policy) if c.policy is not None else None
+        # the weights this batch runs with, one version of them (a copy taken now)
+        act, version = self.snapshot.take() if c.policy is not None else (None, None)
         if c.policy is not None:
             control[...] = 0.0  # filled step by step
         elif c.control.fixed is not None:
@@ -132,7 +134,7 @@ class RolloutBackend(Backend):
         out = {s: array for s, (_, array) in recorded.items()}
         extras = {}
         if c.policy is not None:
-            bad_control, extras = self._closed_loop(index, control, low, high, out)
+            bad_control, extras = self._closed_loop(index, control, low, high, out, act)
         else:
             self._rollout(control, out)
         self.stats.add(simulate_s=time.perf_counter() - start)
@@ -181,7 +183,7 @@ class RolloutBackend(Backend):
                 a[:, j] = frame[s][:, 0]
 
     def _closed_loop(self, index: int, control: np.ndarray, low: np.ndarray, high: np.ndarray,
-                     out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+                     out: dict, act: Any) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
         """Runs the batch's `nstep` steps with the policy picking each step's controls (into
         `control`, as applied), recording the sources into `out` as `_rollout` does.
 
@@ -202,7 +204,7 @@ class RolloutBackend(Backend):
             noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
             c.policy_noise.sample_numpy(self.seed(index, sharding.CONTROL), noise,
                                         c.policy_noise.default_rows)
-        call = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep, c.device)
+        call = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, c.device)
         bad = np.zeros(c.nbatch, dtype=bool)
         b.forward()
         for t in range(c.nstep):

@@ -159,6 +159,7 @@ class MjxBackend(Backend):
         self.in_worker = torch.utils.data.get_worker_info() is not None
         self.previous: Any = None  # closed loop: the last batch's data (donated to the next)
         self.caller: Optional[policy.Caller] = None  # closed loop: this batch's policy calls
+        self.snapshot = policy.Snapshot(config.policy) if config.policy is not None else None
 
     def _policy_step(self, obs: dict[str, torch.Tensor], t: int) -> torch.Tensor:
         """The policy's control rows for step `t`, from the observations before it (tensors
@@ -186,8 +187,8 @@ class MjxBackend(Backend):
         dispatched = time.perf_counter()
         extras = None
         if p.closed_loop is not None:
-            version = policy.version(c.policy)
-            self.caller = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep,
+            act, version = self.snapshot.take()  # one version of the weights per batch
+            self.caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep,
                                         c.device or runtime.torch_device(self.device))
             outputs, carry, self.previous = p.closed_loop.run(
                 args, self._policy_step, c.nstep, self.previous)

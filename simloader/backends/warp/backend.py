@@ -108,6 +108,7 @@ class WarpBackend(Backend):
         self.restored: Optional[torch.Tensor] = None  # resumed rows, applied at the next batch
         self.rows: Optional[torch.Tensor] = None  # continuing: the rows after the last batch
         self.token = object()  # names this iterator as the engine's owner (holding nothing)
+        self.snapshot = policy.Snapshot(config.policy) if config.policy is not None else None
         self.fixed: Optional[torch.Tensor] = None  # an explicit control array, on the device
         self.last_ready = 0.0
         self.warned_overflow = False
@@ -154,7 +155,8 @@ class WarpBackend(Backend):
         if c.randomization is not None:
             drawn.update({k: self._upload(v) for k, v in
                           c.randomization.sample(randomize_seed, c.nbatch).items()})
-        version = policy.version(c.policy) if c.policy is not None else None
+        # the weights this batch runs with, one version of them (a copy taken now)
+        act, version = self.snapshot.take() if c.policy is not None else (None, None)
         dispatched = time.perf_counter()
         with e.queued():
             self._start_trajectories(drawn, x0)
@@ -172,7 +174,7 @@ class WarpBackend(Backend):
             e.start()
             extras = {}
             if c.policy is not None:
-                extras = self._closed_loop()
+                extras = self._closed_loop(act)
                 extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
             else:
                 for _ in range(c.nstep):
@@ -240,12 +242,12 @@ class WarpBackend(Backend):
         e.low[:, :c.model.nu] = torch.where(limited, ranges[..., 0], -torch.inf)
         e.high[:, :c.model.nu] = torch.where(limited, ranges[..., 1], torch.inf)
 
-    def _closed_loop(self) -> dict[str, torch.Tensor]:
+    def _closed_loop(self, act: Any) -> dict[str, torch.Tensor]:
         """The batch's steps with the policy before each: its rows into the engine's input,
         one replay. Nothing waits on the host. Returns the policy's extras."""
         c, e = self.config, self.engine
         target = c.device or self.device
-        caller = policy.Caller(c.policy, c.nbatch, c.ncontrol, c.nstep, target)
+        caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, target)
         obs = e.observe_now()
         rendered = {o.key for o in c.observations if o.rendered}
         for t in range(c.nstep):
