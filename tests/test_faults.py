@@ -87,3 +87,33 @@ def test_fault_in_one_of_1024_trajectories_is_isolated(cartpole, cache_dir, clea
         for batch in batches:
             np.testing.assert_array_equal(batch["state"][FAULTY].numpy(), state[0])
             np.testing.assert_array_equal(batch["sensordata"][FAULTY].numpy(), sensordata[0])
+
+
+MUJOCO_WARNINGS = """
+import os, warnings
+import numpy as np
+import simloader
+S = simloader.layout.S
+u = np.zeros((8, 5, 3))
+u[:, 2, 2] = 1e30  # every trajectory diverges: MuJoCo warns about each one
+ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=8, nstep=5, nthread=2,
+                          control=u, control_spec=int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED),
+                          num_batches=3)
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    flagged = sum(int(b["diverged"].sum()) for b in ds)
+said = [str(w.message) for w in seen if "MuJoCo warned" in str(w.message)]
+print(flagged, len(said), os.path.exists("MUJOCO_LOG.TXT"))
+"""
+
+
+def test_mujoco_warnings_are_counted_and_summarised_not_printed(tmp_path, checkout_env):
+    """24 diverged trajectories: flagged, one summary warning, no line of MuJoCo's per
+    trajectory on stderr and no MUJOCO_LOG.TXT in the working directory."""
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-c", MUJOCO_WARNINGS], capture_output=True,
+                         text=True, timeout=120, cwd=tmp_path, env=checkout_env())
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["24", "1", "False"], out.stdout
+    assert "Nan, Inf or huge value" not in out.stderr, out.stderr

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, policy, resume, sharding
+from simloader import controls, handoff, layout, mujoco_warnings, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends import cpu_render
 from simloader.backends.base import Backend
@@ -49,6 +49,7 @@ class RolloutBackend(Backend):
 
     def __init__(self, config, shard, stats):
         super().__init__(config, shard, stats)
+        mujoco_warnings.install()  # counted and summarised, not a line per diverged trajectory
         c = config
         self.nthread = sharding.threads_per_worker(shard, c.nthread, c.torch_threads)
         self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
@@ -299,6 +300,8 @@ class RolloutBackend(Backend):
             if recorded.is_floating_point() and recorded.numel():
                 finite &= np.isfinite(recorded.numpy().reshape(c.nbatch, -1)).all(axis=1)
         diverged = p.warned | ~finite
+        if diverged.any():
+            mujoco_warnings.summarize(stacklevel=4)
         self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
         out = {o.key: o.select(p.recorded[o.source]) for o in c.observations if not o.rendered}
         out.update(control=p.control, initial_state=p.initial_state, **p.extras)
