@@ -730,7 +730,8 @@ def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repe
     for backend in backends:
         if backend == "rollout":
             raw, batch_s = raw_rollout(model, w, cpu_count(), seed)
-            sim = SimloaderMeasure(model, w, "rollout", seed)
+            # all the cores, as the raw rollout: nothing trains beside this measurement
+            sim = SimloaderMeasure(model, w, "rollout", seed, nthread=cpu_count())
             n = batches_for(batch_s, min_batches, min_seconds)
             measures[RAW_ROLLOUT] = lambda raw=raw, n=n: raw(n)
             measures[SIMLOADER_ROLLOUT] = lambda sim=sim, n=n: sim.measure(n)

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import controls, initial, layout, models, observe
+from simloader import controls, initial, layout, models, observe, sharding
 from simloader import policy as simloader_policy
 from simloader import randomize as dr
 
@@ -256,6 +256,7 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     num_batches = _int("num_batches", num_batches, 1, allow_none=True)
     seed = _int("seed", seed, 0)
     nthread = _int("nthread", nthread, 1, allow_none=True)
+    sharding.check_nthread(nthread)
     prefetch = _int("prefetch", prefetch, 1)
     if not isinstance(continue_episodes, bool):
         raise TypeError(f"continue_episodes: expected a bool, got {type(continue_episodes).__name__}")

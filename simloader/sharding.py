@@ -19,7 +19,6 @@ import torch
 
 # independent streams within one batch
 INITIAL, CONTROL, RANDOMIZE = 0, 1, 2
-_warned_oversubscribed = False  # the oversubscription warning: once per process
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,29 +72,32 @@ def available_cpus() -> int:
 
 
 def threads_per_worker(shard: Shard, nthread: Optional[int],
-                       torch_threads: Optional[int] = None) -> int:
+                       torch_threads: Optional[int] = None,
+                       trains_on_cpu: bool = True) -> int:
     """CPU threads for one worker's simulation: the user's choice, or the cores split evenly
     among this process's workers and the ranks torchrun started on this machine.
 
-    With the default, warns once per process (from worker 0) when these threads and the
-    consumer's torch intra-op threads (`torch_threads`, counted where the dataset was made)
-    add up to more than the cores: both busy at once oversubscribe the CPU (measured on 2
-    cores: a training loop with 2 + 2 threads took 1.3x as long as with nthread=1).
+    By default the simulation leaves room to the training loop when that may run on the CPU
+    (`trains_on_cpu`: batches delivered to the CPU, and torch using more than one intra-op
+    thread): it takes half the cores then. Measured on 2 cores: a CPU training loop beside
+    2 simulation threads took 1.3x as long as beside 1. Batches delivered to a GPU leave the
+    CPU to the simulation: all the cores.
     """
     if nthread is not None:
         return nthread
-    global _warned_oversubscribed
     local_ranks = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
     cores = available_cpus()
-    threads = max(1, cores // (shard.num_workers * local_ranks))
-    busy = (threads * shard.num_workers + (torch_threads or 0)) * local_ranks
-    if torch_threads and busy > cores and shard.worker == 0 and not _warned_oversubscribed:
-        _warned_oversubscribed = True
+    if trains_on_cpu and (torch_threads or 0) > 1:
+        cores = max(1, cores // 2)
+    return max(1, cores // (shard.num_workers * local_ranks))
+
+
+def check_nthread(nthread: Optional[int]) -> None:
+    """Warns, pointing at the user's SimDataset line, when `nthread` alone asks for more
+    threads than the cores: each rollout process oversubscribes the machine."""
+    cores = available_cpus()
+    if nthread is not None and nthread > cores:
         warnings.warn(
-            f"simloader: {threads * shard.num_workers} simulation thread(s) and torch's "
-            f"{torch_threads} intra-op thread(s) per process share {cores} cores "
-            f"(oversubscribed while the simulation overlaps training: on 2 cores a training "
-            f"loop took 1.3x as long). Give SimDataset nthread= or call torch.set_num_threads() "
-            f"so that they add up to the cores; passing nthread silences this.",
-            RuntimeWarning, stacklevel=2)
-    return threads
+            f"nthread={nthread} asks for more simulation threads than the {cores} cores of this "
+            f"machine (per process: DataLoader workers and torchrun ranks each start as many); "
+            f"nthread=None splits the cores", RuntimeWarning, stacklevel=4)

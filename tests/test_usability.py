@@ -90,19 +90,28 @@ def test_float64_on_mjx_says_it_is_an_upcast():
                              compilation_cache=False)
 
 
-def test_oversubscription_is_said_once_at_run_time(monkeypatch):
+def test_the_default_thread_split_needs_no_warning(monkeypatch):
     # torch's intra-op threads and the rollout threads together oversubscribe small machines
-    # (2 cores: 2 + 2 threads made a training loop 1.3x slower than 2 + 1); said once, and
-    # not when nthread is given
+    # (2 cores: 2 + 2 threads made a CPU training loop 1.3x slower than 2 + 1): by default
+    # the simulation takes half the cores when training may run on the CPU, all of them when
+    # batches go to a GPU; nothing is said about a default
     from simloader import sharding
     monkeypatch.setattr(sharding, "available_cpus", lambda: 2)
-    monkeypatch.setattr(sharding, "_warned_oversubscribed", False)
     shard = sharding.Shard()
-    with pytest.warns(RuntimeWarning, match="2 simulation thread.* torch's 2 intra-op "
-                                            "thread.* share 2 cores"):
-        assert sharding.threads_per_worker(shard, None, torch_threads=2) == 2
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert sharding.threads_per_worker(shard, None, torch_threads=2) == 2  # once
-        monkeypatch.setattr(sharding, "_warned_oversubscribed", False)
+        assert sharding.threads_per_worker(shard, None, torch_threads=2) == 1
+        assert sharding.threads_per_worker(shard, None, torch_threads=2,
+                                           trains_on_cpu=False) == 2
+        assert sharding.threads_per_worker(shard, None, torch_threads=1) == 2
         assert sharding.threads_per_worker(shard, 1, torch_threads=2) == 1
+        simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=2)
+
+
+def test_an_nthread_beyond_the_cores_is_said_at_the_users_line(monkeypatch):
+    from simloader import sharding
+    monkeypatch.setattr(sharding, "available_cpus", lambda: 2)
+    with pytest.warns(RuntimeWarning, match="nthread=3 asks for more simulation threads than "
+                                            "the 2 cores") as seen:
+        simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=2, nthread=3)
+    assert seen[0].filename == __file__

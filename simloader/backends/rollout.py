@@ -51,7 +51,9 @@ class RolloutBackend(Backend):
         super().__init__(config, shard, stats)
         mujoco_warnings.install()  # counted and summarised, not a line per diverged trajectory
         c = config
-        self.nthread = sharding.threads_per_worker(shard, c.nthread, c.torch_threads)
+        self.nthread = sharding.threads_per_worker(
+            shard, c.nthread, c.torch_threads,
+            trains_on_cpu=c.device is None or c.device.type == "cpu")
         self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
         if c.models is not None:
             self.batch.set_models(c.models)
