@@ -81,8 +81,9 @@ class SimDataset(torch.utils.data.IterableDataset):
       seed: all randomness derives from it, the worker's batch indices and the rank.
       device: torch device of the delivered tensors (None: the backend's own).
       dtype: torch dtype of the floating tensors (None: float64 for rollout, float32 for mjx).
-      nthread: CPU threads of the rollout backend per worker (None: the cores split among
-        workers and local ranks).
+      nthread: CPU threads of the rollout backend per worker (None: the cores, or half of
+        them when batches stay on the CPU beside a multi-threaded torch, split among workers
+        and local ranks).
       prefetch: batches simulated ahead of the consumer.
       record: the names to record, each a batch key: "state", "sensordata", a lowercase
         mjtState component ("qpos", "qvel", "act", "time", "ctrl", "xfrc_applied", ...), any
