@@ -257,7 +257,8 @@ def startup_rows(args) -> list[list]:
 def pixel_rows(args) -> list[list]:
     model = simloader.load_model("cartpole")
     nworld, nstep = (64, 10) if args.quick else (16384, 50)
-    ours = Simloader(model, nworld, nstep, 3, impl="warp",
+    n = max(3, int(args.seconds * 2e6 / (nworld * nstep)))  # batches per timed epoch
+    ours = Simloader(model, nworld, nstep, n, impl="warp",
                      record=("state", simloader.Camera(0, height=64, width=64)))
     runners = {
         "raw MuJoCo Warp step + render graph, RGB copied out": RawWarp(
