@@ -101,6 +101,17 @@ class Engine:
         self.views = {name: self._data(name) for name in (
             *_STATE_ARRAYS.values(), "qacc", "sensordata", "overflow")}
         self.pool_tables = self._pool_tables()
+        # (data array, first column, end) of each non-empty mjSTATE_INTEGRATION component, in
+        # mjtState order: derived once, used by every batch's reset and checkpoint
+        self.integration_layout = []
+        for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):
+            cols = layout.component_columns(c.model, layout.INTEGRATION, int(bit))
+            if len(cols):
+                self.integration_layout.append((name, int(cols[0]), int(cols[-1]) + 1))
+        # randomized elements, on the device once (not uploaded every batch)
+        self.elements = ({} if c.randomization is None else {
+            r.param.key: torch.as_tensor(r.elements, device=device)
+            for r in c.randomization.resolved})
         self.observations = [o for o in c.observations if not o.rendered]
         for o in self.observations:
             for name in o.fields():
@@ -252,7 +263,7 @@ class Engine:
             field, convert = CONVERTED.get(r.field, (r.field, None))
             value = values[r.param.key]
             flat = self.model_views[field].view(self.config.nbatch, -1)
-            flat[:, torch.as_tensor(r.elements, device=flat.device)] = (
+            flat[:, self.elements[r.param.key]] = (
                 convert(value) if convert else value).to(flat.dtype)
         if plan.setconst:
             self.mjw.set_const(self.m, self.d)
@@ -260,14 +271,10 @@ class Engine:
     def reset(self, rows: torch.Tensor, fresh: torch.Tensor) -> None:
         """Trajectories `fresh` ((nbatch,) bool) start from their mjSTATE_INTEGRATION `rows`
         ((nbatch, nintegration)); the others continue. Overflow bits start afresh."""
-        c = self.config
-        for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):
-            cols = layout.component_columns(c.model, layout.INTEGRATION, int(bit))
-            if not len(cols):
-                continue
+        for name, start, stop in self.integration_layout:
             view = self.views[name]
-            value = rows[:, cols[0]:cols[-1] + 1].to(view.dtype) if view.dtype != torch.bool \
-                else rows[:, cols[0]:cols[-1] + 1] != 0
+            value = rows[:, start:stop].to(view.dtype) if view.dtype != torch.bool \
+                else rows[:, start:stop] != 0
             view.copy_(torch.where(fresh[:, None], value, view))
         self.views["overflow"].zero_()
 
@@ -277,12 +284,9 @@ class Engine:
 
     def integration(self) -> torch.Tensor:
         """(nbatch, nintegration): the mjSTATE_INTEGRATION rows now (a new tensor)."""
-        c = self.config
-        parts = []
-        for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):  # mjtState order
-            if mujoco.mj_stateSize(c.model, int(bit)):
-                parts.append(self.views[name].to(self.views["qpos"].dtype))
-        return torch.cat(parts, dim=1)
+        like = self.views["qpos"].dtype
+        return torch.cat([self.views[name].to(like) for name, _, _ in self.integration_layout],
+                         dim=1)
 
     def observe_now(self) -> dict[str, torch.Tensor]:
         """The policy's first observations, of the state after the reset: derived fields by
