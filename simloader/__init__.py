@@ -6,7 +6,7 @@
         batch["state"]  # (4096, 200, nstate)
 """
 
-from simloader import controls, initial, layout, observe, randomize
+from simloader import controls, initial, layout, observe, policy, randomize
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
 from simloader.observe import Camera
@@ -27,5 +27,6 @@ __all__ = [
     "load_model",
     "named_models",
     "observe",
+    "policy",
     "randomize",
 ]

@@ -12,8 +12,11 @@ DataLoader workers.
 
 from __future__ import annotations
 
+import contextlib
 import copy
-from collections.abc import Callable, Mapping
+import time
+import weakref
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any, Optional
 
 import torch
@@ -49,6 +52,58 @@ def version(policy: Any) -> int:
     return -1
 
 
+# modules whose weights a training loop is updating now (`updating`), for those without a
+# `version` attribute, whose in-progress mark lives in this process only
+_IN_UPDATE: "weakref.WeakKeyDictionary[Any, int]" = weakref.WeakKeyDictionary()
+
+
+@contextlib.contextmanager
+def updating(policy: Any) -> Iterator[None]:
+    """Marks an update of the policy's weights as in progress, and counts it when it ends.
+
+    ``with simloader.policy.updating(policy): optimizer.step()``. No batch copies weights
+    while the update runs, and the batches after it name the version it made. Without it, a
+    multi-tensor update may be copied half done (torch's counters move per tensor), and a
+    shared `version` bumped after the update leaves a moment where a batch copies the new
+    weights under the old version. The writer's side of a sequence lock: a `version` attribute
+    (an int, or the shared integer buffer DataLoader workers read) holds -(v + 2) during the
+    update (below -1, the "unknown" version) and v + 1 after it; a module without one is
+    marked in this process only.
+    """
+    counter = getattr(policy, "version", None)
+    if isinstance(counter, torch.Tensor) and counter.numel() == 1 \
+            and not counter.is_floating_point():
+        before = int(counter)
+        with torch.no_grad():
+            counter.fill_(-(before + 2))
+            try:
+                yield
+            finally:
+                counter.fill_(before + 1)
+    elif isinstance(counter, int) and not isinstance(counter, bool):
+        policy.version = -(counter + 2)
+        try:
+            yield
+        finally:
+            policy.version = counter + 1
+    elif counter is None:
+        _IN_UPDATE[policy] = _IN_UPDATE.get(policy, 0) + 1
+        try:
+            yield
+        finally:
+            _IN_UPDATE[policy] -= 1
+    else:
+        raise TypeError(f"policy.version: expected an int or a one-element integer tensor "
+                        f"(the update counter), got {type(counter).__name__}")
+
+
+UPDATE_WAIT_S = 60.0  # an update still in progress after this long is a crashed trainer
+
+
+def _in_update(policy: Any) -> bool:
+    return version(policy) < -1 or _IN_UPDATE.get(policy, 0) > 0
+
+
 def _tensors(policy: torch.nn.Module) -> list[torch.Tensor]:
     return [*policy.parameters(), *policy.buffers()]
 
@@ -77,10 +132,11 @@ def check_worker(policy: Any) -> None:
             # batch with the version it started with
             raise RuntimeError(
                 "policy: a DataLoader worker sees the shared weights but not which update "
-                "they are; give the policy a shared version counter and bump it after each "
-                "update: policy.register_buffer('version', torch.zeros((), "
-                "dtype=torch.int64)) before policy.share_memory(), then policy.version += 1 "
-                "after optimizer.step(); or use num_workers=0")
+                "they are; give the policy a shared version counter: "
+                "policy.register_buffer('version', torch.zeros((), dtype=torch.int64)) "
+                "before policy.share_memory(), then update the weights inside "
+                "`with simloader.policy.updating(policy): optimizer.step()`, which counts "
+                "the update; or use num_workers=0")
     raise RuntimeError(
         "policy: a DataLoader worker holds a copy of the policy made when it started, so the "
         "training loop's updates would never reach it; use num_workers=0 (the policy runs in "
@@ -95,9 +151,10 @@ class Snapshot:
     called step by step would mix the weights of several updates in one batch. At the start
     of every batch the module's parameters and buffers are copied into a private copy of the
     module (made once), which the batch calls; the copy is queued on each GPU's default stream,
-    where a training loop queues its updates, so it reads whole updates only, and it is taken
-    again if the version moved meanwhile. Cost: one copy of the weights per batch. A callable
-    that is not a module is called live (its version is its own `version`, or -1).
+    where a training loop queues its updates, so it reads whole updates only. It is taken
+    again if the version moved meanwhile or an update marked by `updating` ran, and waits
+    while one runs. Cost: one copy of the weights per batch. A callable that is not a module
+    is called live (its version is its own `version`, or -1).
     """
 
     def __init__(self, policy: Any):
@@ -118,16 +175,22 @@ class Snapshot:
                                 f"module ({type(e).__name__}: {e}); make it deep-copyable") \
                     from None
         theirs, mine = _tensors(live), _tensors(self.frozen)
-        for _ in range(_SNAPSHOT_TRIES):
+        # the reader's side of the sequence lock (`updating`): copy while no update runs, and
+        # keep the copy only if none ran meanwhile
+        start = time.monotonic()
+        while True:
             before = version(live)
-            _copy_in_order(mine, theirs)
-            now = version(live)
-            if now == before:
-                break
-        return self.frozen, now
-
-
-_SNAPSHOT_TRIES = 10  # the version kept moving: the last copy is named by the last version
+            if not _in_update(live):
+                _copy_in_order(mine, theirs)
+                if version(live) == before and not _in_update(live):
+                    return self.frozen, before
+            if time.monotonic() - start > UPDATE_WAIT_S:
+                raise RuntimeError(
+                    f"policy: no copy of its weights without an update running in "
+                    f"{UPDATE_WAIT_S:.0f} s (the version stayed below -1, was marked by "
+                    f"simloader.policy.updating, or moved during every copy); did the training "
+                    f"loop stop inside an update?")
+            time.sleep(1e-5)
 
 
 def _copy_in_order(mine: list, theirs: list) -> None:

@@ -232,9 +232,8 @@ try:
                                          multiprocessing_context="fork")):
         seen.append([float(batch["control"][0, 0, 0]), int(batch["policy/version"])])
         if i == 2:
-            with torch.no_grad():
+            with torch.no_grad(), simloader.policy.updating(policy):
                 policy.bias.fill_(-0.5)
-                policy.version += 1
 except RuntimeError as e:
     seen = str(e)
 print(json.dumps(seen))
@@ -264,9 +263,8 @@ def test_spawned_workers_share_the_weights():
                                          multiprocessing_context="spawn")):
         seen.append((float(batch["control"][0, 0, 0]), int(batch["policy/version"])))
         if i == 2:
-            with torch.no_grad():
+            with torch.no_grad(), simloader.policy.updating(policy):
                 policy.bias.fill_(-0.5)
-                policy.version += 1
     assert seen[0] == (0.5, 0) and seen[-1] == (-0.5, 1)
     assert all(version == (value < 0) for value, version in seen)
 
@@ -515,3 +513,64 @@ def test_warp_closed_loop_renders_what_the_open_loop_renders(monkeypatch):
                 "camera/front/segmentation"):
         assert torch.equal(a[key], b[key]), key
     assert a["policy/depth"].shape == (3, 6)
+
+
+class TwoHalves(torch.nn.Module):
+    """Control = a + b over two parameters, which an update changes one after the other."""
+
+    def __init__(self):
+        super().__init__()
+        self.a = torch.nn.Parameter(torch.zeros(1, dtype=torch.float64))
+        self.b = torch.nn.Parameter(torch.zeros(1, dtype=torch.float64))
+
+    def forward(self, obs):
+        return (self.a - self.b).expand(obs["qpos"].shape[0], 1)
+
+
+@pytest.mark.parametrize("counter", ["torch", "int", "buffer"])
+def test_updating_keeps_half_updates_out_of_batches(counter):
+    """A trainer thread updates two tensors with a pause between them, inside
+    `simloader.policy.updating`: no batch copies one tensor's update without the other's
+    (control a - b stays 0), and each version names one pair of values."""
+    import threading
+    import time
+    policy = TwoHalves()
+    if counter == "int":
+        policy.version = 0
+    elif counter == "buffer":
+        policy.register_buffer("version", torch.zeros((), dtype=torch.int64))
+    stop = threading.Event()
+
+    def train():
+        value = 0.0
+        while not stop.is_set():
+            value += 1e-3
+            with torch.no_grad(), simloader.policy.updating(policy):
+                policy.a.fill_(value)
+                time.sleep(0.002)  # the half-done update lasts long enough to be copied
+                policy.b.fill_(value)
+            time.sleep(0.0005)
+
+    trainer = threading.Thread(target=train)
+    trainer.start()
+    try:
+        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=20,
+                                  policy=policy, record=("qpos",), nthread=1, num_batches=12)
+        batches = list(ds)
+    finally:
+        stop.set()
+        trainer.join()
+    versions = [int(b["policy/version"]) for b in batches]
+    assert all((b["control"] == 0).all() for b in batches), "a batch copied half an update"
+    assert versions == sorted(versions) and len(set(versions)) > 1 and min(versions) >= 0
+
+
+def test_an_update_left_open_is_reported(monkeypatch):
+    monkeypatch.setattr(simloader.policy, "UPDATE_WAIT_S", 0.2)
+    policy = TwoHalves()
+    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3,
+                              policy=policy, record=("qpos",), nthread=1, num_batches=1)
+    with simloader.policy.updating(policy):
+        with pytest.raises(RuntimeError, match="inside an update"):
+            next(iter(ds))
+    assert int(next(iter(ds))["policy/version"]) == simloader.policy.version(policy)
