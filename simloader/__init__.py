@@ -10,6 +10,7 @@ from simloader import controls, initial, layout, observe, policy, randomize
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
 from simloader.observe import Camera
+from simloader.store import StoredDataset, write
 from simloader.models import builtin_models, builtin_path, describe, load_model, named_models
 
 __version__ = "0.1.0"
@@ -18,6 +19,7 @@ __all__ = [
     "Batch",
     "Camera",
     "SimDataset",
+    "StoredDataset",
     "builtin_models",
     "builtin_path",
     "controls",
@@ -29,4 +31,5 @@ __all__ = [
     "observe",
     "policy",
     "randomize",
+    "write",
 ]

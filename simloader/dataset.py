@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any, Optional
 
 import mujoco
@@ -244,14 +244,20 @@ class SimDataset(torch.utils.data.IterableDataset):
             start = loaded["next_index"]
             if loaded["trajectories"] is not None:
                 backend.restore(loaded["trajectories"])
-        prefetcher = Prefetcher(lambda i: (i, backend.produce(i)),
-                                shard.indices(self.config.num_batches, start),
+        for index, batch, produced in self.stream(
+                backend, shard.indices(self.config.num_batches, start)):
+            self._progress = (shard, index + shard.num_workers, backend, produced)
+            yield batch
+
+    def stream(self, backend: Backend, indices: Iterable[int]) -> Iterator[tuple]:
+        """(index, batch, what the backend produced) for each global batch index, simulated
+        `prefetch` batches ahead in a thread; closes the backend at the end. For `write` and
+        the regeneration of stored trajectories, which choose their own indices."""
+        prefetcher = Prefetcher(lambda i: (i, backend.produce(i)), indices,
                                 self.config.prefetch, at_exit=backend.close)
         try:
             for index, produced in prefetcher:
-                batch = Batch(backend.deliver(produced), layout=self.layout)
-                self._progress = (shard, index + shard.num_workers, backend, produced)
-                yield batch
+                yield index, Batch(backend.deliver(produced), layout=self.layout), produced
         finally:
             prefetcher.close()
             backend.close()

@@ -167,7 +167,9 @@ class Param:
     def key(self) -> str:
         if self.name:
             return self.name
-        on = "" if self.on is None else (self.on if isinstance(self.on, str) else ",".join(self.on))
+        # str() of anything else: the key also names a wrongly built Param in its error
+        on = ("" if self.on is None else self.on if isinstance(self.on, str) else
+              ",".join(map(str, self.on)) if isinstance(self.on, (list, tuple)) else str(self.on))
         return f"{self.field}[{on}]" if on else self.field
 
 
