@@ -416,7 +416,8 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
         done = written_slots(path, batches)
         already = int(sum(done[i * rank[1] + rank[0]] for i in range(total)))
         loader = torch.utils.data.DataLoader(
-            _Writer(dataset, path, batches, rank), batch_size=None, num_workers=num_workers)
+            _Writer(dataset, path, batches, rank), batch_size=None, num_workers=num_workers,
+            multiprocessing_context=_worker_start(dataset) if num_workers else None)
         bar = _progress(progress, total, already, path)
         try:
             for _, _, diverged in loader:
@@ -433,6 +434,15 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         torch.distributed.barrier()  # the store is complete when every rank's part is
     return path
+
+
+def _worker_start(dataset: Any) -> Optional[str]:
+    """How `write` starts its workers: fork unless the dataset renders (OpenGL's state does
+    not survive a fork) or runs on a GPU (CUDA's does not either), then spawn."""
+    c = dataset.config
+    renders = any(o.rendered for o in c.observations)
+    gpu = c.backend != "rollout" or (c.device is not None and torch.device(c.device).type != "cpu")
+    return "spawn" if renders or gpu else None
 
 
 def _progress(enabled: bool, total: int, already: int, path: str):
