@@ -89,7 +89,8 @@ def main():
                              "was made with --out docs/pixel_world_model.png)")
     args = parser.parse_args()
     if args.quick:
-        args.batches, args.nbatch, args.nstep, args.width = 6, 16, 16, 8
+        # CPU rendering (Mesa) is the cost: 2 batches of 4 x 6 frames, 2 held-out trajectories
+        args.batches, args.nbatch, args.nstep, args.width = 2, 4, 12, 8
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     backend = simloader.backends.resolve(args.backend)
@@ -100,8 +101,8 @@ def main():
                   initial_state=simloader.initial.Perturbed(qpos_std=0.5, qvel_std=0.5))
     train = simloader.SimDataset("cartpole", nbatch=args.nbatch, nstep=args.nstep,
                                  num_batches=args.batches, seed=0, **common)
-    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=8, nstep=args.nstep, seed=1,
-                                              **common)))
+    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=2 if args.quick else 8,
+                                              nstep=args.nstep, seed=1, **common)))
     nu = train.model.nu
     net = FrameModel(nu, args.width).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=2e-3)

@@ -71,14 +71,21 @@ def parse_control_spec(text: str) -> int:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def quickstart(args: argparse.Namespace) -> None:
+def stream_dataset(args: argparse.Namespace) -> simloader.SimDataset:
+    """quickstart's and write's dataset: uniform controls from perturbed initial states."""
+    record = ({"record": [n.strip() for n in args.record.split(",")]}
+              if getattr(args, "record", None) else {})
     with from_arguments():
-        ds = simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
-                                  nstep=args.nstep, control=simloader.controls.Uniform(),
-                                  initial_state=simloader.initial.Perturbed(),
-                                  num_batches=args.batches, seed=args.seed,
-                                  # all cores: nothing here trains alongside the simulation
-                                  nthread=sharding.available_cpus())
+        return simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
+                                    nstep=args.nstep, control=simloader.controls.Uniform(),
+                                    initial_state=simloader.initial.Perturbed(),
+                                    num_batches=args.batches, seed=args.seed,
+                                    # all cores: nothing here trains alongside the simulation
+                                    nthread=sharding.available_cpus(), **record)
+
+
+def quickstart(args: argparse.Namespace) -> None:
+    ds = stream_dataset(args)
     loader = torch.utils.data.DataLoader(ds, batch_size=None)
     print(f"simloader {simloader.__version__}: model {args.model!r}, backend "
           f"{ds.config.backend!r}, {args.nbatch} trajectories x {args.nstep} steps per batch")
@@ -99,6 +106,17 @@ def quickstart(args: argparse.Namespace) -> None:
     if steps:
         print(f"throughput: {steps / elapsed:,.0f} steps/s ({elapsed * 1e9 / steps:,.0f} ns/step) "
               f"over {args.batches - 1} batches")
+
+
+def write(args: argparse.Namespace) -> None:
+    ds = stream_dataset(args)
+    with from_arguments():
+        path = simloader.write(ds, args.out, batches=args.batches, format=args.format,
+                               num_workers=args.num_workers)
+    print(f"simloader {simloader.__version__}: wrote {args.batches} x {args.nbatch} "
+          f"trajectories of {args.nstep} steps of {args.model!r} to {path} ({args.format})")
+    if args.format == "zarr":
+        print(f"read them with simloader.StoredDataset({path!r}) or any zarr v3 reader")
 
 
 def info(args: argparse.Namespace) -> None:
@@ -174,6 +192,24 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--batches", type=int, default=20)
     q.add_argument("--seed", type=int, default=0)
     q.set_defaults(run=quickstart)
+
+    wr = sub.add_parser("write", help="simulate batches into a store (zarr or Minari)")
+    add_model_argument(wr)
+    wr.add_argument("--out", required=True,
+                    help="the store: a zarr v3 folder (an existing one of the same settings "
+                         "is resumed or grown), or for --format minari the dataset's folder, "
+                         "named by its id, e.g. datasets/cartpole-uniform-v0")
+    wr.add_argument("--format", default="zarr", choices=("zarr", "minari"))
+    wr.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    wr.add_argument("--nbatch", type=positive_int, default=1024)
+    wr.add_argument("--nstep", type=positive_int, default=200)
+    wr.add_argument("--batches", type=positive_int, default=20)
+    wr.add_argument("--seed", type=int, default=0)
+    wr.add_argument("--record", default="",
+                    help="names to record, comma-separated (default: state,sensordata)")
+    wr.add_argument("--num-workers", type=int, default=0,
+                    help="DataLoader workers that simulate and write in parallel")
+    wr.set_defaults(run=write)
 
     i = sub.add_parser("info", help="print which state/control/sensor columns mean what")
     add_model_argument(i)

@@ -72,7 +72,13 @@ class ArraySpec:
         trailing = self.trailing
         if self.chunk_frames is not None:
             trailing = (self.chunk_frames, *trailing[1:])
-        return (1, *trailing)
+        return (1, *(max(1, n) for n in trailing))  # zarr's chunks have no empty side
+
+    @property
+    def empty(self) -> bool:
+        """No values (a model without sensors records `sensordata` of width 0): the array's
+        metadata alone holds it, with no shard files."""
+        return 0 in self.trailing
 
     def metadata(self, ntrajectories: int) -> dict:
         byte_order = ({"name": "bytes", "configuration": {"endian": "little"}}
@@ -84,8 +90,8 @@ class ArraySpec:
             "zarr_format": 3, "node_type": "array",
             "shape": [ntrajectories, *self.trailing],
             "data_type": _ZARR_DTYPES[self.dtype.str.lstrip("<>|=")],
-            "chunk_grid": {"name": "regular",
-                           "configuration": {"chunk_shape": [self.nbatch, *self.trailing]}},
+            "chunk_grid": {"name": "regular", "configuration": {
+                "chunk_shape": [self.nbatch, *(max(1, n) for n in self.trailing)]}},
             "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
             "fill_value": False if self.dtype == np.bool_ else 0,
             "codecs": [{"name": "sharding_indexed", "configuration": {
@@ -191,6 +197,8 @@ def _zstd():
 def _write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray) -> None:
     """One batch slot of one array, in zarr's sharding format: the inner chunks in C order of
     the chunk grid, then one (offset, length) pair of little-endian uint64 per chunk."""
+    if spec.empty:
+        return
     rows = np.ascontiguousarray(rows, dtype=spec.dtype.newbyteorder("<"))
     if spec.chunk_frames is None:
         chunks = [rows] if not spec.compressed else [rows[i] for i in range(len(rows))]
@@ -469,7 +477,9 @@ class _Shard:
         raw = (not compressed and
                np.array_equal(self.index[:, 0], np.arange(nchunks) * self.index[0, 1]) and
                (self.index[:, 1] == np.prod(chunk) * dtype.itemsize).all())
-        self.rows = (np.memmap(file, dtype=dtype, mode="r", shape=spec_shape)
+        # a plain ndarray over the map: np.memmap's Python-level indexing costs more than
+        # the small gathers themselves
+        self.rows = (np.memmap(file, dtype=dtype, mode="r", shape=spec_shape).view(np.ndarray)
                      if raw else None)
 
     def trajectory(self, row: int) -> np.ndarray:
@@ -510,14 +520,28 @@ class _Array:
         self.trailing = tuple(meta["shape"][1:])
         self._shards: dict[int, _Shard] = {}
 
-    def trajectory(self, slot: int, row: int) -> np.ndarray:
+    def _shard(self, slot: int) -> _Shard:
         shard = self._shards.get(slot)
         if shard is None:
             key = "/".join([self.name, "c", str(slot)] + ["0"] * len(self.trailing))
             shard = self._shards[slot] = _Shard(os.path.join(self.root, key),
                                                 self.shard_shape, self.chunk, self.dtype,
                                                 self.compressed)
-        return shard.trajectory(row)
+        return shard
+
+    def trajectory(self, slot: int, row: int) -> np.ndarray:
+        if 0 in self.trailing:
+            return np.zeros(self.trailing, dtype=self.dtype)
+        return self._shard(slot).trajectory(row)
+
+    def slot(self, slot: int) -> np.ndarray:
+        """All rows of a batch slot (a memory map where the shard is raw)."""
+        if 0 in self.trailing:
+            return np.zeros(self.shard_shape[:1] + self.trailing, dtype=self.dtype)
+        shard = self._shard(slot)
+        if shard.rows is not None:
+            return shard.rows
+        return np.stack([shard.trajectory(r) for r in range(self.shard_shape[0])])
 
 
 def _arrays(path: str) -> dict[str, dict]:
@@ -690,27 +714,61 @@ class Transitions(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.stored) * self.per
 
-    def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
-        return self.__getitems__([k])[0]
+    def __getitem__(self, k: int | Sequence[int]) -> dict[str, torch.Tensor]:
+        """Transition `k`, or for a sequence of indices the batch of them (what `loader`'s
+        batch sampler asks for: no per-item tensors, no collation)."""
+        if isinstance(k, (int, np.integer)):
+            return {n: v[0] for n, v in self.gather([k]).items()}
+        return self.gather(k)
 
     def __getitems__(self, ks: Sequence[int]) -> list[dict[str, torch.Tensor]]:
-        """A DataLoader's batch of transitions, read with one array operation per key and
-        stored trajectory."""
+        """A DataLoader's batch (`batch_size=B`): the items as views of one gather, which
+        the default collation stacks again. `loader()` skips both."""
+        out = self.gather(ks)
+        return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
+
+    def loader(self, batch_size: int, shuffle: bool = True, drop_last: bool = False,
+               **kwargs: Any) -> torch.utils.data.DataLoader:
+        """A DataLoader of batches of `batch_size` transitions, each read with one gather
+        per key and batch slot: a batch sampler hands the dataset all of a batch's indices
+        (`batch_size=None`), so no per-item tensors are made or collated. `kwargs` go to the
+        DataLoader (`num_workers=`, ...)."""
+        order = (torch.utils.data.RandomSampler(self) if shuffle else
+                 torch.utils.data.SequentialSampler(self))
+        return torch.utils.data.DataLoader(
+            self, batch_size=None,
+            sampler=torch.utils.data.BatchSampler(order, batch_size, drop_last), **kwargs)
+
+    def gather(self, ks: Sequence[int]) -> dict[str, torch.Tensor]:
+        """The transitions `ks` as a dict of tensors `len(ks) x ...`: one gather per key and
+        batch slot, from the memory-mapped shards."""
         ks = np.asarray(ks, dtype=np.int64) % len(self)
         trajectories, frames = np.divmod(ks, self.per)
         frames += self.first
-        out = {}
-        names = {key: key for key in self.keys}
-        columns: dict[str, list] = {n: [] for n in [*self.keys, "control", *(
-            "next/" + k for k in self.keys)]}
-        for t, f in zip(trajectories.tolist(), frames.tolist()):
-            arrays = self.stored.read(t, self.stored.keys)
-            for key in names:
-                seq = arrays[key]
-                before = (arrays["initial_state"] if f == 0 else seq[f - 1])
-                columns[key].append(before)
-                columns["next/" + key].append(seq[f])
-            control = arrays["control"][f * self.every:(f + 1) * self.every]
-            columns["control"].append(control[0] if self.every == 1 else control)
-        out = {n: torch.from_numpy(np.stack(v)) for n, v in columns.items()}
-        return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
+        nbatch = self.stored.nbatch
+        slots = self.stored.slots[trajectories // nbatch]
+        rows = trajectories % nbatch
+        arrays = self.stored._arrays()
+        columns: dict[str, np.ndarray] = {}
+        steps = np.arange(self.every)
+        for slot in np.unique(slots):
+            sel = np.flatnonzero(slots == slot)
+            r, f = rows[sel], frames[sel]
+            gathered = {}
+            for key in self.keys:
+                seq = arrays[key].slot(int(slot))
+                gathered["next/" + key] = seq[r, f]
+                before = seq[r, np.maximum(f - 1, 0)]
+                if key == "state" and (f == 0).any():
+                    first = f == 0
+                    before[first] = arrays["initial_state"].slot(int(slot))[r[first]]
+                gathered[key] = before
+            control = arrays["control"].slot(int(slot))[r[:, None],
+                                                         f[:, None] * self.every + steps]
+            gathered["control"] = control[:, 0] if self.every == 1 else control
+            for name, values in gathered.items():
+                if name not in columns:
+                    columns[name] = np.empty((len(ks), *values.shape[1:]), values.dtype)
+                columns[name][sel] = values
+        order = [*self.keys, "control", *("next/" + k for k in self.keys)]
+        return {n: torch.from_numpy(columns[n]) for n in order}

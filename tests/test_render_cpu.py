@@ -29,13 +29,20 @@ def gl():
         pytest.skip(f"no OpenGL here: {e}")
 
 
-def reference(model, state, camera, height, width, kind):
-    """A plain mujoco.Renderer's image of `model` at FULLPHYSICS `state`."""
+def reference(model, state, camera, height, width, kind, renderers=None):
+    """A plain mujoco.Renderer's image of `model` at FULLPHYSICS `state`. `renderers`: a dict
+    that keeps one renderer per (model, size) for the next call (creating a GL context per
+    image costs as much as the image); the caller closes them."""
     data = mujoco.MjData(model)
     mujoco.mj_setState(model, data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
     mujoco.mj_forward(model, data)
-    with cpu_render._swapped_gl(cpu_render.gl_platform()[0]):
-        renderer = mujoco.Renderer(model, height, width)
+    key = (id(model), height, width)
+    renderer = None if renderers is None else renderers.get(key)
+    if renderer is None:
+        with cpu_render._swapped_gl(cpu_render.gl_platform()[0]):
+            renderer = mujoco.Renderer(model, height, width)
+        if renderers is not None:
+            renderers[key] = renderer
     try:
         renderer.update_scene(data, camera)
         if kind == "depth":
@@ -46,20 +53,29 @@ def reference(model, state, camera, height, width, kind):
             return np.where(seg[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, seg[..., 0], -1)
         return renderer.render()
     finally:
-        renderer.close()
+        if renderers is None:
+            renderer.close()
+        else:  # back to plain RGB for the next image
+            renderer.disable_depth_rendering()
+            renderer.disable_segmentation_rendering()
 
 
 def check_images(batch, models, cams, frames=None):
     states = batch["state"].numpy()
-    for cam in cams:
-        name = cam.camera if isinstance(cam.camera, str) else "free"
-        for kind in cam.kinds:
-            images = batch[f"camera/{name}/{kind}"].numpy()
-            for i in range(images.shape[0]):
-                for j in frames or range(images.shape[1]):
-                    ref = reference(models[i], states[i, j], cam.camera, cam.height, cam.width,
-                                    kind)
-                    assert np.array_equal(images[i, j], ref), (name, kind, i, j)
+    renderers = {}
+    try:
+        for cam in cams:
+            name = cam.camera if isinstance(cam.camera, str) else "free"
+            for kind in cam.kinds:
+                images = batch[f"camera/{name}/{kind}"].numpy()
+                for i in range(images.shape[0]):
+                    for j in frames or range(images.shape[1]):
+                        ref = reference(models[i], states[i, j], cam.camera, cam.height,
+                                        cam.width, kind, renderers)
+                        assert np.array_equal(images[i, j], ref), (name, kind, i, j)
+    finally:
+        for renderer in renderers.values():
+            renderer.close()
 
 
 CARTPOLE_CAMS = (simloader.Camera("front", depth=True, segmentation=True),

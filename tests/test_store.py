@@ -295,3 +295,29 @@ def test_two_ranks_write_one_store_under_torchrun(tmp_path):
                                 control=simloader.controls.Uniform())
     for i in (2, 3, 9):  # rank 1's trajectories are its own stream, rank 0's too
         assert all(torch.equal(stored[i][k], stored.regenerate(make, i)[k]) for k in stored[i])
+
+
+def test_a_key_without_values_round_trips(tmp_path):
+    """A model without sensors records `sensordata` of width 0: kept, with no shard files."""
+    xml = """<mujoco><worldbody><body><freejoint/><geom size="0.1"/></body></worldbody>
+             </mujoco>"""
+    ds = simloader.SimDataset(xml, backend="rollout", nbatch=2, nstep=3, nthread=1)
+    path = simloader.write(ds, tmp_path / "z.zarr", batches=1, progress=False)
+    assert zarr.open_group(path, mode="r")["sensordata"].shape == (2, 3, 0)
+    item = simloader.StoredDataset(path)[1]
+    assert item["sensordata"].shape == (3, 0) and item["state"].shape[0] == 3
+
+
+def test_cli_writes_a_store_and_refuses_another_configuration(tmp_path, capsys):
+    from simloader import cli
+    out = str(tmp_path / "cli.zarr")
+    common = ["write", "cartpole", "--out", out, "--backend", "rollout", "--nbatch", "4",
+              "--batches", "2", "--record", "qpos,qvel"]
+    cli.main(common + ["--nstep", "5"])
+    assert "wrote 2 x 4 trajectories of 5 steps" in capsys.readouterr().out
+    stored = simloader.StoredDataset(out)
+    assert len(stored) == 8 and set(stored[0]) >= {"qpos", "qvel", "control"}
+    with pytest.raises(SystemExit) as exit:
+        cli.main(common + ["--nstep", "6"])
+    assert exit.value.code == 2
+    assert "nstep: stored 5, given 6" in capsys.readouterr().err

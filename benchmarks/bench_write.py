@@ -1,0 +1,177 @@
+"""What storing the stream costs, and how fast a store feeds training back.
+
+Writing: `simloader.write` of `--batches` batches next to generating the same batches
+without writing (a fresh iterator of the same dataset), alternately in one process, each
+timed from start to the last batch in hand (first batch included in both); the write is
+timed until `os.sync()` returns, so its batches are on the disk, not only in the page cache.
+The cost is `1 - write throughput / generation throughput` (target: at most 0.15 on the
+rollout backend, performance.md).
+
+Reading: `StoredDataset` of the last store written, through `DataLoader(shuffle=True,
+num_workers=--read-workers)` as trajectories (`--read-batch` per batch) and as transitions
+(`StoredDataset.transitions().loader(1024)`), for `--read-seconds` each after a warm-up
+batch, in transitions per second (target: 1M with 2 workers on the 2-core machine).
+
+    python benchmarks/bench_write.py --quick
+    python benchmarks/bench_write.py --save                      # the 2-core figures
+    python benchmarks/bench_write.py --backend mjx --impl warp --record state qvel \\
+        --camera 64x64 --workloads humanoid:8192x200 --save --tag warp   # the GPU figure
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+
+import torch
+
+import common
+import simloader
+
+DEFAULT = [common.Workload("cartpole", 4096, 200), common.Workload("humanoid", 256, 100)]
+QUICK = [common.Workload("cartpole", 256, 50), common.Workload("humanoid", 16, 20)]
+TARGET_COST, TARGET_READ = 0.15, 1e6
+
+
+def dataset(model, w: common.Workload, args) -> simloader.SimDataset:
+    record = list(args.record)
+    if args.camera:
+        height, width = (int(v) for v in args.camera.lower().split("x"))
+        record.append(simloader.Camera(-1, height=height, width=width))
+    options = {"impl": args.impl} if args.backend == "mjx" else {
+        "nthread": common.cpu_count()}  # all the cores, as the generation alone
+    return simloader.SimDataset(model, backend=args.backend, nbatch=w.nbatch, nstep=w.nstep,
+                                control=simloader.controls.Uniform(), seed=args.seed,
+                                record=tuple(record), **options)
+
+
+def generate(ds: simloader.SimDataset, nbatches: int) -> float:
+    """Seconds per step of `nbatches` batches, generated and held, not kept."""
+    start = time.perf_counter()
+    it = iter(ds)
+    for _ in range(nbatches):
+        next(it)
+        common.sync()
+    seconds = time.perf_counter() - start
+    it.close()
+    return seconds / (nbatches * ds.config.nbatch * ds.config.nstep)
+
+
+def write(ds: simloader.SimDataset, nbatches: int, folder: str) -> float:
+    """Seconds per step of writing `nbatches` batches into a fresh store, until on disk."""
+    path = os.path.join(folder, "store.zarr")
+    shutil.rmtree(path, ignore_errors=True)
+    os.sync()  # the previous store's deletion is not this one's cost
+    start = time.perf_counter()
+    simloader.write(ds, path, batches=nbatches, progress=False)
+    os.sync()
+    return (time.perf_counter() - start) / (nbatches * ds.config.nbatch * ds.config.nstep)
+
+
+def read_rate(loader: torch.utils.data.DataLoader, per_item: int, seconds: float) -> float:
+    """Transitions per second `loader` delivers (items of `per_item` transitions), after
+    one warm-up batch; epochs follow each other until `seconds` passed."""
+    items, start = 0, None
+    while start is None or time.perf_counter() - start < seconds:
+        seen = 0
+        for batch in loader:
+            seen += 1
+            if start is None:
+                start = time.perf_counter()  # after the workers started and the first batch
+                continue
+            items += len(batch["control"])
+            if time.perf_counter() - start >= seconds:
+                break
+        if not seen:
+            raise ValueError("the store holds less than one read batch: lower --read-batch")
+    return items * per_item / (time.perf_counter() - start)
+
+
+def main() -> None:
+    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
+    p.add_argument("--batches", type=int, help="batches per measure (default 8, --quick 3)")
+    p.add_argument("--backend", default="rollout")
+    p.add_argument("--impl", default="auto", help="backend='mjx' only")
+    p.add_argument("--record", nargs="+", default=["state", "sensordata"])
+    p.add_argument("--camera", help="HEIGHTxWIDTH: record the free camera's RGB too")
+    p.add_argument("--read-workers", type=int, default=2)
+    p.add_argument("--read-batch", type=int, default=32, help="trajectories per read batch")
+    p.add_argument("--read-seconds", type=float, default=5.0)
+    p.add_argument("--folder", help="where the stores go (default: a temporary folder)")
+    args = common.parse(p)
+    nbatches = args.batches or (3 if args.quick else 8)
+
+    folder = tempfile.mkdtemp(prefix="bench_write-", dir=args.folder)
+    rows, plot = [], {"generate": ([], []), "generate + write": ([], [])}
+    try:
+        for w in common.workloads(args, DEFAULT, QUICK):
+            ds = dataset(common.load_model(w.name, args.model_dir), w, args)
+            generate(ds, 1)  # warm-up: threads, compilation, caches
+            results = common.interleave(
+                {"generate": lambda: generate(ds, nbatches),
+                 "generate + write": lambda: write(ds, nbatches, folder)},
+                args.repeats, desc=str(w))
+            gen, wrote = (1 / results[k] for k in ("generate", "generate + write"))
+            size = sum(os.path.getsize(os.path.join(d, f))
+                       for d, _, fs in os.walk(os.path.join(folder, "store.zarr")) for f in fs)
+            stored = simloader.StoredDataset(os.path.join(folder, "store.zarr"))
+            workers = {"num_workers": args.read_workers,
+                       "persistent_workers": args.read_workers > 0}
+            traj = read_rate(torch.utils.data.DataLoader(
+                stored, batch_size=min(args.read_batch, len(stored)), shuffle=True, **workers),
+                w.nstep, args.read_seconds)
+            transitions = stored.transitions()
+            trans = read_rate(transitions.loader(min(1024, len(transitions)), **workers), 1,
+                              args.read_seconds)
+            cost = 1 - wrote / gen
+            rows.append([str(w), f"{gen / 1e6:.3f}M", f"{wrote / 1e6:.3f}M",
+                         f"{cost:.1%} ({'met' if cost <= TARGET_COST else 'missed'})",
+                         f"{size / 2**20 / nbatches:.1f} MiB",
+                         f"{traj / 1e6:.2f}M", f"{trans / 1e6:.2f}M"])
+            for name, value in (("generate", gen), ("generate + write", wrote)):
+                plot[name][0].append(str(w))
+                plot[name][1].append(value)
+            del stored
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+    headers = ["workload", "generate steps/s", "generate + write steps/s",
+               f"write cost (target <= {TARGET_COST:.0%})", "store per batch",
+               f"read: trajectories, transitions/s ({args.read_workers} workers)",
+               "read: transitions view, transitions/s"]
+    table = common.markdown_table(headers, rows)
+    recorded = " + ".join(args.record + ([f"camera {args.camera} RGB"] if args.camera else []))
+    notes = (f"backend={args.backend!r}{f', impl={args.impl!r}' if args.backend == 'mjx' else ''}"
+             f", recording {recorded}; {nbatches} batches per measure, medians of "
+             f"{args.repeats} alternating repetitions; writes timed until os.sync() returns. "
+             f"Reads: DataLoader(shuffle=True, num_workers={args.read_workers}), "
+             f"{args.read_batch} trajectories per batch, or transitions().loader(1024), "
+             f"{args.read_seconds:.0f} s each (target {TARGET_READ / 1e6:.0f}M transitions/s).")
+    common.report(args, "bench_write", "Writing and reading simloader stores", [notes, table])
+    if args.save:
+        _bars(args, plot)
+
+
+def _bars(args, plot: dict) -> None:
+    """Generation with and without writing, side by side per workload."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    names = plot["generate"][0]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k, (label, (_, values)) in enumerate(plot.items()):
+        ax.bar([i + 0.4 * k for i in range(len(names))], values, width=0.4, label=label)
+    ax.set_xticks([i + 0.2 for i in range(len(names))], names)
+    ax.set_ylabel("steps/s")
+    ax.set_title("simloader.write: generation kept while writing")
+    ax.legend()
+    fig.tight_layout()
+    path = common.result_path(args, "bench_write", ".png")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
