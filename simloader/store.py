@@ -646,9 +646,25 @@ class StoredDataset(torch.utils.data.Dataset):
         return {p: int(v) for p, v in self.read(i, ["provenance/" + p for p in PROVENANCE]
                                                 ).items() for p in [p.split("/")[1]]}
 
-    def transitions(self, state: str | Sequence[str] = "state") -> "Transitions":
-        """The stored trajectories as transitions `(s_t, a_t, s_t+1)` (see `Transitions`)."""
-        return Transitions(self, (state,) if isinstance(state, str) else tuple(state))
+    def transitions(self, state: str | Sequence[str] = "state",
+                    diverged: str = "drop") -> "Transitions":
+        """The stored trajectories as transitions `(s_t, a_t, s_t+1)` (see `Transitions`);
+        `diverged="drop"` leaves out the trajectories flagged `diverged` (or `overflow`):
+        what follows an instability is not physics to learn. `"keep"` keeps them."""
+        if diverged not in ("drop", "keep"):
+            raise ValueError(f"diverged: expected 'drop' or 'keep', got {diverged!r}")
+        return Transitions(self, (state,) if isinstance(state, str) else tuple(state),
+                           drop_flagged=diverged == "drop")
+
+    def flagged(self) -> np.ndarray:
+        """Per stored trajectory: flagged `diverged` or `overflow` (bool)."""
+        arrays = {n: _Array(self.path, n, m) for n, m in _arrays(self.path).items()
+                  if n in ("diverged", "overflow")}
+        out = np.zeros(len(self), dtype=bool)
+        for k, slot in enumerate(self.slots):
+            for array in arrays.values():
+                out[k * self.nbatch:(k + 1) * self.nbatch] |= array.slot(int(slot))
+        return out
 
     def regenerate(self, dataset: Any, i: int) -> dict[str, Any]:
         """Simulates stored trajectory `i` again from its provenance and returns it as item
@@ -691,13 +707,13 @@ class StoredDataset(torch.utils.data.Dataset):
 
 class Transitions(torch.utils.data.Dataset):
     """The transitions of a store: item `k` is `{KEY: s_t, "control": a_t, "next/KEY": s_t+1}`
-    for every state key. With `record_every = k` the action is the `k` control rows between
+    for every state key, over the trajectories not flagged diverged (by default). With `record_every = k` the action is the `k` control rows between
     two frames (`k x ncontrol`). The first frame's predecessor is the initial state for the
     key `"state"` (`initial_state`), so a trajectory gives `nframes` transitions; other keys
     have no stored initial value and give `nframes - 1`.
     """
 
-    def __init__(self, stored: StoredDataset, keys: tuple[str, ...]):
+    def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool):
         metas = _arrays(stored.path)
         for key in keys:
             if key not in metas or len(metas[key]["shape"]) < 2:
@@ -710,9 +726,12 @@ class Transitions(torch.utils.data.Dataset):
         self.nframes = int(metas[keys[0]]["shape"][1])
         self.first = 0 if keys == ("state",) else 1  # frame 0's predecessor is stored
         self.per = self.nframes - self.first
+        # the stored trajectories whose transitions these are
+        self.trajectories = (np.flatnonzero(~stored.flagged()) if drop_flagged else
+                             np.arange(len(stored)))
 
     def __len__(self) -> int:
-        return len(self.stored) * self.per
+        return len(self.trajectories) * self.per
 
     def __getitem__(self, k: int | Sequence[int]) -> dict[str, torch.Tensor]:
         """Transition `k`, or for a sequence of indices the batch of them (what `loader`'s
@@ -744,6 +763,7 @@ class Transitions(torch.utils.data.Dataset):
         batch slot, from the memory-mapped shards."""
         ks = np.asarray(ks, dtype=np.int64) % len(self)
         trajectories, frames = np.divmod(ks, self.per)
+        trajectories = self.trajectories[trajectories]
         frames += self.first
         nbatch = self.stored.nbatch
         slots = self.stored.slots[trajectories // nbatch]

@@ -321,3 +321,20 @@ def test_cli_writes_a_store_and_refuses_another_configuration(tmp_path, capsys):
         cli.main(common + ["--nstep", "6"])
     assert exit.value.code == 2
     assert "nstep: stored 5, given 6" in capsys.readouterr().err
+
+
+def test_transitions_leave_out_diverged_trajectories_unless_kept(tmp_path):
+    control = np.zeros((3, 6, 1))
+    control[1, 2] = np.inf  # trajectory 1 of every batch diverges
+    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=6, nthread=1,
+                              control=control)
+    path = simloader.write(ds, tmp_path / "d.zarr", batches=2, progress=False)
+    stored = simloader.StoredDataset(path)
+    assert stored.flagged().tolist() == [False, True, False] * 2
+    dropped = stored.transitions()
+    assert len(dropped) == 4 * 6 and len(stored.transitions(diverged="keep")) == 6 * 6
+    assert torch.equal(dropped[6]["state"], stored[2]["initial_state"])  # 2nd kept: row 2
+    every = torch.cat([b["next/state"] for b in dropped.loader(5, shuffle=False)])
+    assert torch.isfinite(every).all() and len(every) == 24
+    with pytest.raises(ValueError, match="diverged: expected 'drop' or 'keep', got 'no'"):
+        stored.transitions(diverged="no")

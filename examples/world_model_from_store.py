@@ -1,0 +1,158 @@
+"""Generate a humanoid corpus once, then train a world model on it from disk, epoch after epoch.
+
+The first run simulates `--batches` batches of the humanoid under smooth random controls into
+a zarr store (`simloader.write`: resumable, readable by any zarr client, every trajectory
+regenerable from its provenance); later runs find the store and skip straight to training.
+Training reads `(s_t, a_t, s_t+1)` transitions from the store
+(`StoredDataset.transitions().loader(...)`, shuffled across the whole corpus, two workers)
+for `--epochs` epochs, and the model is judged, as in `train_world_model.py`, on held-out
+trajectories simulated fresh: one-step and open-loop errors, with a plot of predicted against
+simulated trajectories.
+
+    python examples/world_model_from_store.py                 # generate once, then train
+    python examples/world_model_from_store.py --epochs 20     # train again, no simulation
+    python examples/world_model_from_store.py --quick         # a few seconds, as CI runs it
+"""
+
+import argparse
+import os
+import pathlib
+import tempfile
+import time
+
+import torch
+from torch import nn
+from tqdm import tqdm
+
+import simloader
+from simloader import controls
+from train_world_model import Dynamics, transitions
+
+HORIZON = 20
+# plotted coordinates of qpos: the root's height and two joints (humanoid.xml's order)
+PLOTTED = {"root height": 2, "right hip (y)": 9, "left knee": 16}
+
+
+def stream(args, **kwargs):
+    return simloader.SimDataset("humanoid", backend=args.backend, dtype=torch.float32,
+                                control=controls.OrnsteinUhlenbeck(std=0.4, tau=0.2),
+                                initial_state=simloader.initial.Perturbed(qpos_std=0.05,
+                                                                          qvel_std=0.2),
+                                record=("state",), **kwargs)
+
+
+@torch.no_grad()
+def evaluate(net, held_out, physics):
+    """One-step and open-loop RMSE on held-out trajectories; (truth, prediction, RMSE/step)."""
+    s, a, s_next = transitions(held_out, physics)
+    one_step = ((net(s, a) - s_next) ** 2).mean().sqrt().item()
+    truth = held_out["state"][..., physics]
+    pred, x = [], held_out["initial_state"][:, physics]
+    for t in range(truth.shape[1]):  # open loop: the model feeds on its own predictions
+        x = net(x, held_out["control"][:, t])
+        pred.append(x)
+    pred = torch.stack(pred, 1)
+    err = (pred - truth).pow(2).mean(dim=(0, 2)).sqrt()
+    scale = truth.std().item()
+    print(f"one-step RMSE:            {one_step:.2e}  ({one_step / scale:.2%} of the state's std)")
+    print(f"{len(err)}-step open-loop RMSE: {err[-1].item():.2e}  "
+          f"({err[-1].item() / scale:.2%} of the state's std)")
+    return truth, pred, err
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
+    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--store", help="the corpus (default outputs/humanoid-corpus.zarr; "
+                                        "--quick: a temporary folder)")
+    parser.add_argument("--batches", type=int, default=40, help="batches in the corpus")
+    parser.add_argument("--nbatch", type=int, default=256)
+    parser.add_argument("--nstep", type=int, default=100)
+    parser.add_argument("--epochs", type=int, default=5)
+    parser.add_argument("--batch-size", type=int, default=4096, help="transitions per step")
+    parser.add_argument("--width", type=int, default=512)
+    parser.add_argument("--out", default="outputs/world_model_from_store.png",
+                        help="where to save the plot (outputs/ is git-ignored)")
+    args = parser.parse_args()
+    scratch = None
+    if args.quick:
+        args.batches, args.nbatch, args.nstep, args.epochs, args.width = 3, 16, 20, 2, 64
+        args.batch_size = 256
+        if args.store is None:
+            scratch = tempfile.TemporaryDirectory()
+            args.store = os.path.join(scratch.name, "humanoid-corpus.zarr")
+    args.store = args.store or "outputs/humanoid-corpus.zarr"
+
+    # 1. the corpus, generated once (an interrupted run resumes; a finished one is kept)
+    corpus = stream(args, nbatch=args.nbatch, nstep=args.nstep, seed=0)
+    start = time.perf_counter()
+    simloader.write(corpus, args.store, batches=args.batches)
+    print(f"corpus: {args.store}, {args.batches} x {args.nbatch} humanoid trajectories of "
+          f"{args.nstep} steps ({time.perf_counter() - start:.1f} s to generate or find)")
+
+    # 2. training from disk, several epochs over the same transitions
+    stored = simloader.StoredDataset(args.store)
+    model = corpus.model
+    physics = slice(1, 1 + model.nq + model.nv)  # drop time, the state's first column
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    held_out = next(iter(stream(args, nbatch=32, nstep=HORIZON, seed=1)))  # never stored
+    held_out = {k: v.to(device) for k, v in held_out.items()}
+    net = Dynamics(model.nq + model.nv, model.nu, args.width).to(device)
+    net.fit_normalization(*transitions(held_out, physics))
+    loader = stored.transitions().loader(args.batch_size, num_workers=2,
+                                         persistent_workers=True, drop_last=True)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs * len(loader))
+    # transitions() leaves out the trajectories flagged diverged: never learn non-physics
+    print(f"training on {len(loader.dataset):,} stored transitions "
+          f"({int(stored.flagged().sum())} diverged trajectories left out), {args.epochs} "
+          f"epochs, {device}")
+    start = time.perf_counter()
+    for epoch in range(args.epochs):
+        progress = tqdm(loader, desc=f"epoch {epoch + 1}/{args.epochs}")
+        for batch in progress:
+            s = batch["state"].to(device)[:, physics]
+            a = batch["control"].to(device)
+            s_next = batch["next/state"].to(device)[:, physics]
+            loss = nn.functional.mse_loss((net(s, a) - s) / net.delta_std,
+                                          (s_next - s) / net.delta_std)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            progress.set_postfix(loss=f"{loss.item():.2e}")
+    print(f"trained in {time.perf_counter() - start:.1f} s")
+
+    truth, pred, err = evaluate(net, held_out, physics)
+
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no plot")
+        return
+    t = torch.arange(1, HORIZON + 1).numpy() * model.opt.timestep
+    fig, axes = plt.subplots(len(PLOTTED), 3, figsize=(12, 8), sharex=True)
+    for j in range(3):
+        for i, (name, column) in enumerate(PLOTTED.items()):
+            ax = axes[i, j]
+            ax.plot(t, truth[j, :, column].cpu(), "k-", label="simulated")
+            ax.plot(t, pred[j, :, column].cpu(), "r--", label="predicted (open loop)")
+            ax.set_title(f"trajectory {j}: {name}")
+            ax.set_xlabel("time [s]")
+    axes[0, 0].legend()
+    fig.suptitle(f"humanoid world model trained from a store ({args.epochs} epochs), "
+                 f"{HORIZON}-step open-loop RMSE {err[-1].item():.2e}")
+    fig.tight_layout()
+    out = pathlib.Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    print(f"plot saved to {out}")
+    if scratch is not None:
+        scratch.cleanup()
+
+
+if __name__ == "__main__":
+    main()
