@@ -51,6 +51,11 @@ class Dynamics(nn.Module):
         x = (torch.cat([s, a], -1) - self.mean) / self.std
         return s + self.net(x) * self.delta_std
 
+    def loss(self, s, a, s_next):
+        """Mean squared error of the predicted change of state, in units of its spread."""
+        return nn.functional.mse_loss((self(s, a) - s) / self.delta_std,
+                                      (s_next - s) / self.delta_std)
+
 
 @torch.no_grad()
 def evaluate(net, held_out, physics):
@@ -124,8 +129,7 @@ def main():
         keep = ~batch["diverged"]  # never train on non-physics
         s, a, s_next = transitions({k: v[keep] for k, v in batch.items()}, physics)
         for chunk in torch.randperm(len(s), device=device).split(8192):
-            loss = nn.functional.mse_loss((net(s[chunk], a[chunk]) - s[chunk]) / net.delta_std,
-                                          (s_next[chunk] - s[chunk]) / net.delta_std)
+            loss = net.loss(s[chunk], a[chunk], s_next[chunk])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -135,6 +139,14 @@ def main():
 
     truth, pred, err = evaluate(net, held_out, physics)
 
+    plot_open_loop(truth, pred, {"cart position": 0, "pole angle": 1}, model.opt.timestep,
+                   f"cart-pole world model, {HORIZON}-step open-loop RMSE "
+                   f"{err[-1].item():.2e} ({backend})", args.out)
+
+
+def plot_open_loop(truth, pred, columns, dt, title, out):
+    """Predicted (open loop) against simulated trajectories: a row per named state column
+    (`columns`: {name: column}), a column per trajectory, saved to `out`."""
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -142,22 +154,19 @@ def main():
     except ImportError:
         print("matplotlib not installed: no plot")
         return
-    dt = model.opt.timestep
-    t = torch.arange(1, HORIZON + 1).numpy() * dt
-    names = ["cart position", "pole angle"]
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharex=True)
+    t = torch.arange(1, truth.shape[1] + 1).numpy() * dt
+    fig, axes = plt.subplots(len(columns), 3, figsize=(12, 3 * len(columns)), sharex=True)
     for j in range(3):
-        for i, name in enumerate(names):
+        for i, (name, column) in enumerate(columns.items()):
             ax = axes[i, j]
-            ax.plot(t, truth[j, :, i].cpu(), "k-", label="simulated")
-            ax.plot(t, pred[j, :, i].cpu(), "r--", label="predicted (open loop)")
+            ax.plot(t, truth[j, :, column].cpu(), "k-", label="simulated")
+            ax.plot(t, pred[j, :, column].cpu(), "r--", label="predicted (open loop)")
             ax.set_title(f"trajectory {j}: {name}")
             ax.set_xlabel("time [s]")
     axes[0, 0].legend()
-    fig.suptitle(f"cart-pole world model, {HORIZON}-step open-loop RMSE "
-                 f"{err[-1].item():.2e} ({backend})")
+    fig.suptitle(title)
     fig.tight_layout()
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
     print(f"plot saved to {out}")

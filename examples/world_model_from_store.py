@@ -16,17 +16,15 @@ simulated trajectories.
 
 import argparse
 import os
-import pathlib
 import tempfile
 import time
 
 import torch
-from torch import nn
 from tqdm import tqdm
 
 import simloader
 from simloader import controls
-from train_world_model import Dynamics, transitions
+from train_world_model import Dynamics, evaluate, plot_open_loop, transitions
 
 HORIZON = 20
 # plotted coordinates of qpos: the root's height and two joints (humanoid.xml's order)
@@ -39,25 +37,6 @@ def stream(args, **kwargs):
                                 initial_state=simloader.initial.Perturbed(qpos_std=0.05,
                                                                           qvel_std=0.2),
                                 record=("state",), **kwargs)
-
-
-@torch.no_grad()
-def evaluate(net, held_out, physics):
-    """One-step and open-loop RMSE on held-out trajectories; (truth, prediction, RMSE/step)."""
-    s, a, s_next = transitions(held_out, physics)
-    one_step = ((net(s, a) - s_next) ** 2).mean().sqrt().item()
-    truth = held_out["state"][..., physics]
-    pred, x = [], held_out["initial_state"][:, physics]
-    for t in range(truth.shape[1]):  # open loop: the model feeds on its own predictions
-        x = net(x, held_out["control"][:, t])
-        pred.append(x)
-    pred = torch.stack(pred, 1)
-    err = (pred - truth).pow(2).mean(dim=(0, 2)).sqrt()
-    scale = truth.std().item()
-    print(f"one-step RMSE:            {one_step:.2e}  ({one_step / scale:.2%} of the state's std)")
-    print(f"{len(err)}-step open-loop RMSE: {err[-1].item():.2e}  "
-          f"({err[-1].item() / scale:.2%} of the state's std)")
-    return truth, pred, err
 
 
 def main():
@@ -112,11 +91,9 @@ def main():
     for epoch in range(args.epochs):
         progress = tqdm(loader, desc=f"epoch {epoch + 1}/{args.epochs}")
         for batch in progress:
-            s = batch["state"].to(device)[:, physics]
-            a = batch["control"].to(device)
-            s_next = batch["next/state"].to(device)[:, physics]
-            loss = nn.functional.mse_loss((net(s, a) - s) / net.delta_std,
-                                          (s_next - s) / net.delta_std)
+            loss = net.loss(batch["state"].to(device)[:, physics],
+                            batch["control"].to(device),
+                            batch["next/state"].to(device)[:, physics])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -126,30 +103,9 @@ def main():
 
     truth, pred, err = evaluate(net, held_out, physics)
 
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no plot")
-        return
-    t = torch.arange(1, HORIZON + 1).numpy() * model.opt.timestep
-    fig, axes = plt.subplots(len(PLOTTED), 3, figsize=(12, 8), sharex=True)
-    for j in range(3):
-        for i, (name, column) in enumerate(PLOTTED.items()):
-            ax = axes[i, j]
-            ax.plot(t, truth[j, :, column].cpu(), "k-", label="simulated")
-            ax.plot(t, pred[j, :, column].cpu(), "r--", label="predicted (open loop)")
-            ax.set_title(f"trajectory {j}: {name}")
-            ax.set_xlabel("time [s]")
-    axes[0, 0].legend()
-    fig.suptitle(f"humanoid world model trained from a store ({args.epochs} epochs), "
-                 f"{HORIZON}-step open-loop RMSE {err[-1].item():.2e}")
-    fig.tight_layout()
-    out = pathlib.Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    print(f"plot saved to {out}")
+    plot_open_loop(truth, pred, PLOTTED, model.opt.timestep,
+                   f"humanoid world model trained from a store ({args.epochs} epochs), "
+                   f"{HORIZON}-step open-loop RMSE {err[-1].item():.2e}", args.out)
     if scratch is not None:
         scratch.cleanup()
 
