@@ -4,7 +4,8 @@ The first run simulates `--batches` batches of the humanoid under smooth random 
 a zarr store (`simloader.write`: resumable, readable by any zarr client, every trajectory
 regenerable from its provenance); later runs find the store and skip straight to training.
 Training reads `(s_t, a_t, s_t+1)` transitions from the store
-(`StoredDataset.transitions().loader(...)`, shuffled across the whole corpus, two workers)
+(`StoredDataset.transitions().loader(...)`, shuffled across the whole corpus, `--workers`
+reading)
 for `--epochs` epochs, and the model is judged, as in `train_world_model.py`, on held-out
 trajectories simulated fresh: one-step and open-loop errors, with a plot of predicted against
 simulated trajectories.
@@ -51,13 +52,14 @@ def main():
     parser.add_argument("--epochs", type=int, default=5)
     parser.add_argument("--batch-size", type=int, default=4096, help="transitions per step")
     parser.add_argument("--width", type=int, default=512)
+    parser.add_argument("--workers", type=int, default=2, help="DataLoader workers reading")
     parser.add_argument("--out", default="outputs/world_model_from_store.png",
                         help="where to save the plot (outputs/ is git-ignored)")
     args = parser.parse_args()
     scratch = None
     if args.quick:
         args.batches, args.nbatch, args.nstep, args.epochs, args.width = 3, 16, 20, 2, 64
-        args.batch_size = 256
+        args.batch_size, args.workers = 256, 0
         if args.store is None:
             scratch = tempfile.TemporaryDirectory()
             args.store = os.path.join(scratch.name, "humanoid-corpus.zarr")
@@ -79,8 +81,8 @@ def main():
     held_out = {k: v.to(device) for k, v in held_out.items()}
     net = Dynamics(model.nq + model.nv, model.nu, args.width).to(device)
     net.fit_normalization(*transitions(held_out, physics))
-    loader = stored.transitions().loader(args.batch_size, num_workers=2,
-                                         persistent_workers=True, drop_last=True)
+    loader = stored.transitions().loader(args.batch_size, num_workers=args.workers,
+                                         persistent_workers=args.workers > 0, drop_last=True)
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs * len(loader))
     # transitions() leaves out the trajectories flagged diverged: never learn non-physics

@@ -120,14 +120,17 @@ print("done")
 
 @pytest.mark.parametrize("how", ["open", "break", "loader", "finished"])
 def test_rollout_script_exits_zero_however_the_stream_ends(how, checkout_env):
-    # the native thread pool (nthread=2) and the producer must be gone before teardown
-    for _ in range(2):
-        out = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT, how, "2"], capture_output=True,
-                             text=True, timeout=120, env=checkout_env())
-        assert out.returncode == 0, out.stderr[-4000:]
-        assert out.stdout.strip() == "done", out.stdout
-        assert "terminate called" not in out.stderr and "Traceback" not in out.stderr, out.stderr
-        assert "Exception ignored" not in out.stderr, out.stderr
+    # the native thread pool (nthread=2) and the producer must be gone before teardown; two
+    # runs at once (an abort at exit was intermittent)
+    procs = [subprocess.Popen([sys.executable, "-c", _EXIT_SCRIPT, how, "2"], text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=checkout_env())
+             for _ in range(2)]
+    for proc in procs:
+        stdout, stderr = proc.communicate(timeout=120)
+        assert proc.returncode == 0, stderr[-4000:]
+        assert stdout.strip() == "done", stdout
+        assert "terminate called" not in stderr and "Traceback" not in stderr, stderr
+        assert "Exception ignored" not in stderr, stderr
 
 
 _RANK_DEVICE_SCRIPT = """

@@ -36,7 +36,7 @@ class Gain(torch.nn.Module):
 def rich(**kwargs):
     """Every key kind: mjSTATE rows, sensors, an int field, camera rgb/depth/segmentation
     (images big enough to be compressed), randomization params."""
-    base = dict(backend="rollout", nbatch=3, nstep=6, nthread=1, seed=5,
+    base = dict(backend="rollout", nbatch=3, nstep=6, nthread=1, seed=5, record_every=2,
                 control=simloader.controls.Uniform(),
                 randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="pole")],
                 record=("state", "sensordata", "qpos", "ncon",
@@ -48,7 +48,8 @@ def rich(**kwargs):
 
 def plain(**kwargs):
     """rich() without the camera (rendering dominates the time of the tests that use it)."""
-    return rich(**{"record": ("state", "sensordata", "qpos", "ncon"), **kwargs})
+    return rich(**{"record": ("state", "sensordata", "qpos", "ncon"), "record_every": 1,
+                   **kwargs})
 
 
 def flat(batch, prefix=""):
@@ -112,7 +113,7 @@ def test_regenerates_stored_trajectories_bit_for_bit(tmp_path):
     path = simloader.write(rich(), tmp_path / "r.zarr", batches=3, progress=False)
     stored = simloader.StoredDataset(path)
     again = rich(num_batches=None)  # its own num_batches does not matter
-    for i in (0, 5, 7):
+    for i in (0, 7):
         item, regenerated = flat(stored[i]), flat(stored.regenerate(again, i))
         assert all(torch.equal(item[k], regenerated[k]) for k in item)
     with pytest.raises(ValueError, match="seed: stored 5, given 6"):
@@ -242,7 +243,7 @@ def test_stored_dataset_feeds_a_shuffling_loader_with_workers(tmp_path):
     loader = torch.utils.data.DataLoader(stored, batch_size=4, shuffle=True, num_workers=2,
                                          multiprocessing_context="fork")
     seen = [b["state"] for b in loader]
-    assert sum(len(s) for s in seen) == 6 and seen[0].shape[1:] == (6, 5)
+    assert sum(len(s) for s in seen) == 6 and seen[0].shape[1:] == (3, 5)
     rows = sorted(tuple(r.flatten().tolist()) for s in seen for r in s)
     assert rows == sorted(tuple(stored[i]["state"].flatten().tolist()) for i in range(6))
 
