@@ -107,7 +107,10 @@ def main() -> None:
     rows, plot = [], {"generate": ([], []), "generate + write": ([], [])}
     try:
         for w in common.workloads(args, DEFAULT, QUICK):
-            ds = dataset(common.load_model(w.name, args.model_dir), w, args)
+            # simloader's built-in models (or a path): what is measured is the writing
+            model = (common.load_model(w.name, args.model_dir) if args.model_dir else
+                     simloader.load_model(w.name))
+            ds = dataset(model, w, args)
             generate(ds, 1)  # warm-up: threads, compilation, caches
             results = common.interleave(
                 {"generate": lambda: generate(ds, nbatches),

@@ -194,6 +194,21 @@ def _zstd():
     return Zstd(level=1)
 
 
+_POOL: Optional[tuple[int, Any]] = None
+
+
+def _encoders():
+    """Threads that compress chunks (zstd releases the GIL): camera images compress at about
+    300 MB/s per core, a GPU renders them faster. One pool per process (a forked worker's
+    copy of the parent's pool has no threads)."""
+    global _POOL
+    if _POOL is None or _POOL[0] != os.getpid():
+        from concurrent.futures import ThreadPoolExecutor
+        _POOL = (os.getpid(), ThreadPoolExecutor(sharding.available_cpus(),
+                                                 thread_name_prefix="simloader-zstd"))
+    return _POOL[1]
+
+
 def _write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray) -> None:
     """One batch slot of one array, in zarr's sharding format: the inner chunks in C order of
     the chunk grid, then one (offset, length) pair of little-endian uint64 per chunk."""
@@ -207,7 +222,7 @@ def _write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray) -> Non
         chunks = [rows[i, j:j + f] for i in range(len(rows)) for j in range(0, rows.shape[1], f)]
     if spec.compressed:
         codec = _zstd()
-        parts = [codec.encode(np.ascontiguousarray(c)) for c in chunks]
+        parts = list(_encoders().map(lambda c: codec.encode(np.ascontiguousarray(c)), chunks))
         lengths = [len(p) for p in parts]
     else:  # raw: every trajectory's chunk is its rows, back to back
         parts = [memoryview(rows).cast("B")]

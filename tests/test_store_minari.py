@@ -104,3 +104,28 @@ def test_bad_batches(simulated, tmp_path):
     with pytest.raises(ValueError, match="metadata.*JSON"):
         write_minari(batches, tmp_path, dataset_id="bad-v0", total_episodes=6,
                      metadata={"x": object()})
+
+
+def test_simloader_write_format_minari(tmp_path, monkeypatch):
+    """`simloader.write(..., format="minari")`: the dataset named by the path's last part,
+    a genuinely diverged trajectory terminated, the store's provenance in the metadata."""
+    control = np.zeros((NBATCH, NSTEP, 1))
+    control[2, 1] = np.inf  # trajectory 2 of every batch diverges
+    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=NBATCH, nstep=NSTEP,
+                              control=control, nthread=1)
+    out = simloader.write(ds, tmp_path / "cartpole-still-v0", batches=2, format="minari",
+                          progress=False)
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    dataset = minari.load_dataset("cartpole-still-v0")
+    assert dataset.total_episodes == 2 * NBATCH and str(out).endswith("cartpole-still-v0")
+    episodes = list(dataset.iterate_episodes())
+    assert [bool(e.terminations[-1]) for e in episodes] == [False, False, True] * 2
+    assert [bool(e.truncations[-1]) for e in episodes] == [True, True, False] * 2
+    meta = dataset.storage.metadata["simloader"]
+    assert meta["fingerprint"]["nstep"] == NSTEP and meta["versions"]["mujoco"]
+    first = next(iter(ds.stream(ds.make_backend(), [0])))[1]
+    np.testing.assert_array_equal(episodes[1].observations[1:], first["state"][1].numpy())
+    with pytest.raises(ValueError, match="format: 'minari' stores the recorded 'state'"):
+        simloader.write(simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3,
+                                             record=("qpos",)),
+                        tmp_path / "qpos-v0", batches=1, format="minari", progress=False)
