@@ -428,7 +428,8 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
     path = os.fspath(path)
     if format == "minari":
         from simloader import store_minari
-        return store_minari.write(dataset, path, batches=batches, progress=progress)
+        return store_minari.write(dataset, path, batches=batches, progress=progress,
+                                  metadata=provenance(dataset, batches))
     if format != "zarr":
         raise ValueError(f"format: expected 'zarr' or 'minari', got {format!r}")
     rank = sharding.distributed_rank() or (0, 1)

@@ -259,15 +259,17 @@ def _episodes(batch: dict, n: int) -> Iterator[Any]:
                             truncations=truncations)
 
 
-def write(dataset: Any, path: str, *, batches: int, progress: bool = True) -> str:
+def write(dataset: Any, path: str, *, batches: int, metadata: dict,
+          progress: bool = True) -> str:
     """`simloader.write(dataset, path, batches=, format="minari")`: `batches` batches of
     `dataset` as the Minari dataset named by `path`'s last component (e.g.
     "cartpole-uniform-v0"), under `path`'s parent as the datasets root. Observations are the
     recorded `state` (needs "state" in `record=` and `record_every=1`: Minari holds one
-    action per observation step); the configuration, fingerprint and versions go in the
-    metadata under "simloader". Returns the dataset's directory."""
+    action per observation step); `metadata` (the store's provenance: configuration,
+    fingerprint, versions) goes in Minari's metadata under "simloader". Returns the dataset's
+    directory."""
     from tqdm import tqdm
-    from simloader import sharding, store
+    from simloader import sharding
     c = dataset.config
     if "state" not in [o.key for o in c.observations] or c.record_every != 1:
         raise ValueError(f"format: 'minari' stores the recorded 'state' after every step as "
@@ -275,7 +277,7 @@ def write(dataset: Any, path: str, *, batches: int, progress: bool = True) -> st
                          f"every {c.record_every} step(s): use record=('state', ...) and "
                          f"record_every=1")
     root, dataset_id = os.path.split(os.path.abspath(path))
-    metadata = {k: v for k, v in store.provenance(dataset, batches).items()}
+    metadata = dict(metadata)
     metadata["description"] = f"simloader: {dataset.source}, {batches} x {c.nbatch} trajectories"
     bar = tqdm(total=batches * c.nbatch, unit="episode", desc=f"write {path}",
                disable=not progress, leave=False)
