@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import simloader
-from simloader import store
+from simloader.store import format as store_format, provenance
 
 zarr = pytest.importorskip("zarr")
 dr = simloader.randomize
@@ -164,7 +164,7 @@ def cartpole():
 def test_a_killed_writer_leaves_a_readable_store_that_resumes(tmp_path):
     path, batches = str(tmp_path / "k.zarr"), 40
     proc = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, path, str(batches)])
-    marker = os.path.join(path, store.WRITTEN.shard_key(2))
+    marker = os.path.join(path, store_format.WRITTEN.shard_key(2))
     deadline = time.monotonic() + 120
     while not os.path.exists(marker) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.01)
@@ -196,8 +196,8 @@ def test_appending_grows_the_store_and_another_configuration_is_refused(tmp_path
 
 def test_another_simulator_version_is_refused(tmp_path, monkeypatch):
     path = simloader.write(plain(), tmp_path / "v.zarr", batches=1, progress=False)
-    real = store.versions()
-    monkeypatch.setattr(store, "versions", lambda: {**real, "mujoco": "0.0.1"})
+    real = provenance.versions()
+    monkeypatch.setattr(provenance, "versions", lambda: {**real, "mujoco": "0.0.1"})
     with pytest.raises(ValueError, match=r"mujoco .* \(now 0.0.1\)"):
         simloader.write(plain(), path, batches=2, progress=False)
 
@@ -216,7 +216,7 @@ def test_a_full_disk_leaves_a_readable_store_and_says_so(tmp_path, monkeypatch):
     """The disk fills up in the middle of the third batch: the first two stay readable, the
     error says so, and writing again (space freed) completes the store."""
     path = str(tmp_path / "f.zarr")
-    real, calls = store._atomic_write, []
+    real, calls = store_format.atomic_write, []
 
     def fills_up(where, parts):
         if "/c/2" in where and not where.endswith("zarr.json"):
@@ -225,12 +225,12 @@ def test_a_full_disk_leaves_a_readable_store_and_says_so(tmp_path, monkeypatch):
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
         return real(where, parts)
 
-    monkeypatch.setattr(store, "_atomic_write", fills_up)
+    monkeypatch.setattr(store_format, "atomic_write", fills_up)
     with pytest.raises(OSError, match="No space left on device .* stays readable with the "
                                       "batches completed so far"):
         simloader.write(plain(), path, batches=4, progress=False)
     assert len(simloader.StoredDataset(path)) == 6
-    monkeypatch.setattr(store, "_atomic_write", real)
+    monkeypatch.setattr(store_format, "atomic_write", real)
     simloader.write(plain(), path, batches=4, progress=False)
     want = reference(plain(), 4)
     stored = simloader.StoredDataset(path)

@@ -11,7 +11,7 @@ pytest.importorskip("h5py")  # Minari's "hdf5" data format
 import gymnasium  # noqa: E402  (minari depends on it)
 
 import simloader  # noqa: E402
-from simloader.store_minari import write_minari  # noqa: E402
+from simloader.store.minari import write_minari  # noqa: E402
 
 NBATCH, NSTEP, NUM_BATCHES = 3, 5, 2
 

@@ -1,6 +1,6 @@
 """Write simulated trajectories as a Minari dataset (offline-RL format), streamed batch by batch.
 
-    from simloader.store_minari import write_minari
+    from simloader.store.minari import write_minari
     ds = simloader.SimDataset("cartpole", nbatch=256, nstep=200, num_batches=40,
                               control=simloader.controls.Uniform())
     batches = ({k: v.numpy() for k, v in b.items()} for b in ds)

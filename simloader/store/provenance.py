@@ -1,0 +1,53 @@
+"""What a store says of its trajectories: the configuration, seed and library versions that
+made them, and whether a dataset is that configuration."""
+
+from __future__ import annotations
+
+import importlib.metadata
+from typing import Any, Optional
+
+from simloader import resume
+from simloader.store.format import FORMAT
+
+def versions() -> dict[str, Optional[str]]:
+    """The versions of the libraries a stored stream depends on (None: not installed)."""
+    out = {}
+    for name in ("simloader", "mujoco", "mujoco-mjx", "jax", "mujoco-warp", "warp-lang",
+                 "torch", "numpy"):
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+# the versions whose change changes the simulated values (a stale store must not be resumed
+# by another build of the simulator)
+SIMULATING = ("simloader", "mujoco", "mujoco-mjx", "jax", "mujoco-warp", "warp-lang")
+
+
+def fingerprint(dataset: Any) -> dict:
+    """What must match to append to a store or regenerate from it: the resume fingerprint
+    without `num_batches` (the store's size is `batches`)."""
+    out = dict(resume.fingerprint(dataset.config))
+    out.pop("num_batches")
+    return out
+
+
+def differences(stored: dict, mine: dict) -> list[str]:
+    return [f"{k}: stored {stored.get(k)!r}, given {mine.get(k)!r}"
+            for k in sorted(set(stored) | set(mine)) if stored.get(k) != mine.get(k)]
+
+
+def provenance(dataset: Any, batches: int) -> dict:
+    """The store's root attribute: what made it, and how to make it again."""
+    c = dataset.config
+    return {"format": FORMAT, "fingerprint": fingerprint(dataset),
+            "describe": dataset.describe(), "seed": c.seed, "nbatch": c.nbatch,
+            "nstep": c.nstep, "record_every": c.record_every, "batches": batches,
+            "versions": versions()}
+
+
+class StoreMismatch(ValueError):
+    """An existing store holds another configuration (or simulator build) than the dataset."""
+

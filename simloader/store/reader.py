@@ -1,0 +1,254 @@
+"""`StoredDataset` and `Transitions`: a store read back as torch datasets, and the
+regeneration of a stored trajectory from its provenance."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from simloader import sharding
+from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, StoredArray, leaves,
+                                    list_arrays, read_json, written_slots)
+from simloader.store.provenance import differences, fingerprint
+
+def _nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
+    """`params/KEY` back into `{"params": {KEY: ...}}`, as the batch held them."""
+    out: dict[str, Any] = {}
+    for name, value in flat.items():
+        if name.startswith("params/"):
+            out.setdefault("params", {})[name[len("params/"):]] = value
+        else:
+            out[name] = value
+    return out
+
+
+class StoredDataset(torch.utils.data.Dataset):
+    """A map-style dataset over a store that `simloader.write` made: item `i` is stored
+    trajectory `i`, a dict of tensors keyed as the batch was (`params` a dict of them),
+    without the leading `nbatch`.
+
+    Only complete batch slots are seen, so a store still being written (or whose writer was
+    killed) is readable. Reading memory-maps the shards: a trajectory's float arrays are
+    slices of the files, copied once into the item's tensors; images are decoded per block of
+    frames. Safe in DataLoader workers (files are opened in each process).
+
+    Args:
+      path: the store.
+      keys: the batch keys to read (default: all but `provenance/`); `"params"` stands for
+        all of `params/`.
+    """
+
+    def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None):
+        self.path = os.fspath(path)
+        root = read_json(os.path.join(self.path, "zarr.json"))
+        if root is None or ATTRIBUTE not in root.get("attributes", {}):
+            raise ValueError(f"path: {self.path!r} is not a simloader store (no zarr.json "
+                             f"with a {ATTRIBUTE!r} attribute)")
+        self.info = root["attributes"][ATTRIBUTE]
+        if self.info.get("format") != FORMAT:
+            raise ValueError(f"path: store format {self.info.get('format')}, this simloader "
+                             f"reads format {FORMAT}")
+        metas = list_arrays(self.path)
+        available = [n for n in metas if not n.startswith("provenance/")]
+        if keys is None:
+            names = available
+        else:
+            names = []
+            for key in keys:
+                found = [n for n in available if n == key or n.startswith(key + "/")]
+                if not found:
+                    from simloader.layout import did_you_mean
+                    raise KeyError(f"keys: the store has no key {key!r}"
+                                   f"{did_you_mean(key, available)}; it has {sorted(available)}")
+                names += found
+        self.keys = sorted(set(names))
+        self.nbatch = int(self.info["nbatch"])
+        slots = np.flatnonzero(written_slots(self.path, int(self.info["batches"])))
+        self.slots = slots  # complete batch slots, in order
+        self._metas = {n: metas[n] for n in self.keys + [p for p in metas
+                                                         if p.startswith("provenance/")]}
+        self._open: Optional[tuple[int, dict[str, StoredArray]]] = None
+
+    def __len__(self) -> int:
+        return len(self.slots) * self.nbatch
+
+    def _arrays(self) -> dict[str, StoredArray]:
+        # opened per process: memory maps and file handles do not cross a fork cleanly
+        if self._open is None or self._open[0] != os.getpid():
+            self._open = (os.getpid(), {n: StoredArray(self.path, n, m)
+                                        for n, m in self._metas.items()})
+        return self._open[1]
+
+    def locate(self, i: int) -> tuple[int, int]:
+        """(batch slot, row) of stored trajectory `i`."""
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"StoredDataset: index {i} out of range for {len(self)} "
+                             f"trajectories")
+        i %= len(self)
+        return int(self.slots[i // self.nbatch]), i % self.nbatch
+
+    def read(self, i: int, names: Iterable[str]) -> dict[str, np.ndarray]:
+        slot, row = self.locate(i)
+        arrays = self._arrays()
+        return {n: arrays[n].trajectory(slot, row) for n in names}
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        return _nest({n: torch.from_numpy(np.array(a)) for n, a in self.read(i, self.keys).items()})
+
+    def provenance(self, i: int) -> dict[str, int]:
+        """Where stored trajectory `i` comes from in the seeded stream: rank, batch (the
+        rank's batch index), row, and the DataLoader workers that wrote it."""
+        return {p: int(v) for p, v in self.read(i, ["provenance/" + p for p in PROVENANCE]
+                                                ).items() for p in [p.split("/")[1]]}
+
+    def transitions(self, state: str | Sequence[str] = "state",
+                    diverged: str = "drop") -> "Transitions":
+        """The stored trajectories as transitions `(s_t, a_t, s_t+1)` (see `Transitions`);
+        `diverged="drop"` leaves out the trajectories flagged `diverged` (or `overflow`):
+        what follows an instability is not physics to learn. `"keep"` keeps them."""
+        if diverged not in ("drop", "keep"):
+            raise ValueError(f"diverged: expected 'drop' or 'keep', got {diverged!r}")
+        return Transitions(self, (state,) if isinstance(state, str) else tuple(state),
+                           drop_flagged=diverged == "drop")
+
+    def flagged(self) -> np.ndarray:
+        """Per stored trajectory: flagged `diverged` or `overflow` (bool)."""
+        arrays = {n: StoredArray(self.path, n, m) for n, m in list_arrays(self.path).items()
+                  if n in ("diverged", "overflow")}
+        out = np.zeros(len(self), dtype=bool)
+        for k, slot in enumerate(self.slots):
+            for array in arrays.values():
+                out[k * self.nbatch:(k + 1) * self.nbatch] |= array.slot(int(slot))
+        return out
+
+    def regenerate(self, dataset: Any, i: int) -> dict[str, Any]:
+        """Simulates stored trajectory `i` again from its provenance and returns it as item
+        `i` is returned. `dataset` is built with the same arguments as the writer's (its
+        `num_batches` aside); on the CPU backend the result equals the stored trajectory bit
+        for bit, on the GPU within the named tolerances. A continued episode replays its
+        worker's batches before it.
+
+        Raises:
+          ValueError: another configuration (naming what differs), or a `policy=` stream
+            (its weights changed while it was written and are not stored).
+        """
+        differ = differences(self.info["fingerprint"], fingerprint(dataset))
+        if differ:
+            raise ValueError(f"dataset: not the configuration that wrote {self.path!r} "
+                             f"({'; '.join(differ)})")
+        if dataset.config.policy is not None:
+            raise ValueError("dataset: a policy= stream cannot be regenerated (its weights "
+                             "changed while it was written and are not in the store)")
+        where = self.provenance(i)
+        rank, index, workers = where["rank"], where["batch"], where["num_workers"]
+        if dataset.config.continue_episodes:
+            indices = list(range(index % workers, index + 1, workers))
+        else:
+            indices, workers = [index], 1
+        shard = sharding.Shard(rank=rank, world_size=rank + 1, worker=index % workers,
+                               num_workers=workers)
+        batch = None
+        for _, batch, _ in dataset.stream(dataset.make_backend(shard), indices):
+            pass
+        flat = dict(leaves(batch))
+        row = where["row"]
+        out = {}
+        for name in self.keys:
+            value = flat[name]
+            out[name] = value[row] if value.ndim and value.shape[0] == self.nbatch \
+                else value.expand(self.nbatch)[row]
+        return _nest({n: v.detach().cpu().clone() for n, v in out.items()})
+
+
+class Transitions(torch.utils.data.Dataset):
+    """The transitions of a store: item `k` is `{KEY: s_t, "control": a_t, "next/KEY": s_t+1}`
+    for every state key, over the trajectories not flagged diverged (by default). With `record_every = k` the action is the `k` control rows between
+    two frames (`k x ncontrol`). The first frame's predecessor is the initial state for the
+    key `"state"` (`initial_state`), so a trajectory gives `nframes` transitions; other keys
+    have no stored initial value and give `nframes - 1`.
+    """
+
+    def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool):
+        metas = list_arrays(stored.path)
+        for key in keys:
+            if key not in metas or len(metas[key]["shape"]) < 2:
+                raise KeyError(f"state: expected a per-frame key of the store, got {key!r}; "
+                               f"per-frame keys: {sorted(n for n, m in metas.items() if len(m['shape']) >= 2 and not n.startswith('provenance/'))}")
+        self.stored = StoredDataset(stored.path, keys=list(keys) + ["control"] + (
+            ["initial_state"] if "state" in keys else []))
+        self.keys = keys
+        self.every = int(stored.info["record_every"])
+        self.nframes = int(metas[keys[0]]["shape"][1])
+        self.first = 0 if keys == ("state",) else 1  # frame 0's predecessor is stored
+        self.per = self.nframes - self.first
+        # the stored trajectories whose transitions these are
+        self.trajectories = (np.flatnonzero(~stored.flagged()) if drop_flagged else
+                             np.arange(len(stored)))
+
+    def __len__(self) -> int:
+        return len(self.trajectories) * self.per
+
+    def __getitem__(self, k: int | Sequence[int]) -> dict[str, torch.Tensor]:
+        """Transition `k`, or for a sequence of indices the batch of them (what `loader`'s
+        batch sampler asks for: no per-item tensors, no collation)."""
+        if isinstance(k, (int, np.integer)):
+            return {n: v[0] for n, v in self.gather([k]).items()}
+        return self.gather(k)
+
+    def __getitems__(self, ks: Sequence[int]) -> list[dict[str, torch.Tensor]]:
+        """A DataLoader's batch (`batch_size=B`): the items as views of one gather, which
+        the default collation stacks again. `loader()` skips both."""
+        out = self.gather(ks)
+        return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
+
+    def loader(self, batch_size: int, shuffle: bool = True, drop_last: bool = False,
+               **kwargs: Any) -> torch.utils.data.DataLoader:
+        """A DataLoader of batches of `batch_size` transitions, each read with one gather
+        per key and batch slot: a batch sampler hands the dataset all of a batch's indices
+        (`batch_size=None`), so no per-item tensors are made or collated. `kwargs` go to the
+        DataLoader (`num_workers=`, ...)."""
+        order = (torch.utils.data.RandomSampler(self) if shuffle else
+                 torch.utils.data.SequentialSampler(self))
+        return torch.utils.data.DataLoader(
+            self, batch_size=None,
+            sampler=torch.utils.data.BatchSampler(order, batch_size, drop_last), **kwargs)
+
+    def gather(self, ks: Sequence[int]) -> dict[str, torch.Tensor]:
+        """The transitions `ks` as a dict of tensors `len(ks) x ...`: one gather per key and
+        batch slot, from the memory-mapped shards."""
+        ks = np.asarray(ks, dtype=np.int64) % len(self)
+        trajectories, frames = np.divmod(ks, self.per)
+        trajectories = self.trajectories[trajectories]
+        frames += self.first
+        nbatch = self.stored.nbatch
+        slots = self.stored.slots[trajectories // nbatch]
+        rows = trajectories % nbatch
+        arrays = self.stored._arrays()
+        columns: dict[str, np.ndarray] = {}
+        steps = np.arange(self.every)
+        for slot in np.unique(slots):
+            sel = np.flatnonzero(slots == slot)
+            r, f = rows[sel], frames[sel]
+            gathered = {}
+            for key in self.keys:
+                seq = arrays[key].slot(int(slot))
+                gathered["next/" + key] = seq[r, f]
+                before = seq[r, np.maximum(f - 1, 0)]
+                if key == "state" and (f == 0).any():
+                    first = f == 0
+                    before[first] = arrays["initial_state"].slot(int(slot))[r[first]]
+                gathered[key] = before
+            control = arrays["control"].slot(int(slot))[r[:, None],
+                                                         f[:, None] * self.every + steps]
+            gathered["control"] = control[:, 0] if self.every == 1 else control
+            for name, values in gathered.items():
+                if name not in columns:
+                    columns[name] = np.empty((len(ks), *values.shape[1:]), values.dtype)
+                columns[name][sel] = values
+        order = [*self.keys, "control", *("next/" + k for k in self.keys)]
+        return {n: torch.from_numpy(columns[n]) for n in order}
+
