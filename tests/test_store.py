@@ -339,3 +339,17 @@ def test_transitions_leave_out_diverged_trajectories_unless_kept(tmp_path):
     assert torch.isfinite(every).all() and len(every) == 24
     with pytest.raises(ValueError, match="diverged: expected 'drop' or 'keep', got 'no'"):
         stored.transitions(diverged="no")
+
+
+def test_a_store_is_resumed_by_as_many_ranks_as_wrote_it(tmp_path, monkeypatch):
+    """Slot i * ranks + rank: resuming with another number of ranks would store some
+    batches twice and others never, so it is refused, saying with how many to resume."""
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("WORLD_SIZE", "2")  # rank 1 of 2, as torchrun says it
+    path = simloader.write(plain(), tmp_path / "w.zarr", batches=4, progress=False)
+    stored = simloader.StoredDataset(path)
+    assert len(stored) == 6 and {stored.provenance(i)["rank"] for i in range(6)} == {1}
+    monkeypatch.delenv("RANK")
+    monkeypatch.delenv("WORLD_SIZE")
+    with pytest.raises(ValueError, match=r"written by 2 rank\(s\) .* with 2, not 1"):
+        simloader.write(plain(), path, batches=4, progress=False)

@@ -17,10 +17,11 @@ from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, WRITTEN, Arra
                                     written_slots)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
-def _open_for_writing(path: str, dataset: Any, batches: int) -> dict:
-    """Creates the store's root, or checks that an existing one holds this configuration, and
-    grows its size to `batches` slots. Every writer does the same, with the same result."""
-    mine = provenance(dataset, batches)
+def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int) -> dict:
+    """Creates the store's root, or checks that an existing one holds this configuration and
+    was written by as many ranks, and grows its size to `batches` slots. Every writer does
+    the same, with the same result."""
+    mine = {**provenance(dataset, batches), "ranks": ranks}
     root = read_json(os.path.join(path, "zarr.json"))
     if root is not None:
         stored = root.get("attributes", {}).get(ATTRIBUTE)
@@ -37,6 +38,13 @@ def _open_for_writing(path: str, dataset: Any, batches: int) -> dict:
             raise StoreMismatch(f"path: the store at {path!r} was simulated by other versions "
                                 f"({', '.join(stale)}); its trajectories would not continue "
                                 f"the same stream; write to a new path")
+        if stored.get("ranks") != ranks:
+            # slot i * ranks + rank: another number of ranks would put batches the store
+            # holds already into other slots (a trajectory twice, another never)
+            raise StoreMismatch(f"path: the store at {path!r} is written by "
+                                f"{stored.get('ranks')} rank(s) (torchrun processes); resume "
+                                f"or extend it with {stored.get('ranks')}, not {ranks}, or "
+                                f"write to a new path")
         mine["batches"] = max(batches, stored["batches"])
         mine["describe"] = stored["describe"]
     if root is None or mine["batches"] != root["attributes"][ATTRIBUTE]["batches"]:
@@ -157,7 +165,7 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
         raise ValueError(f"format: expected 'zarr' or 'minari', got {format!r}")
     rank = sharding.distributed_rank() or (0, 1)
     try:
-        info = _open_for_writing(path, dataset, batches)
+        info = _open_for_writing(path, dataset, batches, rank[1])
         batches = info["batches"]
         total = slots_of(rank[0], rank[1], batches)
         done = written_slots(path, batches)
