@@ -164,3 +164,19 @@ def test_torchrun_ranks_simulate_on_their_own_gpu(tmp_path, checkout_env):
         assert r["jax_gpus"] == [int(r["rank"])], r
         assert r["tensor"] == f"cuda:{r['rank']}", r
         assert r["preallocate"] == "false", r
+
+
+def test_scale_out_script_on_cpu_ranks(checkout_env):
+    """benchmarks/scale_out.py as the GPU machines run it, here two CPU ranks (gloo): each
+    rank's stream distinct and reproducible from its seed, one store written by both."""
+    root = pathlib.Path(__file__).parents[1]
+    out = subprocess.run([sys.executable, str(root / "benchmarks" / "scale_out.py"), "--quick",
+                          "--engines", "rollout", "--modes", "open", "write", "--nprocs", "2",
+                          "--batches", "2"],
+                         capture_output=True, text=True, timeout=300, cwd=root,
+                         env=checkout_env())
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-4000:]
+    rows = [line for line in out.stdout.splitlines() if line.startswith("| rollout")]
+    assert len(rows) == 2, out.stdout
+    assert all("yes / yes" in row for row in rows), rows
+    assert "256 stored, ranks [0, 1]" in rows[1], rows[1]
