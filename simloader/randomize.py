@@ -18,7 +18,7 @@ constants from (`mj_setConst` inputs such as body masses and inertias, and `opt.
 constants recomputed per trajectory. The CPU backend draws with NumPy (`sample`) and randomizes
 any floating-point field; the MJX backend draws with `jax.random` inside its jitted function
 (`sample_jax`: same distributions, other numbers) and randomizes the fields listed in
-`simloader.backends.mjx_randomize`.
+`simloader.backends.mjx.randomize`.
 
 Structural variants (geometry sizes, meshes) go through `Variants(fn, count)`: `fn(spec, rng)`
 edits an `MjSpec`, compiled into a pool of `count` models sampled per trajectory

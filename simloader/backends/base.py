@@ -3,8 +3,10 @@
 A backend is created in the process that iterates (a DataLoader worker, or the main process)
 and is used by two threads: `produce` runs in the prefetch thread (simulation, which releases
 the GIL or dispatches asynchronously), `deliver` in the consumer thread (the torch hand-off and
-the checks that can overlap with the next batch's simulation). Both produce the same schema:
-`state`, `sensordata`, `control`, `initial_state`, `diverged`.
+the checks that can overlap with the next batch's simulation). Every engine delivers the same
+keys for a configuration: those of `record=`, `control`, `initial_state` and `diverged`,
+`params` when randomized, `policy/...` in the closed loop, and its own flags (`overflow` on
+MuJoCo Warp).
 """
 
 from __future__ import annotations

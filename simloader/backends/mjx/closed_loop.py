@@ -99,25 +99,22 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         outputs = {**loop["frames"], "control": loop["control"], "diverged": loop["diverged"]}
         return (*finish_outputs(m, loop["d"], outputs, delivered), loop["d"])
 
-    return start, advance, finish, finish_outputs
+    return start, advance, finish
 
 
 class ClosedLoop:
     """A configuration's closed-loop batch, compiled on first use; one per program."""
 
     def __init__(self, pieces: Any, noise_drivers: tuple):
-        start, advance, finish, finish_outputs = functions(pieces, noise_drivers)
+        start, advance, finish = functions(pieces, noise_drivers)
         self.noisy = bool(noise_drivers)  # whether `start` draws noise around the policy
         # donated: the previous data to `start`, the loop state to `advance` and `finish`
         self.start = jax.jit(start, donate_argnums=(10,))
         self.advance = advance
         self.finish = jax.jit(finish, donate_argnums=(1,))
         self.flat: Any = None  # (model and loop tree structures, jitted flat `advance`)
-        # for the Warp closed loop (`warp_loop.py`), whose outputs are torch's buffers
-        self.finish_outputs = jax.jit(finish_outputs)
         # data of the batch's structure for the first batch's `start` to take: reset rows, as
-        # `start` makes them (MuJoCo Warp keeps its contact pool shared by the batch, which a
-        # plain broadcast of one trajectory's data would copy per trajectory)
+        # `start` makes them
         self.blank = jax.jit(lambda *args: pieces.begin(*args)[1])
 
     def run(self, args: tuple, policy: Callable[[dict[str, torch.Tensor], int], torch.Tensor],
