@@ -78,6 +78,12 @@ class SimConfig:
     policy_noise: Optional[controls.ControlPlan] = None
 
     @property
+    def pool(self) -> tuple[mujoco.MjModel, ...]:
+        """The models trajectories pick from: the model list, the variant pool, or the
+        model (every engine's per-model tables are built over it)."""
+        return tuple(self.models or self.variants or (self.model,))
+
+    @property
     def nframes(self) -> int:
         """Recorded frames per trajectory per batch: `nstep // record_every`."""
         return self.nstep // self.record_every

@@ -63,8 +63,7 @@ def parse_control_spec(text: str) -> int:
     for part in text.split("|"):
         name = part.strip().lower()
         if name not in COMPONENT_NAMES:
-            close = difflib.get_close_matches(name, COMPONENT_NAMES, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            hint = did_you_mean(name, COMPONENT_NAMES)
             raise ValueError(f"control_spec: unknown component {part.strip()!r}{hint}; known: "
                              f"{list(COMPONENT_NAMES)}")
         spec |= int(next(bit for n, bit, _, _ in _USER_COMPONENTS if n == name))

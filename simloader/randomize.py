@@ -29,12 +29,13 @@ from __future__ import annotations
 
 import builtins
 import dataclasses
-import difflib
 from collections.abc import Callable, Sequence
 from typing import Any, Optional, Union
 
 import mujoco
 import numpy as np
+
+from simloader.layout import did_you_mean
 
 Names = Optional[Union[str, Sequence[str]]]
 
@@ -238,10 +239,8 @@ def _field_array(model: mujoco.MjModel, field: str) -> np.ndarray:
             return value
         names = [n for n in dir(model) if isinstance(getattr(model, n, None), np.ndarray)
                  and getattr(model, n).dtype.kind == "f"]
-    close = difflib.get_close_matches(field, names, n=3)
-    hint = f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
     raise ValueError(f"randomize: {field!r} is not a floating-point MjModel field or opt.* "
-                     f"option{hint}")
+                     f"option{did_you_mean(field, names)}")
 
 
 def _rows(model: mujoco.MjModel, field: str, on: Names, nrows: int) -> np.ndarray:
@@ -263,8 +262,7 @@ def _rows(model: mujoco.MjModel, field: str, on: Names, nrows: int) -> np.ndarra
             kind_name = objtype.name[6:].lower()
             names = [mujoco.mj_id2name(model, objtype, k) or f"{kind_name}#{k}"
                      for k in range(count)]
-            close = difflib.get_close_matches(name, names, n=3)
-            hint = f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
+            hint = did_you_mean(name, names)
             plural = {"body": "bodies", "equality": "equalities"}.get(kind_name, kind_name + "s")
             raise ValueError(f"randomize: {field}: no {kind_name} named {name!r}{hint}; its "
                              f"{plural} are {names}")

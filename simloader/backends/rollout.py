@@ -65,13 +65,13 @@ class RolloutBackend(Backend):
         # per model (of the list, or variant): each row as mj_resetData leaves it (user
         # inputs, zero warmstart), the undriven control columns, and with variants the
         # initial states that come from the model; `_per_trajectory` picks them
-        self.reset_rows = layout.reset_rows(c.models or c.variants or [c.model],
+        self.reset_rows = layout.reset_rows(c.pool,
                                             layout.INTEGRATION)
         self.control_defaults, self.variant_states = (
             (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
         # what MuJoCo clamps each control column to, per model (the delivered control is
         # what acted)
-        self.ctrl_bounds = controls.applied_bounds(c.models or c.variants or [c.model],
+        self.ctrl_bounds = controls.applied_bounds(c.pool,
                                                    c.control_spec)
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)

@@ -37,7 +37,7 @@ def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> t
     Raises:
       ValueError: MJX cannot simulate a model, or the models differ in a field MJX compiles in.
     """
-    models = pool(config)
+    models = config.pool
     names = (["model"] if len(models) == 1 else
              [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
              [f"randomize: variant[{i}]" for i in range(len(models))])
@@ -88,9 +88,6 @@ def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> t
     return jax.device_put(treedef.unflatten(batched), device), treedef.unflatten(axes)
 
 
-def pool(config: SimConfig) -> tuple[mujoco.MjModel, ...]:
-    """The models trajectories pick from: the model list, the variant pool, or the model."""
-    return config.models or config.variants or (config.model,)
 
 
 def pooled(config: SimConfig) -> bool:

@@ -42,15 +42,13 @@ from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
 from simloader.backends.mjx.closed_loop import ClosedLoop
 from simloader.backends.mjx.impls import Implementation
-from simloader.backends.mjx.pool import PHYSICS, pool, pooled, put_models
+from simloader.backends.mjx.pool import PHYSICS, pooled, put_models
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
 S = mujoco.mjtState
 # The user inputs mj_resetData takes from the model (all others it zeroes).
 MODEL_INPUTS = int(S.mjSTATE_EQ_ACTIVE | S.mjSTATE_MOCAP_POS | S.mjSTATE_MOCAP_QUAT)
-# mjMAXVAL: beyond it MuJoCo's own checks call qpos, qvel and qacc unstable.
-_MAXVAL = 1e10
 
 
 def _rows(mask: jax.Array, x: jax.Array) -> jax.Array:
@@ -114,8 +112,8 @@ class Pieces:
         solver loops of the whole batch, which run until every trajectory converges, do not
         keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
         # NaN compares False, so `<=` catches NaN, Inf and huge values at once
-        stable = (jnp.all(jnp.abs(self.physics(m, d)) <= _MAXVAL, axis=-1)
-                  & jnp.all(jnp.abs(d.qacc) <= _MAXVAL, axis=-1)
+        stable = (jnp.all(jnp.abs(self.physics(m, d)) <= controls.MAXVAL, axis=-1)
+                  & jnp.all(jnp.abs(d.qacc) <= controls.MAXVAL, axis=-1)
                   & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
 
         def keep(x, reset):
@@ -290,11 +288,11 @@ class Program:
         self.data0 = impl.make_data(c.model, device)
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
         # per model of the pool (variants too): the inputs and states mj_resetData leaves
-        inputs0 = layout.reset_rows(pool(c), MODEL_INPUTS).astype(self.dtype)
+        inputs0 = layout.reset_rows(c.pool, MODEL_INPUTS).astype(self.dtype)
         self.inputs0 = jax.device_put(inputs0 if pooled(c) else inputs0[0], device)
         # the range each control column is clamped to, per model of the pool
         self.bounds = jax.device_put(tuple(
-            b.astype(self.dtype) for b in controls.applied_bounds(pool(c), c.control_spec)),
+            b.astype(self.dtype) for b in controls.applied_bounds(c.pool, c.control_spec)),
             device)
         control_defaults, variant_states = (
             (c.control.default_rows, None) if c.variants is None else c.variant_defaults())

@@ -56,7 +56,7 @@ class _Tables:
 
     def __init__(self, config: SimConfig, device: torch.device):
         c = config
-        models = c.models or c.variants or [c.model]
+        models = c.pool
         f32 = dict(dtype=torch.float32, device=device)
         self.reset_rows = torch.as_tensor(layout.reset_rows(models, layout.INTEGRATION), **f32)
         defaults = c.control.default_rows if c.variants is None else c.variant_defaults()[0]

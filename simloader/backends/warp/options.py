@@ -83,7 +83,7 @@ def check_options(config: SimConfig, reason: str, naconmax: Optional[int],
         warnings.warn("dtype=torch.float64 with impl='warp': MuJoCo Warp simulates in "
                       "float32, so the tensors are float32 values up-cast to float64",
                       UserWarning, stacklevel=4)
-    models = config.models or config.variants or (config.model,)
+    models = config.pool
     names = (["model"] if len(models) == 1 else
              [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
              [f"randomize: variant[{i}]" for i in range(len(models))])
