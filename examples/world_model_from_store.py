@@ -80,13 +80,17 @@ def main():
     held_out = next(iter(stream(args, nbatch=32, nstep=HORIZON, seed=1)))  # never stored
     held_out = {k: v.to(device) for k, v in held_out.items()}
     net = Dynamics(model.nq + model.nv, model.nu, args.width).to(device)
-    net.fit_normalization(*transitions(held_out, physics))
-    loader = stored.transitions().loader(args.batch_size, num_workers=args.workers,
-                                         persistent_workers=args.workers > 0, drop_last=True)
+    train = stored.transitions()
+    # inputs and changes normalized over the corpus it trains on (a sample of it)
+    sample = train.gather(torch.randint(len(train), (min(len(train), 65536),)).numpy())
+    net.fit_normalization(sample["state"][:, physics].to(device), sample["control"].to(device),
+                          sample["next/state"][:, physics].to(device))
+    loader = train.loader(args.batch_size, num_workers=args.workers,
+                          persistent_workers=args.workers > 0, drop_last=True)
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs * len(loader))
     # transitions() leaves out the trajectories flagged diverged: never learn non-physics
-    print(f"training on {len(loader.dataset):,} stored transitions "
+    print(f"training on {len(train):,} stored transitions "
           f"({int(stored.flagged().sum())} diverged trajectories left out), {args.epochs} "
           f"epochs, {device}")
     start = time.perf_counter()
