@@ -142,9 +142,25 @@ def _leaves(value: Any, path: str) -> dict[str, Any]:
     return {path: value}
 
 
-def _short(value: Any) -> str:
+def short(value: Any) -> str:
+    """A value's repr, cut to 60 characters (for messages naming differences)."""
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
+
+
+def differences(expected: dict, saved: Any) -> list[tuple[str, Any, Any]]:
+    """(dotted path, expected value, saved value) of every leaf where two fingerprints
+    differ, nested values named down to the field that differs."""
+    saved = saved if isinstance(saved, dict) else {}
+    out = []
+    for key in list(expected) + [k for k in saved if k not in expected]:
+        here, there = _leaves(expected.get(key), key), _leaves(saved.get(key), key)
+        if (key in here) != (key in there) or type(expected.get(key)) is not type(saved.get(key)):
+            here, there = {key: expected.get(key)}, {key: saved.get(key)}  # another kind
+        out += [(k, here.get(k), there.get(k))
+                for k in list(here) + [k for k in there if k not in here]
+                if here.get(k) != there.get(k)]
+    return out
 
 
 def check(config: SimConfig, state: Any) -> None:
@@ -153,15 +169,8 @@ def check(config: SimConfig, state: Any) -> None:
     if not isinstance(state, dict) or state.get("version") != VERSION:
         raise ValueError(f"state_dict: expected a simloader state of version {VERSION}, got "
                          f"{state if not isinstance(state, dict) else state.get('version')!r}")
-    expected, saved = fingerprint(config), state.get("config", {})
-    diff = []
-    for key in expected:
-        here, there = _leaves(expected[key], key), _leaves(saved.get(key), key)
-        if (key in here) != (key in there) or type(expected[key]) is not type(saved.get(key)):
-            here, there = {key: expected[key]}, {key: saved.get(key)}  # another kind of thing
-        diff += [f"{k} is {_short(here.get(k))} here but {_short(there.get(k))} in the state"
-                 for k in list(here) + [k for k in there if k not in here]
-                 if here.get(k) != there.get(k)]
+    diff = [f"{k} is {short(here)} here but {short(there)} in the state"
+            for k, here, there in differences(fingerprint(config), state.get("config", {}))]
     if diff:
         more = f"; and {len(diff) - 6} more" if len(diff) > 6 else ""
         raise ValueError("state_dict: the saved stream has another configuration: "

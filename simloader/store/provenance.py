@@ -9,6 +9,7 @@ from typing import Any, Optional
 from simloader import resume
 from simloader.store.format import FORMAT
 
+
 def versions() -> dict[str, Optional[str]]:
     """The versions of the libraries a stored stream depends on (None: not installed)."""
     out = {}
@@ -35,8 +36,10 @@ def fingerprint(dataset: Any) -> dict:
 
 
 def differences(stored: dict, mine: dict) -> list[str]:
-    return [f"{k}: stored {stored.get(k)!r}, given {mine.get(k)!r}"
-            for k in sorted(set(stored) | set(mine)) if stored.get(k) != mine.get(k)]
+    """What differs between a store's fingerprint and a dataset's, each setting named (down
+    to the field of a nested one), as the resume check names them."""
+    return [f"{k}: stored {resume.short(there)}, given {resume.short(here)}"
+            for k, here, there in resume.differences(mine, stored)]
 
 
 def provenance(dataset: Any, batches: int) -> dict:
