@@ -21,7 +21,7 @@ Layout, chosen for writers that never coordinate and readers that never decode t
 - `provenance/written[s]` is written last, so a reader sees complete slots only, and a resumed
   `write` redoes exactly the slots that were not completed.
 
-A shard is written by `_write_shard` in zarr's sharding format (inner chunks in C order,
+A shard is written by `write_shard` in zarr's sharding format (inner chunks in C order,
 then the index of (offset, length) pairs; no checksum), and read back by `StoredDataset` by
 memory-mapping raw shards (a trajectory is a slice of the file) or decoding compressed chunks;
 the tests read every store through zarr-python as well.
@@ -98,7 +98,12 @@ class ArraySpec:
         }
 
     def shard_key(self, slot: int) -> str:
-        return "/".join([self.name, "c", str(slot)] + ["0"] * len(self.trailing))
+        return shard_key(self.name, len(self.trailing), slot)
+
+
+def shard_key(name: str, ntrailing: int, slot: int) -> str:
+    """The file of array `name`'s shard of batch slot `slot` (zarr's default chunk keys)."""
+    return "/".join([name, "c", str(slot)] + ["0"] * ntrailing)
 
 
 _ZARR_DTYPES = {"b1": "bool", "u1": "uint8", "i1": "int8", "i2": "int16", "i4": "int32",
@@ -126,9 +131,13 @@ def specs_of(batch: Mapping[str, Any], nbatch: int) -> list[ArraySpec]:
     one per trajectory, and the provenance arrays."""
     specs = []
     for name, value in leaves(batch):
-        array = np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value)
-        trailing = tuple(array.shape[1:]) if array.ndim and array.shape[0] == nbatch else ()
-        dtype = np.dtype(array.dtype)
+        if isinstance(value, torch.Tensor):  # shape and dtype, without a copy off the GPU
+            shape = tuple(value.shape)
+            dtype = torch.empty((), dtype=value.dtype).numpy().dtype
+        else:
+            array = np.asarray(value)
+            shape, dtype = array.shape, array.dtype
+        trailing = tuple(shape[1:]) if shape and shape[0] == nbatch else ()
         chunk_frames = None
         if name.startswith("camera/") and len(trailing) >= 3:  # nframes x height x width ...
             frame_bytes = int(np.prod(trailing[1:])) * dtype.itemsize
@@ -292,10 +301,10 @@ class StoredArray:
     def _shard(self, slot: int) -> ShardFile:
         shard = self._shards.get(slot)
         if shard is None:
-            key = "/".join([self.name, "c", str(slot)] + ["0"] * len(self.trailing))
+            key = shard_key(self.name, len(self.trailing), slot)
             shard = self._shards[slot] = ShardFile(os.path.join(self.root, key),
-                                                self.shard_shape, self.chunk, self.dtype,
-                                                self.compressed)
+                                                   self.shard_shape, self.chunk, self.dtype,
+                                                   self.compressed)
         return shard
 
     def trajectory(self, slot: int, row: int) -> np.ndarray:

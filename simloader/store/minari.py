@@ -59,6 +59,8 @@ from typing import Any, Callable, Iterable, Iterator, Mapping, Optional
 
 import numpy as np
 
+from simloader import sharding
+
 __all__ = ["write_minari"]
 
 # Minari finds its root only through the MINARI_DATASETS_PATH environment variable; writing to a
@@ -269,7 +271,6 @@ def write(dataset: Any, path: str, *, batches: int, metadata: dict,
     fingerprint, versions) goes in Minari's metadata under "simloader". Returns the dataset's
     directory."""
     from tqdm import tqdm
-    from simloader import sharding
     c = dataset.config
     if "state" not in [o.key for o in c.observations] or c.record_every != 1:
         raise ValueError(f"format: 'minari' stores the recorded 'state' after every step as "
@@ -279,12 +280,11 @@ def write(dataset: Any, path: str, *, batches: int, metadata: dict,
     root, dataset_id = os.path.split(os.path.abspath(path))
     metadata = dict(metadata)
     metadata["description"] = f"simloader: {dataset.source}, {batches} x {c.nbatch} trajectories"
-    bar = tqdm(total=batches * c.nbatch, unit="episode", desc=f"write {path}",
-               disable=not progress, leave=False)
-
     if (sharding.distributed_rank() or (0, 1))[1] > 1:
         raise ValueError("format: 'minari' is written by one process (an HDF5 file); write "
                          "format='zarr' from several ranks")
+    bar = tqdm(total=batches * c.nbatch, unit="episode", desc=f"write {path}",
+               disable=not progress, leave=False)
 
     def numpy_batches() -> Iterator[dict[str, np.ndarray]]:
         # the stream's first `batches` batches, as format="zarr" stores them with one writer

@@ -11,9 +11,11 @@ import numpy as np
 import torch
 
 from simloader import sharding
+from simloader.layout import did_you_mean
 from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, StoredArray, leaves,
                                     list_arrays, read_json, written_slots)
 from simloader.store.provenance import differences, fingerprint
+
 
 def _nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     """`params/KEY` back into `{"params": {KEY: ...}}`, as the batch held them."""
@@ -61,7 +63,6 @@ class StoredDataset(torch.utils.data.Dataset):
             for key in keys:
                 found = [n for n in available if n == key or n.startswith(key + "/")]
                 if not found:
-                    from simloader.layout import did_you_mean
                     raise KeyError(f"keys: the store has no key {key!r}"
                                    f"{did_you_mean(key, available)}; it has {sorted(available)}")
                 names += found
@@ -69,18 +70,18 @@ class StoredDataset(torch.utils.data.Dataset):
         self.nbatch = int(self.info["nbatch"])
         slots = np.flatnonzero(written_slots(self.path, int(self.info["batches"])))
         self.slots = slots  # complete batch slots, in order
-        self._metas = {n: metas[n] for n in self.keys + [p for p in metas
-                                                         if p.startswith("provenance/")]}
+        self.metas = metas  # every array of the store: {name: zarr metadata}
         self._open: Optional[tuple[int, dict[str, StoredArray]]] = None
 
     def __len__(self) -> int:
         return len(self.slots) * self.nbatch
 
-    def _arrays(self) -> dict[str, StoredArray]:
-        # opened per process: memory maps and file handles do not cross a fork cleanly
+    def arrays(self) -> dict[str, StoredArray]:
+        """Every array of the store (a shard's file is opened at its first read), per
+        process: memory maps and file handles do not cross a fork cleanly."""
         if self._open is None or self._open[0] != os.getpid():
             self._open = (os.getpid(), {n: StoredArray(self.path, n, m)
-                                        for n, m in self._metas.items()})
+                                        for n, m in self.metas.items()})
         return self._open[1]
 
     def locate(self, i: int) -> tuple[int, int]:
@@ -93,11 +94,12 @@ class StoredDataset(torch.utils.data.Dataset):
 
     def read(self, i: int, names: Iterable[str]) -> dict[str, np.ndarray]:
         slot, row = self.locate(i)
-        arrays = self._arrays()
+        arrays = self.arrays()
         return {n: arrays[n].trajectory(slot, row) for n in names}
 
     def __getitem__(self, i: int) -> dict[str, Any]:
-        return _nest({n: torch.from_numpy(np.array(a)) for n, a in self.read(i, self.keys).items()})
+        return _nest({n: torch.from_numpy(np.array(a))
+                      for n, a in self.read(i, self.keys).items()})
 
     def provenance(self, i: int) -> dict[str, int]:
         """Where stored trajectory `i` comes from in the seeded stream: rank, batch (the
@@ -117,11 +119,10 @@ class StoredDataset(torch.utils.data.Dataset):
 
     def flagged(self) -> np.ndarray:
         """Per stored trajectory: flagged `diverged` or `overflow` (bool)."""
-        arrays = {n: StoredArray(self.path, n, m) for n, m in list_arrays(self.path).items()
-                  if n in ("diverged", "overflow")}
+        arrays = [a for n, a in self.arrays().items() if n in ("diverged", "overflow")]
         out = np.zeros(len(self), dtype=bool)
         for k, slot in enumerate(self.slots):
-            for array in arrays.values():
+            for array in arrays:
                 out[k * self.nbatch:(k + 1) * self.nbatch] |= array.slot(int(slot))
         return out
 
@@ -149,6 +150,7 @@ class StoredDataset(torch.utils.data.Dataset):
             indices = list(range(index % workers, index + 1, workers))
         else:
             indices, workers = [index], 1
+        # a batch's draws depend on (seed, rank, index) only; the worker replays its stream
         shard = sharding.Shard(rank=rank, world_size=rank + 1, worker=index % workers,
                                num_workers=workers)
         batch = None
@@ -166,20 +168,22 @@ class StoredDataset(torch.utils.data.Dataset):
 
 class Transitions(torch.utils.data.Dataset):
     """The transitions of a store: item `k` is `{KEY: s_t, "control": a_t, "next/KEY": s_t+1}`
-    for every state key, over the trajectories not flagged diverged (by default). With `record_every = k` the action is the `k` control rows between
-    two frames (`k x ncontrol`). The first frame's predecessor is the initial state for the
+    for every state key, over the trajectories not flagged diverged (by default). With
+    `record_every = k` the action is the `k` control rows between two frames
+    (`k x ncontrol`). The first frame's predecessor is the initial state for the
     key `"state"` (`initial_state`), so a trajectory gives `nframes` transitions; other keys
     have no stored initial value and give `nframes - 1`.
     """
 
     def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool):
-        metas = list_arrays(stored.path)
+        metas = stored.metas
+        per_frame = sorted(n for n, m in metas.items()
+                           if len(m["shape"]) >= 2 and not n.startswith("provenance/"))
         for key in keys:
-            if key not in metas or len(metas[key]["shape"]) < 2:
+            if key not in per_frame:
                 raise KeyError(f"state: expected a per-frame key of the store, got {key!r}; "
-                               f"per-frame keys: {sorted(n for n, m in metas.items() if len(m['shape']) >= 2 and not n.startswith('provenance/'))}")
-        self.stored = StoredDataset(stored.path, keys=list(keys) + ["control"] + (
-            ["initial_state"] if "state" in keys else []))
+                               f"per-frame keys: {per_frame}")
+        self.stored = stored
         self.keys = keys
         self.every = int(stored.info["record_every"])
         self.nframes = int(metas[keys[0]]["shape"][1])
@@ -227,7 +231,7 @@ class Transitions(torch.utils.data.Dataset):
         nbatch = self.stored.nbatch
         slots = self.stored.slots[trajectories // nbatch]
         rows = trajectories % nbatch
-        arrays = self.stored._arrays()
+        arrays = self.stored.arrays()
         columns = self._allocate(len(ks), arrays)
         filled = {k: v.numpy() for k, v in columns.items()}  # the same memory, for numpy
         steps = np.arange(self.every)

@@ -17,6 +17,7 @@ from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, WRITTEN, Arra
                                     written_slots)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
+
 def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int) -> dict:
     """Creates the store's root, or checks that an existing one holds this configuration and
     was written by as many ranks, and grows its size to `batches` slots. Every writer does
@@ -86,13 +87,16 @@ class _Writer(torch.utils.data.IterableDataset):
     """Simulates this worker's missing slots and writes each, yielding a receipt per batch
     (slot, trajectories, diverged): the batches themselves never cross the worker's queue."""
 
-    def __init__(self, dataset: Any, path: str, batches: int, rank: tuple[int, int]):
+    def __init__(self, dataset: Any, path: str, batches: int, rank: tuple[int, int],
+                 done: np.ndarray):
+        """`done`: the slots complete when `write` began (each slot has one writer, so no
+        other writer completes one of this worker's meanwhile)."""
         self.dataset, self.path, self.batches, self.rank = dataset, path, batches, rank
+        self.done = done
 
     def __iter__(self) -> Iterator[tuple[int, int, int]]:
-        ds = self.dataset
+        ds, done = self.dataset, self.done
         shard = sharding.current_shard(self.rank)
-        done = written_slots(self.path, self.batches)
         count = slots_of(shard.rank, shard.world_size, self.batches)
         mine = list(shard.indices(count))
         # a continued episode needs every batch before it: simulate them, write the missing
@@ -160,7 +164,7 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
     if format == "minari":
         from simloader.store import minari
         return minari.write(dataset, path, batches=batches, progress=progress,
-                                  metadata=provenance(dataset, batches))
+                            metadata=provenance(dataset, batches))
     if format != "zarr":
         raise ValueError(f"format: expected 'zarr' or 'minari', got {format!r}")
     rank = sharding.distributed_rank() or (0, 1)
@@ -171,7 +175,8 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
         done = written_slots(path, batches)
         already = int(sum(done[i * rank[1] + rank[0]] for i in range(total)))
         loader = torch.utils.data.DataLoader(
-            _Writer(dataset, path, batches, rank), batch_size=None, num_workers=num_workers,
+            _Writer(dataset, path, batches, rank, done), batch_size=None,
+            num_workers=num_workers,
             multiprocessing_context=_worker_start(dataset) if num_workers else None)
         bar = _progress(progress, total, already, path)
         try:
