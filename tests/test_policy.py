@@ -269,10 +269,35 @@ def test_spawned_workers_share_the_weights():
     assert all(version == (value < 0) for value, version in seen)
 
 
+def batches_while_training(policy, update, step, num_batches):
+    """The batches of a cart-pole closed loop on `policy`, simulated while a trainer thread
+    calls `update(value)` with a growing value, every half millisecond."""
+    import threading
+    import time
+    stop = threading.Event()
+
+    def train():
+        value = 0.0
+        while not stop.is_set():
+            value += step
+            update(value)
+            time.sleep(0.0005)
+
+    trainer = threading.Thread(target=train)
+    trainer.start()
+    try:
+        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=20,
+                                  policy=policy, record=("qpos",), nthread=1,
+                                  num_batches=num_batches)
+        return list(ds)
+    finally:
+        stop.set()
+        trainer.join()
+
+
 def test_a_batch_runs_one_version_of_the_weights():
     """A trainer thread updates the weights all the time while batches are simulated: every
     batch's controls come from one version of the weights, the one `policy/version` names."""
-    import threading
     import time
 
     class SlowBias(Bias):
@@ -281,25 +306,13 @@ def test_a_batch_runs_one_version_of_the_weights():
             return super().forward(obs)
 
     policy = SlowBias()
-    stop = threading.Event()
 
-    def train():
-        value = 0.0
-        while not stop.is_set():
-            value += 1e-4  # within the ctrlrange: no clamp hides a change
-            with torch.no_grad():
-                policy.bias.fill_(value)  # one in-place update: one version
-            time.sleep(0.0005)
+    def update(value):
+        with torch.no_grad():
+            policy.bias.fill_(value)  # one in-place update: one version
 
-    trainer = threading.Thread(target=train)
-    trainer.start()
-    try:
-        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=20,
-                                  policy=policy, record=("qpos",), nthread=1, num_batches=8)
-        batches = list(ds)
-    finally:
-        stop.set()
-        trainer.join()
+    # steps within the ctrlrange: no clamp hides a change
+    batches = batches_while_training(policy, update, step=1e-4, num_batches=8)
     values = {}
     for b in batches:
         u = b["control"][..., 0]
@@ -532,34 +545,20 @@ def test_updating_keeps_half_updates_out_of_batches(counter):
     """A trainer thread updates two tensors with a pause between them, inside
     `simloader.policy.updating`: no batch copies one tensor's update without the other's
     (control a - b stays 0), and each version names one pair of values."""
-    import threading
     import time
     policy = TwoHalves()
     if counter == "int":
         policy.version = 0
     elif counter == "buffer":
         policy.register_buffer("version", torch.zeros((), dtype=torch.int64))
-    stop = threading.Event()
 
-    def train():
-        value = 0.0
-        while not stop.is_set():
-            value += 1e-3
-            with torch.no_grad(), simloader.policy.updating(policy):
-                policy.a.fill_(value)
-                time.sleep(0.002)  # the half-done update lasts long enough to be copied
-                policy.b.fill_(value)
-            time.sleep(0.0005)
+    def update(value):
+        with torch.no_grad(), simloader.policy.updating(policy):
+            policy.a.fill_(value)
+            time.sleep(0.002)  # the half-done update lasts long enough to be copied
+            policy.b.fill_(value)
 
-    trainer = threading.Thread(target=train)
-    trainer.start()
-    try:
-        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=20,
-                                  policy=policy, record=("qpos",), nthread=1, num_batches=12)
-        batches = list(ds)
-    finally:
-        stop.set()
-        trainer.join()
+    batches = batches_while_training(policy, update, step=1e-3, num_batches=12)
     versions = [int(b["policy/version"]) for b in batches]
     assert all((b["control"] == 0).all() for b in batches), "a batch copied half an update"
     assert versions == sorted(versions) and len(set(versions)) > 1 and min(versions) >= 0
