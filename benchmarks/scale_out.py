@@ -65,8 +65,9 @@ def _dataset(args, device):
         record.append(simloader.Camera(-1, height=64, width=64))
     drive = {"control": simloader.controls.Uniform()}
     if args.mode == "policy":
+        import mujoco
         model = simloader.load_model(w.name)
-        nstate = 1 + model.nq + model.nv + model.na
+        nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)  # "state"
         mlp = torch.nn.Sequential(torch.nn.Linear(nstate, 256), torch.nn.Tanh(),
                                   torch.nn.Linear(256, 256), torch.nn.Tanh(),
                                   torch.nn.Linear(256, model.nu))
