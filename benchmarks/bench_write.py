@@ -39,7 +39,9 @@ def dataset(model, w: common.Workload, args) -> simloader.SimDataset:
     record = list(args.record)
     if args.camera:
         height, width = (int(v) for v in args.camera.lower().split("x"))
-        record.append(simloader.Camera(-1, height=height, width=width))
+        # the model's first camera (MuJoCo Warp does not render the free camera, -1)
+        camera = 0 if model.ncam else -1
+        record.append(simloader.Camera(camera, height=height, width=width))
     options = {"impl": args.impl} if args.backend == "mjx" else {
         "nthread": common.cpu_count()}  # all the cores, as the generation alone
     return simloader.SimDataset(model, backend=args.backend, nbatch=w.nbatch, nstep=w.nstep,
@@ -97,7 +99,8 @@ def main() -> None:
     p.add_argument("--backend", default="rollout")
     p.add_argument("--impl", default="auto", help="backend='mjx' only")
     p.add_argument("--record", nargs="+", default=["state", "sensordata"])
-    p.add_argument("--camera", help="HEIGHTxWIDTH: record the free camera's RGB too")
+    p.add_argument("--camera", help="HEIGHTxWIDTH: record the RGB of the model's first camera too "
+                        "(the free camera if it has none)")
     p.add_argument("--read-workers", type=int, default=2)
     p.add_argument("--read-batch", type=int, default=32, help="trajectories per read batch")
     p.add_argument("--transition-batch", type=int, default=4096,

@@ -39,7 +39,8 @@ def decode_array(encoded: dict[str, Any]) -> np.ndarray:
     return np.frombuffer(raw, dtype=np.dtype(encoded["dtype"])).reshape(encoded["shape"]).copy()
 
 
-def _model_digest(model: mujoco.MjModel) -> str:
+def model_digest(model: mujoco.MjModel) -> str:
+    """A digest of everything in `model` (its saved binary)."""
     buffer = np.empty(mujoco.mj_sizeModel(model), dtype=np.uint8)
     mujoco.mj_saveModel(model, None, buffer)
     return hashlib.sha256(buffer.tobytes()).hexdigest()[:16]
@@ -61,12 +62,12 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
     if config.randomization is not None:
         randomize = [_describe(r.param) for r in config.randomization.resolved]
     elif config.variants is not None:
-        randomize = {"variants": [_model_digest(m) for m in config.variants]}
+        randomize = {"variants": [model_digest(m) for m in config.variants]}
     return {
         "backend": config.backend, "nbatch": config.nbatch, "nstep": config.nstep,
         "control_spec": config.control_spec, "seed": config.seed,
         "continue_episodes": config.continue_episodes, "num_batches": config.num_batches,
-        "model": hashlib.sha256("".join(_model_digest(m) for m in models).encode()
+        "model": hashlib.sha256("".join(model_digest(m) for m in models).encode()
                                 ).hexdigest()[:16],
         "control": control,
         "record": [o.key for o in config.observations], "record_every": config.record_every,
@@ -90,7 +91,10 @@ def _options(options: Any) -> dict[str, Any]:
     if options is None:
         return {}
     if dataclasses.is_dataclass(options):
-        return {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+        # a field left out of comparisons is not part of what the options are (e.g. models
+        # already put on a device, kept for reuse)
+        return {f.name: getattr(options, f.name) for f in dataclasses.fields(options)
+                if f.compare}
     return dict(vars(options))
 
 
@@ -103,7 +107,7 @@ def _describe(value: Any) -> Any:
     if value is None or isinstance(value, (bool, int, str)):
         return value
     if isinstance(value, mujoco.MjModel):
-        return {"model": _model_digest(value)}
+        return {"model": model_digest(value)}
     if isinstance(value, (np.ndarray, np.generic)) or hasattr(value, "__array__"):
         array = np.asarray(value)
         if array.size <= 16:

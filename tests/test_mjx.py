@@ -152,7 +152,8 @@ def test_same_batch_schema_as_rollout_backend(faulty, faulty_rollout):
 
 def test_compiles_once_per_configuration(faulty):
     ds, batches, first_pass = faulty
-    assert len(batches) == 4 and first_pass == 1  # one trace for all four batches
+    # one trace for all four batches (none if an earlier test stored this program)
+    assert len(batches) == 4 and first_pass + ds.stats["programs_loaded"] == 1
     compile_s = ds.stats["compile_s"]
     assert compile_s > 0
     with traces() as again:
@@ -435,7 +436,7 @@ def test_gpu_placement_pointers_and_one_compilation(gpu_dataset):
     with traces() as seen:
         produced = [backend.produce(i) for i in range(3)]
         batches = [backend.deliver(p) for p in produced]
-    assert len(seen) == 1
+    assert len(seen) + gpu_dataset.stats["programs_loaded"] == 1
     for p, batch in zip(produced, batches):
         for key in KEYS:
             assert batch[key].device == torch.device("cuda", 0), key

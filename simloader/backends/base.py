@@ -37,8 +37,13 @@ class Stats:
       steps: simulated steps delivered (trajectories x steps).
       diverged: trajectories flagged as diverged.
       simulate_s: seconds spent simulating (CPU backend: in MuJoCo; MJX: until results ready).
-      compile_s: seconds spent compiling (MJX backend).
+      compile_s: seconds spent making the batch function ready to run (MJX backend): tracing,
+        lowering and compiling, or loading what earlier processes stored.
       compiles: compilations (MJX backend): one per configuration, never per batch.
+      traces: times the batch function was traced in Python (MJX backend): 0 when a stored
+        program was loaded (`stored_program.py`).
+      trace_s: of `compile_s`, seconds spent tracing and lowering.
+      programs_loaded: batch functions loaded from the program store instead of traced.
       overflow: trajectories that lost contacts or constraint rows to MuJoCo Warp's buffer
         sizes (impl="warp"; flagged in the batch's `overflow`).
       solver_limit: trajectories whose constraint solver stopped at its iteration limit in a
@@ -53,6 +58,9 @@ class Stats:
     simulate_s: float = 0.0
     compile_s: float = 0.0
     compiles: int = 0
+    traces: int = 0
+    trace_s: float = 0.0
+    programs_loaded: int = 0
     overflow: int = 0
     solver_limit: int = 0
     graph_captures: int = 0
@@ -124,6 +132,44 @@ def refuse_forked_worker(what: str, why: str) -> None:
             f"{what} cannot run in a forked DataLoader worker: {why}. Use num_workers=0 (a GPU "
             f"batch already runs in parallel on the device) or DataLoader(..., "
             f"multiprocessing_context='spawn').")
+
+
+@contextlib.contextmanager
+def progress_line(what: str, estimate_s: Optional[float] = None) -> Iterator[None]:
+    """Says on stderr that `what` runs and, at the end, how long it took: one opaque call that
+    can take a minute (a cold compilation) must not look like a hang. On a terminal the line
+    ticks every second. `estimate_s`: how long the last one took, shown when known."""
+    last = f" (the last one took {estimate_s:.0f} s)" if estimate_s is not None else ""
+    start = time.perf_counter()
+    if not sys.stderr.isatty():  # a log file: two lines, not one refreshed every second
+        print(f"simloader: {what}{last}...", file=sys.stderr, flush=True)
+        try:
+            yield
+        finally:
+            print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
+                  file=sys.stderr, flush=True)
+        return
+    # written by hand, not with tqdm: its write lock deadlocked against tqdm's monitor thread
+    # when this ran in a prefetch thread (a pytest-xdist worker, 2026-11-25)
+    stop = threading.Event()
+
+    def line(text: str, end: str = "") -> None:
+        sys.stderr.write(f"\rsimloader: {what}{text}{end}")
+        sys.stderr.flush()
+
+    def tick() -> None:
+        while not stop.wait(1.0):
+            line(f"{last}: {time.perf_counter() - start:.0f} s")
+
+    line(f"{last}...")
+    ticker = threading.Thread(target=tick, daemon=True, name="simloader-progress")
+    ticker.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        ticker.join()
+        line(f": done in {time.perf_counter() - start:.0f} s", end="\x1b[K\n")
 
 
 @contextlib.contextmanager

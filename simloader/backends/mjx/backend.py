@@ -34,8 +34,7 @@ from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
 from simloader.backends.mjx.impls import Implementation
-from simloader.backends.mjx.pool import put_models
-from simloader.backends.mjx.program import Program
+from simloader.backends.mjx.program import Placed, Program
 from simloader.config import SimConfig
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +51,12 @@ class MjxOptions:
     impl_reason: str
     compilation_cache: Any
     memory_fraction: Optional[float]
+    # what the checks put on the device, for the constructing process's first program to
+    # reuse (not part of what the options are; not sent to workers)
+    placed: Optional[Placed] = dataclasses.field(default=None, compare=False, repr=False)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "placed": None}
 
     def implementation(self) -> Implementation:
         return Implementation()
@@ -92,10 +97,9 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     runtime.configure_cache(cache)
     device = runtime.jax_device(config.device)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
-    resolved = MjxOptions("jax", reason, cache, fraction)
-    impl = resolved.implementation()
-    mx, _ = put_models(config, impl, device)
-    observe.check_mjx(config.observations, impl.make_data(config.model, device), impl.name)
+    impl = Implementation()
+    placed = Placed.put(config, impl, device)
+    observe.check_mjx(config.observations, placed.data0, impl.name)
     if images:
         raise ValueError(f"record: impl='jax' cannot render {[o.key for o in images]}: MJX "
                          f"renders only on MuJoCo Warp; use impl='warp' (or 'auto') on a CUDA "
@@ -104,8 +108,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
                              f"memory", count=config.prefetch + 2, itemsize=4)
     if config.randomization is not None:
-        mjx_randomize.check(config.model, mx, config.randomization, impl)
-    return resolved
+        mjx_randomize.check(config.model, placed.model, config.randomization, impl)
+    return MjxOptions("jax", reason, cache, fraction, placed)
 
 
 # programs by configuration and device; each epoch's iterator reuses its dataset's program,
@@ -143,8 +147,10 @@ class MjxBackend(Backend):
         programs = _PROGRAMS.setdefault(config, {})
         self.program = programs.get((device, options))
         if self.program is None:
+            placed = options.placed if options.placed and options.placed.device == device \
+                else None
             self.program = programs[device, options] = Program(
-                config, options.implementation(), device)
+                config, options.implementation(), device, options.compilation_cache, placed)
         self.options = options
         self.device = device
         self.first = True  # the first batch may compile (Warp's kernels, on first use)
@@ -173,7 +179,8 @@ class MjxBackend(Backend):
             control = control.to(here, non_blocking=True)
         return control
 
-    def produce(self, index: int) -> _Produced:
+    def batch_args(self, index: int) -> tuple:
+        """The batch function's arguments for batch `index` (`program.batch_function`)."""
         c, p = self.config, self.program
         x0 = p.x0 if p.x0 is not None else c.initial.sample(
             self.seed(index, sharding.INITIAL), c.nbatch).astype(p.dtype)
@@ -182,8 +189,12 @@ class MjxBackend(Backend):
                           randomize_seed.generate_state(2, np.uint32)])
         variant = None if c.variants is None else dr.draw_variants(
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
-        args = (p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
+        return (p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
                 self.carry, self.restart)
+
+    def produce(self, index: int) -> _Produced:
+        c, p = self.config, self.program
+        args = self.batch_args(index)
         dispatched = time.perf_counter()
         extras = None
         if p.closed_loop is not None:
@@ -195,9 +206,9 @@ class MjxBackend(Backend):
             extras = {**self.caller.extras,
                       policy.VERSION: torch.tensor(version, dtype=torch.int64)}
         else:
-            simulate = p.compile(args, self.stats)
+            p.compile(args, self.stats)
             dispatched = time.perf_counter()
-            outputs, carry = simulate(*args)
+            outputs, carry = p.run(args)
         self.last_dispatched = outputs
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting

@@ -26,8 +26,10 @@ these back, which is exact and keeps checkpoints small.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any, Optional
 
@@ -36,10 +38,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import controls, layout, observe
-from simloader.backends.base import Stats
+from simloader import controls, layout, observe, resume, rules
+from simloader.backends.base import Stats, progress_line
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import runtime
+from simloader.backends.mjx import stored_program
 from simloader.backends.mjx.closed_loop import ClosedLoop
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import PHYSICS, pooled, put_models
@@ -84,6 +86,8 @@ class Pieces:
         self.control_components = tuple(c.control.components)
         self.inputs = tuple(component.name for component in self.control_components)
         self.observations, self.every, self.nframes = c.observations, c.record_every, c.nframes
+        self.unchecked = [o for o in c.observations
+                          if o.floating and not set(o.fields()) <= rules.RESTARTED]
         # control=None leaves inputs alone; a policy always sets them
         self.given = (c.control.fixed is not None or bool(self.drivers)
                       or getattr(c, "policy", None) is not None)
@@ -111,10 +115,8 @@ class Pieces:
         mj_resetData leaves them, as MuJoCo does: their NaNs are never delivered, and the
         solver loops of the whole batch, which run until every trajectory converges, do not
         keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
-        # NaN compares False, so `<=` catches NaN, Inf and huge values at once
-        stable = (jnp.all(jnp.abs(self.physics(m, d)) <= controls.MAXVAL, axis=-1)
-                  & jnp.all(jnp.abs(d.qacc) <= controls.MAXVAL, axis=-1)
-                  & jnp.all(jnp.isfinite(d.sensordata), axis=-1))
+        unstable = rules.unstable(d.time, d.qpos, d.qvel, d.act, d.qacc, d.sensordata, jnp)
+        stable = ~unstable
 
         def keep(x, reset):
             return jnp.where(_rows(stable, x), x, reset)
@@ -125,7 +127,7 @@ class Pieces:
                       qvel=keep(d.qvel, 0.0), act=keep(d.act, 0.0),
                       qacc_warmstart=keep(d.qacc_warmstart, 0.0),
                       sensordata=keep(d.sensordata, 0.0))
-        return d, ~stable
+        return d, unstable
 
     def physics(self, m, d):
         return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (self.model_axes, 0))(m, d)
@@ -190,8 +192,9 @@ class Pieces:
         return d, {key: self.impl.detach(value) for key, value in frame.items()}
 
     def finite(self, frame):
-        """(nbatch,) bool, or None with no floating observation."""
-        return observe.jax_finite(self.observations, frame)
+        """(nbatch,) bool, or None with no floating observation that `restart_unstable`
+        leaves unchecked (a value made only of what it restarts is finite already)."""
+        return observe.jax_finite(self.unchecked, frame)
 
     def finish(self, m, data, outputs, params):
         """The batch's outputs completed, and the carry of `continue_episodes`."""
@@ -277,15 +280,41 @@ def batch_function(pieces: Pieces) -> Callable:
     return simulate
 
 
+@dataclasses.dataclass(frozen=True)
+class Placed:
+    """A configuration's models on a device (batched along `pool_axes` where a model list or
+    variant pool differs) and one trajectory's data as `make_data` leaves it: what the
+    construction's checks put there, and the program reuses."""
+
+    device: jax.Device
+    model: Any
+    pool_axes: Any
+    data0: Any
+
+    @classmethod
+    def put(cls, config: SimConfig, impl: Implementation, device: jax.Device) -> "Placed":
+        model, pool_axes = put_models(config, impl, device)
+        return cls(device, model, pool_axes, impl.make_data(config.model, device))
+
+
 class Program:
     """A configuration's simulation on one device: the model and constant inputs on the
-    device and the compiled batch function, shared by every iterator of the dataset."""
+    device and the compiled batch function, shared by every iterator of the dataset.
 
-    def __init__(self, config: SimConfig, impl: Implementation, device: jax.Device):
+    Args:
+      config, impl, device: what to simulate, how and where.
+      cache: JAX's persistent compilation cache directory, beside which the batch function is
+        stored for later processes (`stored_program.py`); False: neither.
+      placed: the models already on `device`, or None to put them.
+    """
+
+    def __init__(self, config: SimConfig, impl: Implementation, device: jax.Device,
+                 cache: Any = False, placed: Optional[Placed] = None):
         c = config
-        self.impl = impl
-        self.model, pool_axes = put_models(c, impl, device)
-        self.data0 = impl.make_data(c.model, device)
+        self.config, self.device, self.impl = c, device, impl
+        self.store = None if cache is False else stored_program.ProgramStore(cache)
+        placed = placed or Placed.put(c, impl, device)
+        self.model, pool_axes, self.data0 = placed.model, placed.pool_axes, placed.data0
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
         # per model of the pool (variants too): the inputs and states mj_resetData leaves
         inputs0 = layout.reset_rows(c.pool, MODEL_INPUTS).astype(self.dtype)
@@ -313,7 +342,7 @@ class Program:
                            () if c.randomization is None else
                            tuple(r.param.key for r in c.randomization.resolved))
         self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype)
-        self.jitted = jax.jit(batch_function(self.pieces))
+        self.simulate = batch_function(self.pieces)
         policy = getattr(c, "policy", None)
         noise = getattr(c, "policy_noise", None)
         self.closed_loop: Any = None
@@ -331,15 +360,60 @@ class Program:
             params["variant"] = np.zeros(c.nbatch, np.int32)
         return {"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv), "params": params}
 
-    def compile(self, args: tuple, stats: Stats) -> Callable:
-        """The compiled batch function, compiled (or loaded from JAX's cache) on first use."""
+    def compile(self, args: tuple, stats: Stats) -> None:
+        """Makes the batch function ready to run on `args` (as `run` takes them), once: loaded
+        from the program store, or traced, compiled (JAX's persistent cache may answer) and
+        stored for later processes."""
         with self.lock:
             if self.compiled is None:
                 start = time.perf_counter()
                 # true float32 dot products: on GPUs JAX defaults to TF32, whose 10-bit
                 # mantissa puts 4e-4 errors into one step of the humanoid's velocities
-                with runtime.slow_notice(f"compiling the batch function ({self.impl.name})"), \
-                        jax.default_matmul_precision("float32"):
-                    self.compiled = self.jitted.lower(*args).compile()
+                with jax.default_matmul_precision("float32"):
+                    self.compiled = self._prepare(args, stats)
                 stats.add(compile_s=time.perf_counter() - start, compiles=1)
-            return self.compiled
+
+    def run(self, args: tuple) -> tuple[dict[str, Any], Any]:
+        """Dispatches one batch (after `compile`): (outputs, carry), not yet ready."""
+        return self.compiled(*jax.tree.leaves(args))
+
+    def _prepare(self, args: tuple, stats: Stats) -> Callable:
+        """The compiled batch function of the flattened arguments."""
+        leaves, tree = jax.tree.flatten(args)
+        key = None if self.store is None else stored_program.key(self.config, self.device,
+                                                                   leaves)
+        exported = None if key is None else self.store.load(key)
+        if exported is not None:
+            stats.add(programs_loaded=1)
+            return jax.jit(exported.call).lower(*leaves).compile()
+
+        def simulate(*leaves):  # the batch function of the flattened arguments
+            return self.simulate(*jax.tree.unflatten(tree, leaves))
+
+        c, digest = self.config, f"{self.device.platform}:{resume.model_digest(self.config.model)}"
+        estimate = None if self.store is None else self.store.last_compile_s(digest)
+        start = time.perf_counter()
+        with progress_line(f"tracing and compiling the batch function ({c.nbatch} x "
+                           f"{c.nstep}, MJX-{self.impl.name.upper()} on {self.device.platform})",
+                           estimate):
+            if key is not None:
+                exported = self._export(simulate, leaves)
+            lowered = (jax.jit(simulate) if exported is None else jax.jit(exported.call)
+                       ).lower(*leaves)
+            stats.add(traces=1, trace_s=time.perf_counter() - start)
+            compiled = lowered.compile()
+        if exported is not None:
+            self.store.save(key, exported)
+            self.store.note_compile_s(digest, time.perf_counter() - start)
+        return compiled
+
+    def _export(self, simulate: Callable, leaves: list) -> Optional[jax.export.Exported]:
+        """The batch function exported for the program store, or None (said once) where JAX
+        cannot export it: it then runs as traced, and later processes trace it again."""
+        try:
+            return jax.export.export(jax.jit(simulate))(*leaves)
+        except Exception as error:  # noqa: BLE001 (storing is an optimisation, never a failure)
+            warnings.warn(f"simloader: the batch function cannot be stored for later processes "
+                          f"({type(error).__name__}: {error}); each fresh process traces it "
+                          f"again", RuntimeWarning, stacklevel=2)
+            return None

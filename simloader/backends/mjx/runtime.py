@@ -1,9 +1,12 @@
 """Process-wide concerns of MJX on JAX: importing MJX, JAX's GPU memory and compilation
 cache, the device to simulate on, and the fork guard.
 
-Importing `mujoco.mjx` without the `warp-lang` package prints "Failed to import warp" to stdout
-(MJX's own optional Warp support, which simloader does not use): MJX is imported here, once,
-with that print captured.
+MJX is imported here, once, without its own optional Warp support, which simloader does not use
+(its Warp engine drives the public `mujoco-warp` package from torch): where Warp is installed
+but not yet imported, MJX would import Warp and its vendored MuJoCo Warp (1-2 s of a JAX
+dataset's start) for nothing. MJX then reports Warp as missing in this process:
+`mjx.put_model(impl="warp")` in your own code needs `mujoco.mjx` imported before simloader's
+first JAX dataset. MJX's "Failed to import warp" prints are captured.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import sys
 import warnings
 from typing import Any, Optional
 
@@ -21,8 +25,20 @@ from jax._src import xla_bridge
 
 from simloader.backends import base
 
-with contextlib.redirect_stdout(io.StringIO()):
-    from mujoco import mjx  # noqa: F401  (re-exported: the backend's modules import it from here)
+def _import_mjx() -> Any:
+    blocked = "warp" not in sys.modules  # an imported Warp costs MJX nothing more
+    if blocked:
+        sys.modules["warp"] = None  # makes `import warp` raise ImportError
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            from mujoco import mjx
+    finally:
+        if blocked:
+            del sys.modules["warp"]
+    return mjx
+
+
+mjx = _import_mjx()  # re-exported: the backend's modules import it from here
 
 _PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
 _FRACTION = "XLA_CLIENT_MEM_FRACTION"

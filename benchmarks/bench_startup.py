@@ -1,0 +1,565 @@
+"""Start-up: fresh processes to their first batch, simloader next to raw scripts, one run.
+
+Every measurement is a fresh Python process (a "child") that does what a user's script does,
+from interpreter start to the first batch in torch's hands, timed in phases:
+
+- `startup`: the parent's `time.time()` at Popen to the child's first line (the interpreter);
+- `import_torch`: `import torch` (first, as a torch user has it);
+- `import_engine`: raw: JAX + `mujoco.mjx` / `warp` + `mujoco_warp` / `mujoco` + rollout;
+  simloader: `import simloader`;
+- `construct`: raw: load the model, put it on the device, make the data; simloader:
+  `SimDataset(...)`;
+- `trace`, `compile`: raw JAX: `jax.jit(f).trace(...)` + `.lower()`, and `.compile()` (JAX's
+  persistent compilation cache on); raw Warp: the graph capture of one `mjw.step`, and the
+  eager step before it (which builds or loads Warp's kernels); simloader: `stats["trace_s"]`
+  and `stats["compile_s"]` ("-" where simloader does not report them);
+- `first_sim`: the first batch simulated until ready (simloader: the rest of `next(iter(ds))`);
+- `handoff`: raw: to torch (`torch.from_dlpack`, `wp.to_torch`, `torch.from_numpy`);
+  simloader: waiting on torch's stream;
+- `total`: process start to the first batch in torch's hands; `after torch`: the same from
+  the end of `import torch`; `wall`: the parent's wall clock of the whole process (exit
+  included).
+
+Cold and warm: each (engine, workload, raw or simloader) gets a cache root of its own
+(`XDG_CACHE_HOME`, `JAX_COMPILATION_CACHE_DIR`, `WARP_CACHE_PATH`, `CUDA_CACHE_PATH` under it),
+empty for the cold run, then reused for `--repeats` warm runs (median, min-max). Raw and
+simloader alternate in the warm runs. "Cold" means cold compilation caches: the OS page cache is
+not dropped (the libraries' files are read from memory after the first child).
+
+The raw scripts import neither simloader nor this folder; they are the recipes of
+`simloader.bench` (`RawMjx`, `raw_rollout`) and `bench_warp.py` (`RawWarp`), written out.
+`XLA_PYTHON_CLIENT_PREALLOCATE=false` is set for both (simloader's default) unless already set.
+
+Run on the GPU machine from the repository root:
+  python benchmarks/bench_startup.py --model-dir .models/dm_control --save --results-dir $OUT
+Smoke run on a laptop:
+  python benchmarks/bench_startup.py --quick --engines rollout jax
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any, Optional
+
+import common
+
+REPO = common.REPO
+ENGINES = ("rollout", "jax", "warp")
+DEFAULT = ["jax:cartpole:4096x200", "jax:humanoid:4096x200", "warp:humanoid:8192x200",
+           "rollout:cartpole:4096x200"]
+QUICK = ["rollout:cartpole:64x20", "jax:cartpole:64x20", "warp:cartpole:64x20"]
+PHASES = ("startup", "import_torch", "import_engine", "construct", "trace", "compile",
+          "first_sim", "handoff")
+CPU_AFTER_TORCH_S = 0.5  # rollout: simloader's first batch at most this after torch's import
+
+# -- the children: self-contained scripts, run as `python -c` -----------------------------------
+
+PRELUDE = r'''
+import json, os, sys, time
+_OFF = max(0.0, time.time() - float(os.environ["BENCH_STARTUP_T0"]))
+_PC0 = time.perf_counter() - _OFF
+P = {"startup": _OFF}
+X = {}
+_LAST = [time.perf_counter()]
+def mark(name):
+    now = time.perf_counter()
+    P[name] = now - _LAST[0]
+    _LAST[0] = now
+    return now
+SPEC = json.loads(os.environ["BENCH_STARTUP_SPEC"])
+def finish(t_torch):
+    now = time.perf_counter()
+    out = {"phases": P, "total": now - _PC0, "after_torch": now - t_torch, "extra": X}
+    sys.stdout.flush()
+    print("\n" + json.dumps(out), flush=True)
+'''
+
+RAW_JAX = PRELUDE + r'''
+import torch
+t_torch = mark("import_torch")
+import contextlib, io
+import jax
+import jax.numpy as jnp
+import mujoco
+with contextlib.redirect_stdout(io.StringIO()):  # mjx's "Failed to import warp" print
+    from mujoco import mjx
+mark("import_engine")
+jax.config.update("jax_compilation_cache_dir", SPEC["jax_cache"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+m = mujoco.MjModel.from_xml_path(SPEC["model"])
+mx = mjx.put_model(m, impl="jax")
+d0 = mjx.make_data(mx, impl="jax")  # the state mj_resetData gives
+jax.block_until_ready(d0)
+mark("construct")
+nbatch, nstep, nu = SPEC["nbatch"], SPEC["nstep"], m.nu
+limited = m.actuator_ctrllimited.astype(bool)
+low, high = -jnp.ones(nu), jnp.ones(nu)
+low = jnp.where(limited, m.actuator_ctrlrange[:, 0], low).astype(jnp.float32)
+high = jnp.where(limited, m.actuator_ctrlrange[:, 1], high).astype(jnp.float32)
+step = jax.vmap(mjx.step, in_axes=(None, 0))
+def batch(mx, d0, key, index):
+    ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
+                              minval=low, maxval=high)
+    d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
+    def body(d, u):
+        d = step(mx, d.replace(ctrl=u))
+        state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
+        return d, (state, d.sensordata)
+    _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
+    return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
+            "control": ctrl.swapaxes(0, 1)}
+key = jax.random.key(SPEC["seed"])
+jitted = jax.jit(batch)
+with jax.default_matmul_precision("float32"):
+    if hasattr(jitted, "trace"):
+        lowered = jitted.trace(mx, d0, key, 0).lower()
+    else:
+        lowered = jitted.lower(mx, d0, key, 0)
+    mark("trace")
+    compiled = lowered.compile()
+    mark("compile")
+out = jax.block_until_ready(compiled(mx, d0, key, 0))
+mark("first_sim")
+first = {k: torch.from_dlpack(v) for k, v in out.items()}
+mark("handoff")
+X["device"] = str(first["state"].device)
+X["shape"] = list(first["state"].shape)
+finish(t_torch)
+'''
+
+RAW_WARP = PRELUDE + r'''
+import torch
+t_torch = mark("import_torch")
+import mujoco
+import warp as wp
+import mujoco_warp as mjw
+mark("import_engine")
+wp.init()
+m = mujoco.MjModel.from_xml_path(SPEC["model"])
+nworld, nstep, nu = SPEC["nbatch"], SPEC["nstep"], m.nu
+with wp.ScopedDevice("cuda:0"):
+    mw = mjw.put_model(m)
+    mw.opt.warn_overflow = 0  # no printf from the kernels (as simloader)
+    d = mjw.make_data(m, nworld=nworld)
+device = torch.device("cuda", 0)
+t = lambda a: wp.to_torch(a).reshape(nworld, -1)
+ctrl, parts, sensordata = t(d.ctrl), [t(getattr(d, f)) for f in ("time", "qpos", "qvel", "act")], t(d.sensordata)
+limited = torch.as_tensor(m.actuator_ctrllimited.astype(bool), device=device)
+rng = torch.as_tensor(m.actuator_ctrlrange, dtype=torch.float32, device=device)
+low = torch.where(limited, rng[:, 0], -1.0)
+high = torch.where(limited, rng[:, 1], 1.0)
+stream = torch.cuda.Stream(device)
+warp_stream = wp.stream_from_torch(stream)
+torch.cuda.synchronize()
+mark("construct")
+with torch.cuda.stream(stream), wp.ScopedStream(warp_stream):
+    mjw.step(mw, d)  # builds (or loads from the kernel cache) Warp's modules
+    wp.synchronize_stream(warp_stream)
+    mark("compile")
+    with wp.ScopedCapture() as capture:
+        mjw.step(mw, d)
+    graph = capture.graph
+    wp.synchronize_stream(warp_stream)
+    mark("trace")
+    mjw.reset_data(mw, d)  # back to the initial state after the two steps above
+    gen = torch.Generator(device).manual_seed(SPEC["seed"])
+    controls = low + (high - low) * torch.rand((nworld, nstep, nu), device=device, generator=gen)
+    nstate = sum(p.shape[1] for p in parts)
+    state = torch.empty((nworld, nstep, nstate), device=device)
+    sensors = torch.empty((nworld, nstep, sensordata.shape[1]), device=device)
+    for i in range(nstep):
+        ctrl.copy_(controls[:, i])
+        wp.capture_launch(graph, stream=warp_stream)
+        torch.cat(parts, dim=1, out=state[:, i])
+        sensors[:, i] = sensordata
+stream.synchronize()
+mark("first_sim")
+first = {"state": state, "sensordata": sensors, "control": controls,
+         "qpos": wp.to_torch(d.qpos)}  # the outputs are torch views of Warp's arrays already
+torch.cuda.current_stream().wait_stream(stream)
+torch.cuda.current_stream().synchronize()
+mark("handoff")
+X["device"] = str(first["state"].device)
+X["shape"] = list(first["state"].shape)
+finish(t_torch)
+'''
+
+RAW_ROLLOUT = PRELUDE + r'''
+import torch
+t_torch = mark("import_torch")
+import numpy as np
+import mujoco
+from mujoco import rollout
+mark("import_engine")
+m = mujoco.MjModel.from_xml_path(SPEC["model"])
+try:
+    nthread = len(os.sched_getaffinity(0))
+except AttributeError:
+    nthread = os.cpu_count() or 1
+datas = [mujoco.MjData(m) for _ in range(nthread)]
+full = mujoco.mjtState.mjSTATE_FULLPHYSICS
+s0 = np.empty(mujoco.mj_stateSize(m, full))
+mujoco.mj_getState(m, datas[0], s0, full)
+nbatch, nstep = SPEC["nbatch"], SPEC["nstep"]
+x0 = np.tile(s0, (nbatch, 1))
+limited = m.actuator_ctrllimited.astype(bool)
+low, high = -np.ones(m.nu), np.ones(m.nu)
+low[limited] = m.actuator_ctrlrange[limited, 0]
+high[limited] = m.actuator_ctrlrange[limited, 1]
+rng = np.random.default_rng(SPEC["seed"])
+mark("construct")
+control = rng.uniform(low, high, size=(nbatch, nstep, m.nu))
+state, sensordata = rollout.rollout(m, datas, x0, control, persistent_pool=True)
+mark("first_sim")
+first = {"state": torch.from_numpy(state), "sensordata": torch.from_numpy(sensordata),
+         "control": torch.from_numpy(control)}
+mark("handoff")
+X["threads"] = nthread
+X["shape"] = list(first["state"].shape)
+finish(t_torch)
+'''
+
+SIMLOADER = PRELUDE + r'''
+import torch
+t_torch = mark("import_torch")
+import simloader
+from simloader import controls
+mark("import_engine")
+kwargs = {"backend": SPEC["backend"]}
+if SPEC.get("impl"):
+    kwargs["impl"] = SPEC["impl"]
+ds = simloader.SimDataset(SPEC["model"], nbatch=SPEC["nbatch"], nstep=SPEC["nstep"],
+                          control=controls.Uniform(), seed=SPEC["seed"], **kwargs)
+mark("construct")
+it = iter(ds)
+start = time.perf_counter()
+batch = next(it)
+first_s = time.perf_counter() - start
+_LAST[0] = time.perf_counter()
+if torch.cuda.is_available() and torch.cuda.is_initialized():
+    # torch's stream only: a device-wide synchronize could break a CUDA graph capture of the
+    # next batch under way in simloader's producer (see simloader.bench.sync)
+    torch.cuda.current_stream().synchronize()
+mark("handoff")
+stats = ds.stats
+stats = stats if isinstance(stats, dict) else dict(vars(stats))
+trace, comp = stats.get("trace_s"), stats.get("compile_s")
+P["trace"] = trace
+P["compile"] = comp
+P["first_sim"] = max(0.0, first_s - (trace or 0.0) - (comp or 0.0))
+X.update({k: stats.get(k) for k in ("traces", "compiles", "programs_loaded", "impl",
+                                      "graph_captures")})
+X["device"] = str(next(iter(batch.values())).device)
+X["shape"] = list(batch["state"].shape) if "state" in batch else None
+finish(t_torch)
+it.close()
+'''
+
+RAW_SCRIPT = {"jax": RAW_JAX, "warp": RAW_WARP, "rollout": RAW_ROLLOUT}
+SIM_OPTIONS = {"jax": {"backend": "mjx", "impl": "jax"}, "warp": {"backend": "mjx", "impl": "warp"},
+               "rollout": {"backend": "rollout"}}
+
+
+# -- the parent ---------------------------------------------------------------------------------
+
+def parse_workload(text: str) -> tuple[str, common.Workload]:
+    """`jax:humanoid:4096x200` -> ("jax", Workload("humanoid", 4096, 200))."""
+    try:
+        engine, rest = text.split(":", 1)
+    except ValueError:
+        engine, rest = "", ""
+    if engine not in ENGINES:
+        raise argparse.ArgumentTypeError(
+            f"expected ENGINE:MODEL:NBATCHxNSTEP with ENGINE one of {', '.join(ENGINES)}, "
+            f"such as jax:humanoid:4096x200, got {text!r}")
+    return engine, common.parse_workload(rest)
+
+
+def model_path(name: str, folder: Optional[pathlib.Path]) -> str:
+    """`<model dir>/<name>.xml` (as the other benchmarks), else simloader's built-in model."""
+    if folder is not None or any(d.is_dir() for d in common.MODEL_DIRS):
+        path = common.model_dir(folder) / f"{name}.xml"
+        if path.is_file():
+            return str(path.resolve())  # the children run in their cache folder
+        if folder is not None:
+            raise SystemExit(f"model {name!r}: no file {path}")
+    from simloader import models
+    return str(models.builtin_path(name))
+
+
+def child_env(root: pathlib.Path, spec: dict, simloader: bool) -> dict[str, str]:
+    env = dict(os.environ)
+    for var, sub in (("XDG_CACHE_HOME", "xdg"), ("JAX_COMPILATION_CACHE_DIR", "jax"),
+                     ("WARP_CACHE_PATH", "warp"), ("CUDA_CACHE_PATH", "cuda")):
+        env[var] = str(root / sub)
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    env["BENCH_STARTUP_SPEC"] = json.dumps(spec)
+    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
+             if p and pathlib.Path(p).resolve() != REPO]
+    if simloader:  # benchmark the checkout this script is in, installed or not
+        paths.insert(0, str(REPO))
+    env["PYTHONPATH"] = os.pathsep.join(paths)
+    return env
+
+
+def run_child(script: str, root: pathlib.Path, spec: dict, simloader: bool,
+              timeout: float) -> dict[str, Any]:
+    """One fresh process; its JSON line, plus `wall`, or `{"error": ...}`."""
+    env = child_env(root, spec, simloader)
+    env["BENCH_STARTUP_T0"] = repr(time.time())
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              env=env, cwd=root, timeout=timeout)
+    except subprocess.TimeoutExpired as e:
+        tail = (e.stderr or b"")[-1500:]
+        tail = tail.decode(errors="replace") if isinstance(tail, bytes) else tail
+        return {"error": f"timed out after {timeout:.0f} s\n{tail}"}
+    wall = time.perf_counter() - start
+    lines = [line for line in proc.stdout.strip().splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        return {"error": f"exit {proc.returncode}\n{proc.stderr[-3000:]}"}
+    out = json.loads(lines[-1])
+    out["wall"] = wall
+    out["stderr"] = proc.stderr[-1500:]
+    return out
+
+
+def fmt(values: list[Optional[float]], spread: bool = False) -> str:
+    vals = [v for v in values if v is not None]
+    if not vals:
+        return "-"
+    med = statistics.median(vals)
+    if spread and len(vals) > 1:
+        return f"{med:.2f} ({min(vals):.2f}-{max(vals):.2f})"
+    return f"{med:.2f}"
+
+
+def median(values: list[Optional[float]]) -> Optional[float]:
+    vals = [v for v in values if v is not None]
+    return statistics.median(vals) if vals else None
+
+
+def target(engine: str, model: str, kind: str) -> tuple[str, Optional[float]]:
+    """(what, bound) of the issue's targets for simloader's `kind` ("cold"/"warm") row."""
+    if engine == "rollout":
+        return "after torch", CPU_AFTER_TORCH_S
+    if kind == "cold":
+        return "ratio", 1.05
+    if engine == "warp":
+        return "ratio", 1.05
+    return "ratio", 0.75 if model == "humanoid" else 0.9
+
+
+def table(engine: str, w: common.Workload, runs: dict[tuple[str, str], list[dict]]) -> str:
+    headers = ["run", *PHASES, "total", "after torch", "wall", "traces/compiles/loaded",
+               "ratio sim/raw", "target"]
+    rows = []
+    for kind in ("cold", "warm"):
+        for who in ("raw", "simloader"):
+            got = runs.get((who, kind), [])
+            ok = [r for r in got if "error" not in r]
+            label = f"{who} {kind}" + (f" (n={len(ok)})" if kind == "warm" else "")
+            if not ok:
+                rows.append([label, *["-"] * (len(headers) - 2),
+                             "FAILED" if got else "-"])
+                continue
+            phases = [fmt([r["phases"].get(p) for r in ok]) for p in PHASES]
+            total = median([r["total"] for r in ok])
+            after = median([r["after_torch"] for r in ok])
+            counts = "-"
+            if who == "simloader":
+                x = ok[-1]["extra"]
+                counts = "/".join("-" if x.get(k) is None else str(x[k])
+                                  for k in ("traces", "compiles", "programs_loaded"))
+            ratio_s, target_s = "", ""
+            if who == "simloader":
+                raw = [r for r in runs.get(("raw", kind), []) if "error" not in r]
+                raw_total = median([r["total"] for r in raw])
+                ratio = total / raw_total if raw_total else None
+                ratio_s = "-" if ratio is None else f"{ratio:.2f}x"
+                what, bound = target(engine, w.name, kind)
+                value = after if what == "after torch" else ratio
+                if bound is not None and value is not None:
+                    unit = " s after torch" if what == "after torch" else "x"
+                    target_s = (f"<= {bound}{unit}: "
+                                f"{'PASS' if value <= bound else 'MISS'}")
+            rows.append([label, *phases, fmt([r["total"] for r in ok], spread=True),
+                         fmt([r["after_torch"] for r in ok], spread=True),
+                         fmt([r["wall"] for r in ok]), counts, ratio_s, target_s])
+    title = f"### {engine}: {w} (seconds from the process start; warm: median (min-max))"
+    return title + "\n\n" + common.markdown_table(headers, rows)
+
+
+def failures(engine: str, w: common.Workload, runs: dict) -> list[str]:
+    out = []
+    for (who, kind), got in runs.items():
+        for i, r in enumerate(got):
+            if "error" in r:
+                out.append(f"{engine} {w} {who} {kind} #{i}: {r['error'].strip()[-1500:]}")
+    return out
+
+
+def plot(args: argparse.Namespace, results: list) -> None:
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not installed: no plot", file=sys.stderr)
+        return
+    if not results:
+        return
+    fig, axes = plt.subplots(len(results), 1, figsize=(9, 2.2 * len(results) + 0.8),
+                             squeeze=False)
+    colors = plt.get_cmap("tab10").colors
+    for ax, (engine, w, runs) in zip(axes[:, 0], results):
+        labels, lefts = [], []
+        for y, (who, kind) in enumerate([(w_, k) for k in ("cold", "warm")
+                                         for w_ in ("raw", "simloader")]):
+            ok = [r for r in runs.get((who, kind), []) if "error" not in r]
+            labels.append(f"{who} {kind}")
+            left = 0.0
+            for i, p in enumerate(PHASES):
+                v = median([r["phases"].get(p) for r in ok]) or 0.0
+                ax.barh(y, v, left=left, color=colors[i % 10],
+                        label=p if y == 0 else None)
+                left += v
+            lefts.append(left)
+        ax.set_yticks(range(len(labels)), labels)
+        ax.invert_yaxis()
+        ax.set_title(f"{engine}: {w}", fontsize=10)
+        ax.set_xlabel("seconds from process start to the first batch")
+    axes[0, 0].legend(fontsize=7, ncol=len(PHASES), loc="lower left", bbox_to_anchor=(0, 1.15))
+    fig.tight_layout()
+    path = common.result_path(args, "bench_startup", ".png")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    print(f"saved {path}", file=sys.stderr)
+
+
+def save(args: argparse.Namespace, sections: list[str]) -> None:
+    env = common.environment()
+    env["warp"] = (f"warp-lang {common._version('warp-lang')}, mujoco-warp "
+                   f"{common._version('mujoco-warp')}")
+    command = env.pop("command")
+    env["command"] = command
+    lines = ["# Start-up: fresh processes to the first batch, simloader and raw", ""]
+    lines += [f"- {k}: `{v}`" if k == "command" else f"- {k}: {v}" for k, v in env.items()]
+    path = common.result_path(args, "bench_startup", ".md")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n\n" + "\n\n".join(sections) + "\n")
+    print(f"saved {path}", file=sys.stderr)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--quick", action="store_true",
+                   help=f"tiny sizes for a smoke run on a laptop ({' '.join(QUICK)})")
+    p.add_argument("--workloads", nargs="+", type=parse_workload,
+                   metavar="ENGINE:MODEL:NBATCHxNSTEP",
+                   help=f"what to run (default: {' '.join(DEFAULT)})")
+    p.add_argument("--engines", nargs="+", choices=ENGINES, default=list(ENGINES),
+                   help="engines to run (filters the workloads)")
+    p.add_argument("--model-dir", type=pathlib.Path,
+                   help=f"folder of the MJCF files (default: the first of "
+                        f"{', '.join(str(d) for d in common.MODEL_DIRS)} that exists, else "
+                        f"simloader's built-in models)")
+    p.add_argument("--repeats", type=int, default=2, help="warm runs of each child")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--timeout", type=float, default=600.0, help="seconds per child")
+    p.add_argument("--cache-root", type=pathlib.Path,
+                   help="folder for the children's caches (default: a fresh temporary folder, "
+                        "removed at the end)")
+    p.add_argument("--keep-caches", action="store_true", help="leave the caches in place")
+    p.add_argument("--save", action="store_true",
+                   help="write the tables, the environment and the command line (and a plot) "
+                        "to RESULTS_DIR/bench_startup[-TAG]-<date>.md")
+    p.add_argument("--results-dir", type=pathlib.Path, default=REPO / "benchmarks" / "results",
+                   help="where --save writes (on the GPU machine: $OUT)")
+    p.add_argument("--tag", default="", help="suffix of the saved file names")
+    args = p.parse_args()
+
+    chosen = args.workloads or [parse_workload(t) for t in (QUICK if args.quick else DEFAULT)]
+    chosen = [(e, w) for e, w in chosen if e in args.engines]
+    import torch
+    notes = []
+    if any(e == "warp" for e, _ in chosen) and not torch.cuda.is_available():
+        notes.append("warp rows skipped: no CUDA GPU (Warp on the CPU is not the target)")
+        chosen = [(e, w) for e, w in chosen if e != "warp"]
+    for n in notes:
+        print(n, file=sys.stderr)
+
+    root = args.cache_root or pathlib.Path(tempfile.mkdtemp(prefix="bench_startup-"))
+    root.mkdir(parents=True, exist_ok=True)
+    plan = []  # (engine, workload, who, kind, child root, script, spec)
+    for engine, w in chosen:
+        spec = {"model": model_path(w.name, args.model_dir), "nbatch": w.nbatch,
+                "nstep": w.nstep, "seed": args.seed, **SIM_OPTIONS[engine]}
+        roots = {}
+        for who in ("raw", "simloader"):
+            roots[who] = root / f"{engine}-{w.name}-{w.nbatch}x{w.nstep}-{who}"
+            shutil.rmtree(roots[who], ignore_errors=True)  # cold for real
+            roots[who].mkdir(parents=True)
+        order = [("raw", "cold"), ("simloader", "cold")]
+        for rep in range(args.repeats):
+            pair = [("raw", "warm"), ("simloader", "warm")]
+            order += pair if rep % 2 else pair[::-1]
+        for who, kind in order:
+            s = dict(spec, jax_cache=str(roots[who] / "jax"))
+            script = SIMLOADER if who == "simloader" else RAW_SCRIPT[engine]
+            plan.append((engine, w, who, kind, roots[who], script, s))
+
+    results: dict[tuple[str, str], dict] = {}
+    try:
+        for engine, w, who, kind, croot, script, spec in common.progress(plan, desc="children"):
+            r = run_child(script, croot, spec, who == "simloader", args.timeout)
+            results.setdefault((engine, str(w)), {"engine": engine, "w": w, "runs": {}})[
+                "runs"].setdefault((who, kind), []).append(r)
+    finally:
+        if not args.keep_caches:
+            shutil.rmtree(root, ignore_errors=True)
+
+    sections, errors = [], []
+    for entry in results.values():
+        sections.append(table(entry["engine"], entry["w"], entry["runs"]))
+        errors += failures(entry["engine"], entry["w"], entry["runs"])
+    sections.append(
+        "Phases in seconds: startup (interpreter), import_torch, import_engine (raw: the "
+        "engine; simloader: `import simloader`), construct (model on the device, data / "
+        "`SimDataset(...)`), trace and compile (raw JAX: `.trace().lower()` and `.compile()`; "
+        "raw Warp: graph capture and the eager step that builds the kernels; simloader: "
+        "`stats['trace_s']`, `stats['compile_s']`), first_sim (simloader: the rest of "
+        "`next(iter(ds))`), handoff (to torch). total: process start to the first batch in "
+        "torch's hands; after torch: from the end of `import torch`; wall: the whole process "
+        "as the parent saw it. Cold: empty cache roots (XDG_CACHE_HOME, "
+        "JAX_COMPILATION_CACHE_DIR, WARP_CACHE_PATH, CUDA_CACHE_PATH), one per engine, "
+        "workload and raw/simloader; warm: the same roots again. traces/compiles/loaded: "
+        "simloader's `stats` after the first batch. Phases are not matched one to one: "
+        "`import simloader` does not import JAX or Warp, so simloader's construct includes "
+        "them, and simloader's compile includes its tracing where it reports no `trace_s`; "
+        "compare totals.")
+    if notes:
+        sections.append("\n".join(f"Note: {n}." for n in notes))
+    if errors:
+        sections.append("Failures:\n\n```\n" + "\n\n".join(errors) + "\n```")
+    print("\n\n".join(sections))
+    if args.save:
+        save(args, sections)
+        plot(args, [(e["engine"], e["w"], e["runs"]) for e in results.values()])
+
+
+if __name__ == "__main__":
+    main()
