@@ -148,3 +148,16 @@ def test_construction_puts_the_model_once(monkeypatch):
     ds = _dataset(False)
     next(iter(ds))
     assert calls == [1]  # by the checks at construction; the program reuses it
+
+
+def test_without_flatbuffers_the_dataset_runs_and_says_why_nothing_is_kept(tmp_path, monkeypatch,
+                                                                          capfd):
+    import importlib.util
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "flatbuffers" else real(name, *a))
+    stored_program._missing_once.cache_clear()
+    ds = _dataset(str(tmp_path))
+    next(iter(ds))
+    assert ds.stats["traces"] == 1 and not any(tmp_path.rglob("*" + stored_program.SUFFIX))
+    assert "jax.export needs the flatbuffers package" in capfd.readouterr().err

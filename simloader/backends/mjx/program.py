@@ -312,7 +312,7 @@ class Program:
                  cache: Any = False, placed: Optional[Placed] = None):
         c = config
         self.config, self.device, self.impl = c, device, impl
-        self.store = None if cache is False else stored_program.ProgramStore(cache)
+        self.store = stored_program.store_for(cache)
         placed = placed or Placed.put(c, impl, device)
         self.model, pool_axes, self.data0 = placed.model, placed.pool_axes, placed.data0
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.metadata
+import importlib.util
 import json
 import os
 import pathlib
@@ -84,6 +85,23 @@ def key(config: Any, device: jax.Device, leaves: Sequence[Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def store_for(cache: Any) -> Optional["ProgramStore"]:
+    """The program store beside JAX's compilation cache `cache`, or None: `cache` is False, or
+    JAX cannot serialize programs here (its `flatbuffers` dependency is missing: said once)."""
+    if cache is False:
+        return None
+    if importlib.util.find_spec("flatbuffers") is None:
+        _missing_once()
+        return None
+    return ProgramStore(cache)
+
+
+@functools.cache
+def _missing_once() -> None:
+    _say("batch functions are not kept for later processes, which trace them again: "
+         "jax.export needs the flatbuffers package (pip install 'simloader[mjx]')")
+
+
 class ProgramStore:
     """The folder of exported batch functions beside JAX's compilation cache.
 
@@ -121,9 +139,10 @@ class ProgramStore:
         A folder that cannot be written costs the next process a trace, nothing more."""
         try:
             os.makedirs(self.folder, exist_ok=True)
+            blob = exported.serialize()
             with tempfile.NamedTemporaryFile(dir=self.folder, suffix=".partial",
                                              delete=False) as f:
-                f.write(exported.serialize())
+                f.write(blob)
             os.replace(f.name, self.path(key))
         except OSError as error:
             _say(f"cannot store the batch function in {self.folder} ({error}); the next "
