@@ -23,6 +23,7 @@ import os
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
+import closed_loop_baselines as baselines  # noqa: E402
 import common  # noqa: E402
 import simloader  # noqa: E402
 from simloader import bench  # noqa: E402
@@ -51,9 +52,11 @@ def main() -> None:
     rows = []
     for w in common.workloads(args, DEFAULT, QUICK):
         model = common.load_model(w.name, args.model_dir)
-        net = bench.mlp(model.nq + model.nv, model.nu, args.hidden, args.seed).to(device)
-        policy = bench.StatePolicy(net, model)
-        for impl in args.impls or IMPLS.get(w.name, ("jax",)):
+        net = baselines.mlp(model.nq + model.nv, model.nu, args.hidden, args.seed).to(device)
+        policy = baselines.StatePolicy(net, model)
+        # (MuJoCo Warp's engine needs a CUDA GPU: left out by default where there is none)
+        default = [i for i in IMPLS.get(w.name, ("jax",)) if i != "warp" or device == "cuda"]
+        for impl in args.impls or default:
             sims = {
                 "open loop": bench.SimloaderMeasure(model, w, "mjx", args.seed, impl=impl,
                                                     record=("state",)),
@@ -71,13 +74,13 @@ def main() -> None:
                     model, w, "mjx", args.seed, impl=impl, control=None, policy=policy,
                     record=("state", "qpos", "qvel", camera))
             options = sims["open loop"].ds.config.options
-            raws = {name: bench.RawClosedLoopMjx(model, w, net, mode, impl=impl,
-                                                 naconmax=options.naconmax, njmax=options.njmax)
+            # MuJoCo Warp's buffer sizes as simloader resolved them (none on MJX-JAX)
+            sizes = {k: getattr(options, k, None) for k in ("naconmax", "njmax")}
+            raws = {name: baselines.RawClosedLoopMjx(model, w, net, mode, impl=impl, **sizes)
                     for name, mode in (("fused JAX MLP", "fused"),
                                        ("raw torch per step", "torch"))}
             if impl == "warp" and device == "cuda":
-                raws[GRAPH] = bench.RawWarpGraphLoop(model, w, net, naconmax=options.naconmax,
-                                                     njmax=options.njmax)
+                raws[GRAPH] = baselines.RawWarpGraphLoop(model, w, net, **sizes)
             slowest = max([s.first_s / 10 for s in sims.values()]
                           + [r.measure(1) * w.steps for r in raws.values()])
             nbatches = common.batches_for(args, slowest)

@@ -13,6 +13,7 @@ Rows (every one records the state after each step and the controls):
 
 from __future__ import annotations
 
+import closed_loop_baselines as baselines
 import common
 from simloader import bench
 
@@ -31,8 +32,8 @@ def main() -> None:
     rows = []
     for w in common.workloads(args, DEFAULT, QUICK):
         model = common.load_model(w.name, args.model_dir)
-        net = bench.mlp(model.nq + model.nv, model.nu, args.hidden, args.seed)
-        policy = bench.StatePolicy(net, model)
+        net = baselines.mlp(model.nq + model.nv, model.nu, args.hidden, args.seed)
+        policy = baselines.StatePolicy(net, model)
         sims = {
             "open loop": bench.SimloaderMeasure(model, w, "rollout", args.seed,
                                                 record=("state",), nthread=nthread),
@@ -40,7 +41,7 @@ def main() -> None:
                 model, w, "rollout", args.seed, control=None, policy=policy,
                 record=("state", "qpos", "qvel"), dtype=torch.float32, nthread=nthread),
         }
-        raw = bench.RawClosedLoopBatch(model, w, policy, nthread)
+        raw = baselines.RawClosedLoopBatch(model, w, policy, nthread)
         nbatches = common.batches_for(args, max([s.first_s for s in sims.values()]
                                                 + [raw.measure(1) * w.steps]))
         measures = {RAW: lambda: raw.measure(nbatches)}
