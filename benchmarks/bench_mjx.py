@@ -186,7 +186,8 @@ def main() -> None:
         sim, why = try_simloader(model, w, args.seed, args.impl)
         impl = sim.options.impl if sim is not None else ("jax" if args.impl == "auto"
                                                          else args.impl)
-        sizes = dict(naconmax=sim.options.naconmax, njmax=sim.options.njmax) if sim else {}
+        # MuJoCo Warp's buffer sizes as simloader resolved them (none on MJX-JAX)
+        sizes = {k: getattr(sim.options, k, None) for k in ("naconmax", "njmax")} if sim else {}
         RAW, SIMLOADER = f"raw MJX-{impl} vmap+scan", f"simloader mjx ({impl})"
         raw = RawMjx(model, w, args.seed, impl=impl, **sizes)
         nbatches = common.batches_for(args, raw.batch_s)
