@@ -182,15 +182,10 @@ def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
     return out  # the GPU engines say what float64 means for them (their check_options)
 
 
-def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
-            backend: str) -> tuple[tuple[observe.Observation, ...], int]:
+def _record(model: mujoco.MjModel, record: Any, record_every: Any,
+            nstep: int) -> tuple[tuple[observe.Observation, ...], int]:
     """The observations `record` names and the validated `record_every`."""
     observations = observe.parse(model, record)
-    images = [o for o in observations if o.rendered]
-    if backend == "rollout" and images:
-        from simloader.backends import cpu_render
-        cpu_render.check(model, images)
-        cpu_render.gl_platform()  # fails here, naming what to install, if no GL works
     record_every = _int("record_every", record_every, 1)
     if nstep % record_every:
         raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "
@@ -200,8 +195,7 @@ def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
 
 
 def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, control_spec: int,
-            nbatch: int, nstep: int, backend: str,
-            observations: Sequence[observe.Observation]) -> Optional[controls.ControlPlan]:
+            nbatch: int, nstep: int) -> Optional[controls.ControlPlan]:
     """Validates the closed loop's arguments; returns the noise plan (None without noise)."""
     if policy is None:
         if noise is not None:
@@ -209,10 +203,6 @@ def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, contro
                              "needs policy=; for open-loop noise pass it as control=")
         return None
     simloader_policy.check(policy)
-    if backend == "rollout" and any(o.rendered for o in observations):
-        raise ValueError("policy, record: on backend='rollout' a policy cannot see cameras yet "
-                         "(they are rendered after the batch); use backend='mjx' (MuJoCo Warp "
-                         "renders every step), or record no Camera")
     if control is not None:
         raise ValueError(f"control, policy: the policy picks every step's controls, so control "
                          f"must be None, got {type(control).__name__}; for exploration noise "
@@ -283,15 +273,14 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         base = models_[0]
     elif variants is not None:
         base = variants[0]
-    observations, record_every = _record(base, record, record_every, nstep, backend)
+    observations, record_every = _record(base, record, record_every, nstep)
     # the size check first: the plans below build (nbatch x ...) tables, seconds of work (and
     # memory) for an nbatch that is refused anyway
     _check_memory_early(base, backend, control_spec, observations, nbatch, nstep,
                         record_every, prefetch)
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
-    noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep, backend,
-                    observations)
+    noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep)
     config = SimConfig(
         model=base, models=models_, backend=backend, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,

@@ -4,7 +4,7 @@
 observations (a dict of tensors `nbatch x ...`, keys as in `record`, on the dataset's device);
 it returns the control rows (`nbatch x ncontrol`, the `control_spec` layout) or a pair
 `(control, extras)` whose extras (tensors `nbatch x ...`) are delivered as `"policy/KEY"`,
-`nbatch x nstep x ...`. The backends drive the loop (`backends/rollout.py`: `mujoco.batch`'s
+`nbatch x nstep x ...`. The backends drive the loop (`backends/cpu/`: `mujoco.batch`'s
 `step()`; `backends/mjx/closed_loop.py`: one jitted step per call); this module holds what they
 share: calling and checking the policy, its extras, its weights' version, and the rule for
 DataLoader workers.

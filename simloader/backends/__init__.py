@@ -1,6 +1,6 @@
 """The simulation engines behind `SimDataset`, and how one is chosen.
 
-`backend="rollout"` is MuJoCo on CPU threads (`rollout.py`). `backend="mjx"` is a GPU engine
+`backend="rollout"` is MuJoCo on CPU threads (`cpu/`). `backend="mjx"` is a GPU engine
 picked by `impl`: `"jax"` (MJX on JAX, `mjx/`) or `"warp"` (MuJoCo Warp driven from torch,
 `warp/`). The dataset talks to engines only through this registry: resolve "auto", validate an
 engine's options, create one for a shard. Engine modules are imported when first needed, so
@@ -174,10 +174,8 @@ def check_options(config: SimConfig, asked: str, options: dict[str, Any]) -> Any
             f"impl: {options['impl']!r} chooses the GPU engine, but backend='auto' resolved to "
             f"'rollout' here (no GPU visible, or the engine's packages missing); pass "
             f"backend='mjx' to run it anyway")
-    if options:
-        raise TypeError(f"SimDataset: unexpected keyword argument(s) {sorted(options)} for "
-                        f"backend='rollout'")
-    return None
+    from simloader.backends import cpu
+    return cpu.check_options(config, options)
 
 
 def _jax_options_unused(options: dict[str, Any]) -> None:
@@ -196,5 +194,5 @@ def create(config: SimConfig, shard: sharding.Shard, stats: Stats) -> Backend:
     if config.backend == "mjx":
         from simloader.backends.mjx import MjxBackend
         return MjxBackend(config, shard, stats, config.options)
-    from simloader.backends.rollout import RolloutBackend
+    from simloader.backends.cpu import RolloutBackend
     return RolloutBackend(config, shard, stats)

@@ -27,7 +27,7 @@ from mujoco import batch as mj_batch
 
 from simloader import controls, handoff, layout, mujoco_warnings, policy, resume, sharding
 from simloader import randomize as dr
-from simloader.backends import cpu_render
+from simloader.backends.cpu import render as cpu_render
 from simloader.backends.base import Backend
 
 

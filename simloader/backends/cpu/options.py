@@ -1,0 +1,31 @@
+"""The CPU backend's checks at construction: what `mujoco.batch` on CPU threads cannot do, or
+needs (an OpenGL platform for cameras), refused by name."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from simloader.backends.cpu import render
+
+
+def check_options(config: Any, options: dict[str, Any]) -> None:
+    """Validates a `backend="rollout"` configuration (it takes no options of its own).
+
+    Raises:
+      TypeError: any option (`options` must be empty).
+      ValueError: cameras this backend cannot render, no working OpenGL, or a policy that
+        would see cameras (rendered after the batch, too late for it).
+    """
+    if options:
+        raise TypeError(f"SimDataset: unexpected keyword argument(s) {sorted(options)} for "
+                        f"backend='rollout'")
+    images = [o for o in config.observations if o.rendered]
+    if not images:
+        return None
+    if config.policy is not None:
+        raise ValueError("policy, record: on backend='rollout' a policy cannot see cameras yet "
+                         "(they are rendered after the batch); use backend='mjx' (MuJoCo Warp "
+                         "renders every step), or record no Camera")
+    render.check(config.model, images)
+    render.gl_platform()  # fails here, naming what to install, if no GL works
+    return None
