@@ -296,7 +296,13 @@ class RawMjx(RawBaseline):
                  render: Optional[Callable[[Any, Any], tuple[Any, dict]]] = None):
         import jax
         import jax.numpy as jnp
+        if impl == "warp":
+            import warp  # noqa: F401  (before MJX: simloader imports MJX without Warp otherwise)
         from simloader.backends.mjx.runtime import mjx  # (imports MJX without its warp print)
+        if impl == "warp" and not sys.modules["mujoco.mjx.warp"].WARP_INSTALLED:
+            raise RuntimeError("the MJX-Warp baseline needs MJX imported with Warp, but a JAX "
+                               "dataset imported it without Warp earlier in this process; run "
+                               "it in a process of its own")
 
         self.w = w
         self.render = render  # alive as long as the compiled function (it may own buffers)
