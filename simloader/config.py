@@ -30,8 +30,9 @@ class SimConfig:
       randomization: per-trajectory model parameters drawn every batch, or None.
       variants: the pool of compiled structural variants sampled per trajectory, or None.
       backend: "rollout" or "mjx" ("auto" is resolved by `backends.resolve`).
-      options: the backend's own options, resolved (`backends.check_options`; the MJX backend's
-        `MjxOptions`: implementation, buffer sizes, caches), None for "rollout".
+      options: the engine's own options, resolved by `backends.check_options` (`CpuOptions`,
+        `MjxOptions`, `WarpOptions`: the implementation `impl`, buffer sizes, caches, and
+        `simulated_by()`); None only until they are checked.
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.

@@ -160,7 +160,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         """Counters of the iterators run in this process (workers keep their own), and the
         implementation that simulates (`impl`: "jax" or "warp" on MJX, "c" on rollout)."""
         out = self._stats.as_dict()
-        out["impl"] = self.config.options.impl if self.config.options is not None else "c"
+        out["impl"] = self.config.options.impl
         return out
 
     def describe(self) -> str:
@@ -175,12 +175,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         if params:
             text += ("\nrandomized: batch[\"params\"] keys, the values each trajectory ran "
                      "with:\n" + "\n".join(f"  {k} {shape}" for k, shape in params))
-        if c.options is not None:
-            text += (f"\nsimulated by: backend='mjx', impl={c.options.impl!r} "
-                     f"({c.options.describe()}; chosen: {c.options.impl_reason})")
-        else:
-            text += "\nsimulated by: backend='rollout' (mujoco.batch on CPU threads)"
-        return text
+        return text + f"\nsimulated by: {c.options.simulated_by()}"
 
     def __len__(self) -> int:
         if self.config.num_batches is None:

@@ -87,7 +87,8 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
 
 
 def _options(options: Any) -> dict[str, Any]:
-    """A backend's resolved options (`SimConfig.options`: None, or a dataclass) by name."""
+    """A backend's resolved options (`SimConfig.options`: a dataclass; None in configurations
+    saved before the CPU backend had one) by name."""
     if options is None:
         return {}
     if dataclasses.is_dataclass(options):

@@ -7,6 +7,6 @@
 """
 
 from simloader.backends.cpu.backend import RolloutBackend
-from simloader.backends.cpu.options import check_options
+from simloader.backends.cpu.options import CpuOptions, check_options
 
-__all__ = ["RolloutBackend", "check_options"]
+__all__ = ["CpuOptions", "RolloutBackend", "check_options"]

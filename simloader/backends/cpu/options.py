@@ -3,12 +3,24 @@ needs (an OpenGL platform for cameras), refused by name."""
 
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
+from typing import Any, ClassVar
 
 from simloader.backends.cpu import render
 
 
-def check_options(config: Any, options: dict[str, Any]) -> None:
+@dataclasses.dataclass(frozen=True)
+class CpuOptions:
+    """The CPU backend's resolved options: none of its own (fields would enter the resume
+    fingerprint; `impl` is a constant)."""
+
+    impl: ClassVar[str] = "c"
+
+    def simulated_by(self) -> str:
+        return "backend='rollout' (mujoco.batch on CPU threads)"
+
+
+def check_options(config: Any, options: dict[str, Any]) -> CpuOptions:
     """Validates a `backend="rollout"` configuration (it takes no options of its own).
 
     Raises:
@@ -21,11 +33,11 @@ def check_options(config: Any, options: dict[str, Any]) -> None:
                         f"backend='rollout'")
     images = [o for o in config.observations if o.rendered]
     if not images:
-        return None
+        return CpuOptions()
     if config.policy is not None:
         raise ValueError("policy, record: on backend='rollout' a policy cannot see cameras yet "
                          "(they are rendered after the batch); use backend='mjx' (MuJoCo Warp "
                          "renders every step), or record no Camera")
     render.check(config.model, images)
     render.gl_platform()  # fails here, naming what to install, if no GL works
-    return None
+    return CpuOptions()

@@ -61,6 +61,10 @@ class MjxOptions:
     def implementation(self) -> Implementation:
         return Implementation()
 
+    def simulated_by(self) -> str:
+        return (f"backend='mjx', impl={self.impl!r} ({self.describe()}; chosen: "
+                f"{self.impl_reason})")
+
     def describe(self) -> str:
         return self.implementation().describe()
 

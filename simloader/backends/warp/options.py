@@ -62,6 +62,10 @@ class WarpOptions:
     njmax: int
     per_world: tuple[str, ...]
 
+    def simulated_by(self) -> str:
+        return (f"backend='mjx', impl={self.impl!r} ({self.describe()}; chosen: "
+                f"{self.impl_reason})")
+
     def describe(self) -> str:
         return f"MuJoCo Warp, naconmax={self.naconmax}, njmax={self.njmax}"
 
