@@ -34,7 +34,7 @@ from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import runtime
 from simloader.backends.mjx.impls import Implementation
-from simloader.backends.mjx.program import Placed, Program
+from simloader.backends.mjx.program import BatchArgs, Placed, Program
 from simloader.config import SimConfig
 
 @dataclasses.dataclass(frozen=True)
@@ -183,7 +183,7 @@ class MjxBackend(Backend):
             control = control.to(here, non_blocking=True)
         return control
 
-    def batch_args(self, index: int) -> tuple:
+    def batch_args(self, index: int) -> BatchArgs:
         """The batch function's arguments for batch `index` (`program.batch_function`)."""
         c, p = self.config, self.program
         x0 = p.x0 if p.x0 is not None else c.initial.sample(
@@ -193,8 +193,8 @@ class MjxBackend(Backend):
                           randomize_seed.generate_state(2, np.uint32)])
         variant = None if c.variants is None else dr.draw_variants(
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
-        return (p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
-                self.carry, self.restart)
+        return BatchArgs(p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
+                         self.carry, self.restart)
 
     def produce(self, index: int) -> _Produced:
         c, p = self.config, self.program

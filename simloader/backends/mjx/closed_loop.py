@@ -117,14 +117,14 @@ class ClosedLoop:
         # `start` makes them
         self.blank = jax.jit(lambda *args: pieces.begin(*args)[1])
 
-    def run(self, args: tuple, policy: Callable[[dict[str, torch.Tensor], int], torch.Tensor],
+    def run(self, args: Any, policy: Callable[[dict[str, torch.Tensor], int], torch.Tensor],
             nstep: int, previous: Any) -> tuple[dict[str, Any], Any, Any]:
         """One batch: `policy(observations, t) -> control rows` (torch tensors in and out,
         exchanged with JAX through DLPack) before every step. Only dispatches: nothing here
         waits for the device.
 
         Args:
-          args: the open loop's batch function's arguments (`batch_function`).
+          args: the open loop's batch function's arguments (`program.BatchArgs`).
           previous: the data the last batch of this iterator returned (donated), or None.
 
         Returns:
@@ -133,8 +133,9 @@ class ClosedLoop:
         # true float32 dot products, as the open loop (JAX's GPU default is TF32)
         with jax.default_matmul_precision("float32"):
             if previous is None:
-                control, bounds, seeds, variant, carry, restart = args[4:]
-                previous = self.blank(*args[:5], seeds, variant, carry, restart)
+                a = args
+                previous = self.blank(a.model, a.data0, a.inputs0, a.x0, a.control, a.seeds,
+                                      a.variant, a.carry, a.restart)
             m, loop, obs, delivered = self.start(*args, previous)
             m_leaves, m_def = jax.tree.flatten(m)
             leaves, loop_def = jax.tree.flatten(loop)

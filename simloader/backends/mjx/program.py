@@ -31,7 +31,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -209,6 +209,22 @@ class Pieces:
                          "params": params}
 
 
+class BatchArgs(NamedTuple):
+    """One batch's arguments of the batch function, by name (`batch_function` says what each
+    holds). A NamedTuple: JAX flattens it, and `simulate(*args)` unpacks it."""
+
+    model: Any
+    data0: Any
+    inputs0: Any
+    x0: Any
+    control: Any
+    bounds: Any
+    seeds: Any
+    variant: Any
+    carry: Any
+    restart: Any
+
+
 def batch_function(pieces: Pieces) -> Callable:
     """The pure function that simulates one batch open loop: one scan over the batch's steps.
 
@@ -360,7 +376,7 @@ class Program:
             params["variant"] = np.zeros(c.nbatch, np.int32)
         return {"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv), "params": params}
 
-    def compile(self, args: tuple, stats: Stats) -> None:
+    def compile(self, args: BatchArgs, stats: Stats) -> None:
         """Makes the batch function ready to run on `args` (as `run` takes them), once: loaded
         from the program store, or traced, compiled (JAX's persistent cache may answer) and
         stored for later processes."""
@@ -373,11 +389,11 @@ class Program:
                     self.compiled = self._prepare(args, stats)
                 stats.add(compile_s=time.perf_counter() - start, compiles=1)
 
-    def run(self, args: tuple) -> tuple[dict[str, Any], Any]:
+    def run(self, args: BatchArgs) -> tuple[dict[str, Any], Any]:
         """Dispatches one batch (after `compile`): (outputs, carry), not yet ready."""
         return self.compiled(*jax.tree.leaves(args))
 
-    def _prepare(self, args: tuple, stats: Stats) -> Callable:
+    def _prepare(self, args: BatchArgs, stats: Stats) -> Callable:
         """The compiled batch function of the flattened arguments."""
         leaves, tree = jax.tree.flatten(args)
         key = None if self.store is None else stored_program.key(self.config, self.device,
