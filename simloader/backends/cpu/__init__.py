@@ -2,7 +2,8 @@
 (`mujoco.batch.Batch`) on a thread pool, bit for bit `mujoco.rollout`.
 
   options.py   its checks at construction (cameras, OpenGL)
-  backend.py   each batch: draws, the open and the closed loop, the hand-off without copies
+  backend.py   each batch: rows, draws, randomization, the hand-off without copies
+  drivers.py   the open loop (`Batch.rollout`) and the closed loop (a policy per step)
   render.py    `mujoco.Renderer`s, one per thread, for recorded cameras
 """
 

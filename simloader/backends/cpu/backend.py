@@ -18,15 +18,16 @@ import copy
 import dataclasses
 import threading
 import time
-from typing import Any, Optional, Union
+from typing import Optional, Union
 
 import mujoco
 import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, mujoco_warnings, policy, resume, sharding
+from simloader import controls, handoff, layout, mujoco_warnings, resume, sharding
 from simloader import randomize as dr
+from simloader.backends.cpu import drivers
 from simloader.backends.cpu import render as cpu_render
 from simloader.backends.base import Backend
 
@@ -64,7 +65,7 @@ class RolloutBackend(Backend):
         self.params: dict[str, np.ndarray] = {}  # what each trajectory runs with
         # per model (of the list, or variant): each row as mj_resetData leaves it (user
         # inputs, zero warmstart), the undriven control columns, and with variants the
-        # initial states that come from the model; `_per_trajectory` picks them
+        # initial states that come from the model; `per_trajectory` picks them
         self.reset_rows = layout.reset_rows(c.pool,
                                             layout.INTEGRATION)
         self.control_defaults, self.variant_states = (
@@ -81,8 +82,7 @@ class RolloutBackend(Backend):
         # does: mj_resetData, which MuJoCo calls on an unstable simulation, zeroes them and
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
-        self.live: Optional[_LiveSources] = None  # closed loop: what the policy observes
-        self.snapshot = policy.Snapshot(c.policy) if c.policy is not None else None
+        self.driver = drivers.driver(self)  # the open or the closed loop
         # cameras: rendered by a pool of renderer threads from recorded state rows
         self.images = [o for o in c.observations if o.rendered]
         self.renderer = (cpu_render.RenderPool(c.model, self.images, self.nthread)
@@ -96,33 +96,16 @@ class RolloutBackend(Backend):
             x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
             fresh = np.flatnonzero(self.fresh)
             self._randomize(index, fresh)
-            rows[fresh] = self._per_trajectory(self.reset_rows)[fresh]
+            rows[fresh] = self.per_trajectory(self.reset_rows)[fresh]
             if self.variant_states is not None:
-                x0 = self._per_trajectory(self.variant_states)
+                x0 = self.per_trajectory(self.variant_states)
             rows[np.ix_(fresh, self.physics_cols)] = x0[fresh]
         initial[...] = rows[:, self.physics_cols]
 
         # a new buffer per batch, also for a fixed array: a consumer may edit its batch
         control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
-        # the weights this batch runs with, one version of them (a copy taken now)
-        act, version = self.snapshot.take() if c.policy is not None else (None, None)
-        if c.policy is not None:
-            control[...] = 0.0  # filled step by step
-        elif c.control.fixed is not None:
-            control[...] = c.control.fixed
-        elif c.control.random:
-            c.control.sample_numpy(self.seed(index, sharding.CONTROL), control,
-                                   self._per_trajectory(self.control_defaults))
-        else:
-            # control=None: the inputs stay as mj_resetData left them (in the rows), for every
-            # step; delivered as such
-            control[...] = self._per_trajectory(self.control_defaults)[:, None]
         low, high = self._ctrl_bounds()
-        if c.policy is None:
-            bad_control = controls.bad_controls(control)
-            control[...] = controls.clamp_applied(control, low[:, None], high[:, None])
-            if c.control.fixed is None and not c.control.random:
-                control = None
+        run = self.driver.prepare(index, control, low, high)
 
         recorded = {}  # one buffer per source, shared by the observations that read it
         sources = [(o.source, o.source_shape, o.dtype) for o in c.observations if not o.rendered]
@@ -135,19 +118,13 @@ class RolloutBackend(Backend):
         self.warnings[...] = 0
         start = time.perf_counter()
         out = {s: array for s, (_, array) in recorded.items()}
-        extras = {}
-        if c.policy is not None:
-            bad_control, extras = self._closed_loop(index, control, low, high, out, act)
-        else:
-            self._rollout(control, out)
+        bad_control, extras = run(out)
         self.stats.add(simulate_s=time.perf_counter() - start)
         warned = self.warnings.any(axis=1) | bad_control
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
         self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
         rows_after = rows.copy() if c.continue_episodes else None
         params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
-        if version is not None:
-            extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
         images, rendering = {}, []
         if self.images:
             images = {o.key: handoff.host_buffer((c.nbatch, c.nframes, *o.shape),
@@ -158,71 +135,6 @@ class RolloutBackend(Backend):
         return _Produced({s: tensor for s, (tensor, _) in recorded.items()}, control_t, initial_t,
                          params, warned, rows_after, extras,
                          {k: t for k, (t, _) in images.items()}, rendering)
-
-    def _rollout(self, control: Optional[np.ndarray], out: dict) -> None:
-        """Runs the batch's `nstep` steps, recording the sources into `out` ({source:
-        (nbatch, nframes, ...)}) after every `record_every`-th step.
-
-        With `record_every=k > 1`, each frame is `k - 1` steps recording nothing and one step
-        recording into a one-frame buffer, copied into its frame: the state rows (warmstart
-        included) carry the trajectory from call to call, so the steps are those of one call.
-        """
-        c, k = self.config, self.config.record_every
-        items = tuple(out)
-        if k == 1:
-            self.batch.rollout(c.nstep, control, control_spec=c.control_spec, record=items,
-                               out=out)
-            return
-        if control is not None:
-            control = np.broadcast_to(control, (c.nbatch, c.nstep, c.ncontrol))
-        frame = {s: np.empty((c.nbatch, 1, *a.shape[2:]), a.dtype) for s, a in out.items()}
-        for j in range(c.nframes):
-            u = None if control is None else control[:, j * k:(j + 1) * k]
-            self.batch.rollout(k - 1, None if u is None else u[:, :-1],
-                               control_spec=c.control_spec, record=())
-            self.batch.rollout(1, None if u is None else u[:, -1:],
-                               control_spec=c.control_spec, record=items, out=frame)
-            for s, a in out.items():
-                a[:, j] = frame[s][:, 0]
-
-    def _closed_loop(self, index: int, control: np.ndarray, low: np.ndarray, high: np.ndarray,
-                     out: dict, act: Any) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
-        """Runs the batch's `nstep` steps with the policy picking each step's controls (into
-        `control`, as applied), recording the sources into `out` as `_rollout` does.
-
-        Each step: the observations (views of the state rows and of the fields the batch
-        binds, which MuJoCo refreshes after every call) go to the policy; its rows, plus
-        noise, clamped as MuJoCo clamps, go into the rows' `control_spec` components; one
-        `mj_step` per trajectory (`Batch.step`). The first observations are those of the
-        initial state, derived fields by `mj_forward`.
-
-        Returns:
-          (nbatch,) bool: a trajectory got a bad (non-finite or absurd) control; the extras.
-        """
-        c, b, k = self.config, self.batch, self.config.record_every
-        if self.live is None:
-            self.live = _LiveSources(b, c)
-        noise = None
-        if c.policy_noise is not None:
-            noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
-            c.policy_noise.sample_numpy(self.seed(index, sharding.CONTROL), noise,
-                                        c.policy_noise.default_rows)
-        call = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, c.device)
-        bad = np.zeros(c.nbatch, dtype=bool)
-        b.forward()
-        for t in range(c.nstep):
-            u = call(self.live.observations(), t)
-            row = control[:, t]
-            row[...] = u.detach().to("cpu", torch.float64).numpy()
-            if noise is not None:
-                row += noise[:, t]
-            bad |= controls.bad_controls(row[:, None])
-            row[...] = controls.clamp_applied(row, low, high)
-            b.state[:, self.live.control_columns] = row
-            b.step()
-            if (t + 1) % k == 0:
-                self.live.record(out, (t + 1) // k - 1)
-        return bad, call.extras
 
     def _model_of(self):
         """`model_of(i)`: trajectory i's model as it ran this batch, for the render threads
@@ -258,9 +170,9 @@ class RolloutBackend(Backend):
         if "actuator_ctrlrange" in self.expanded:  # randomized: each trajectory's own
             return controls.applied_bounds([c.model], c.control_spec, self.expanded[
                 "actuator_ctrlrange"].reshape(c.nbatch, c.model.nu, 2))
-        return tuple(self._per_trajectory(b) for b in self.ctrl_bounds)
+        return tuple(self.per_trajectory(b) for b in self.ctrl_bounds)
 
-    def _per_trajectory(self, table: np.ndarray) -> np.ndarray:
+    def per_trajectory(self, table: np.ndarray) -> np.ndarray:
         """(nbatch, ...): each trajectory's row of a per-model table (its variant's)."""
         if self.config.variants is not None:
             return table[self.params["variant"]]
@@ -334,53 +246,8 @@ class RolloutBackend(Backend):
         # frees the batch's thread pool now rather than at garbage collection: every view of
         # its buffers (warnings, expanded fields, the closed loop's bound outputs) keeps the
         # native mujoco._batch.Batch, and its threads, alive
-        self.batch = self.warnings = self.live = None
+        self.batch = self.warnings = None
+        self.driver.close()
         self.expanded = {}
         if self.renderer is not None:
             self.renderer.close()
-
-
-class _LiveSources:
-    """The closed loop's view of the batch: every recorded source as MuJoCo keeps it current,
-    `(nbatch, ...)`: state components as columns of the state rows, other fields as
-    `Batch.bind` outputs (refreshed after every call, as `mj_step` leaves them)."""
-
-    def __init__(self, batch: mj_batch.Batch, config):
-        c = self.config = config
-        self.batch = batch
-        self.bound: dict = {}  # source -> live (nbatch, *source_shape) output
-        self.columns: dict = {}  # source (an mjtState spec) -> its columns of the state rows
-        for o in c.observations:
-            if isinstance(o.source, str):
-                self.bound[o.source] = batch.bind(o.source).reshape(c.nbatch, *o.source_shape)
-            else:
-                self.columns[o.source] = layout.component_columns(c.model, layout.INTEGRATION,
-                                                                  o.source)
-        self.control_columns = layout.component_columns(c.model, layout.INTEGRATION,
-                                                        c.control_spec)
-
-    def value(self, source) -> np.ndarray:
-        """The source's current values, `(nbatch, *source_shape)`; a view where MuJoCo's
-        memory is laid out so, else a copy."""
-        if source in self.bound:
-            return self.bound[source]
-        return self.batch.state[:, self.columns[source]]
-
-    def observations(self) -> dict[str, torch.Tensor]:
-        """The policy's observations now: a tensor of its own per key (the next step
-        overwrites MuJoCo's buffers; a copy of this size costs little next to a policy
-        call), on the dataset's device, floats in its dtype."""
-        c = self.config
-        out = {}
-        for o in c.observations:
-            value = torch.tensor(self.value(o.source), dtype=handoff.torch_dtype(o.dtype))
-            value = o.select(value[:, None])[:, 0]
-            out[o.key] = handoff.to_target(value, c.device,
-                                           c.dtype if o.floating else None)
-        return out
-
-    def record(self, out: dict, frame: int) -> None:
-        """Writes frame `frame` of every source into `out` ({source: (nbatch, nframes,
-        ...)})."""
-        for source, buffer in out.items():
-            buffer[:, frame] = self.value(source)

@@ -1,0 +1,192 @@
+"""The CPU backend's two drivers, chosen once per backend: the open loop (controls known before
+the batch; `mujoco.batch` runs every step in C) and the closed loop (a torch policy picks each
+step's controls; one `Batch.step` per step). Both fill the batch's delivered `control` buffer
+with the rows as they acted and record into the same buffers, so the backend around them is
+one."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Optional
+
+import numpy as np
+import torch
+from mujoco import batch as mj_batch
+
+from simloader import controls, handoff, layout, policy, sharding
+
+# run(out) -> (bad, extras): simulates the batch into `out` ({source: (nbatch, nframes, ...)});
+# bad: (nbatch,) bool, a trajectory got a bad (non-finite or absurd) control; extras: tensors
+# delivered beside the batch (the policy's)
+Run = Callable[[dict], tuple[np.ndarray, dict[str, torch.Tensor]]]
+
+
+class OpenLoop:
+    """Generated, fixed or absent (`control=None`) controls, all known before the batch."""
+
+    def __init__(self, backend: Any):
+        self.backend = backend
+
+    def prepare(self, index: int, control: np.ndarray, low: np.ndarray,
+                high: np.ndarray) -> Run:
+        """Fills batch `index`'s `control` ((nbatch, nstep, ncontrol)) with the rows as MuJoCo
+        applies them (clamped to `low`, `high`, each (nbatch, ncontrol)); returns the run."""
+        b = self.backend
+        c = b.config
+        if c.control.fixed is not None:
+            control[...] = c.control.fixed
+        elif c.control.random:
+            c.control.sample_numpy(b.seed(index, sharding.CONTROL), control,
+                                   b.per_trajectory(b.control_defaults))
+        else:
+            # control=None: the inputs stay as mj_resetData left them (in the rows), for every
+            # step; delivered as such
+            control[...] = b.per_trajectory(b.control_defaults)[:, None]
+        bad = controls.bad_controls(control)
+        control[...] = controls.clamp_applied(control, low[:, None], high[:, None])
+        applied = control if c.control.fixed is not None or c.control.random else None
+
+        def run(out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+            self._rollout(applied, out)
+            return bad, {}
+        return run
+
+    def _rollout(self, control: Optional[np.ndarray], out: dict) -> None:
+        """Runs the batch's `nstep` steps, recording the sources into `out` after every
+        `record_every`-th step.
+
+        With `record_every=k > 1`, each frame is `k - 1` steps recording nothing and one step
+        recording into a one-frame buffer, copied into its frame: the state rows (warmstart
+        included) carry the trajectory from call to call, so the steps are those of one call.
+        """
+        c, k, batch = self.backend.config, self.backend.config.record_every, self.backend.batch
+        items = tuple(out)
+        if k == 1:
+            batch.rollout(c.nstep, control, control_spec=c.control_spec, record=items, out=out)
+            return
+        if control is not None:
+            control = np.broadcast_to(control, (c.nbatch, c.nstep, c.ncontrol))
+        frame = {s: np.empty((c.nbatch, 1, *a.shape[2:]), a.dtype) for s, a in out.items()}
+        for j in range(c.nframes):
+            u = None if control is None else control[:, j * k:(j + 1) * k]
+            batch.rollout(k - 1, None if u is None else u[:, :-1],
+                          control_spec=c.control_spec, record=())
+            batch.rollout(1, None if u is None else u[:, -1:],
+                          control_spec=c.control_spec, record=items, out=frame)
+            for s, a in out.items():
+                a[:, j] = frame[s][:, 0]
+
+    def close(self) -> None:
+        pass
+
+
+class ClosedLoop:
+    """A torch policy picks every step's controls, from observations of the state now."""
+
+    def __init__(self, backend: Any):
+        self.backend = backend
+        self.snapshot = policy.Snapshot(backend.config.policy)
+        self.live: Optional[LiveSources] = None  # made at the first batch
+
+    def prepare(self, index: int, control: np.ndarray, low: np.ndarray,
+                high: np.ndarray) -> Run:
+        """Takes the weights batch `index` runs with (one version of them, a copy taken now);
+        the run fills `control` step by step with the rows as they acted."""
+        act, version = self.snapshot.take()
+        control[...] = 0.0
+
+        def run(out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+            bad, extras = self._steps(index, control, low, high, out, act)
+            extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
+            return bad, extras
+        return run
+
+    def _steps(self, index: int, control: np.ndarray, low: np.ndarray, high: np.ndarray,
+               out: dict, act: Any) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+        """Runs the batch's `nstep` steps, recording the sources into `out` as the open loop.
+
+        Each step: the observations (views of the state rows and of the fields the batch
+        binds, which MuJoCo refreshes after every call) go to the policy; its rows, plus
+        noise, clamped as MuJoCo clamps, go into the rows' `control_spec` components; one
+        `mj_step` per trajectory (`Batch.step`). The first observations are those of the
+        initial state, derived fields by `mj_forward`.
+        """
+        backend = self.backend
+        c, b, k = backend.config, backend.batch, backend.config.record_every
+        if self.live is None:
+            self.live = LiveSources(b, c)
+        noise = None
+        if c.policy_noise is not None:
+            noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
+            c.policy_noise.sample_numpy(backend.seed(index, sharding.CONTROL), noise,
+                                        c.policy_noise.default_rows)
+        call = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, c.device)
+        bad = np.zeros(c.nbatch, dtype=bool)
+        b.forward()
+        for t in range(c.nstep):
+            u = call(self.live.observations(), t)
+            row = control[:, t]
+            row[...] = u.detach().to("cpu", torch.float64).numpy()
+            if noise is not None:
+                row += noise[:, t]
+            bad |= controls.bad_controls(row[:, None])
+            row[...] = controls.clamp_applied(row, low, high)
+            b.state[:, self.live.control_columns] = row
+            b.step()
+            if (t + 1) % k == 0:
+                self.live.record(out, (t + 1) // k - 1)
+        return bad, call.extras
+
+    def close(self) -> None:
+        self.live = None  # its bound outputs keep the native batch (and its threads) alive
+
+
+def driver(backend: Any) -> Any:
+    """The backend's driver: the closed loop with a policy, else the open loop."""
+    return ClosedLoop(backend) if backend.config.policy is not None else OpenLoop(backend)
+
+
+class LiveSources:
+    """The closed loop's view of the batch: every recorded source as MuJoCo keeps it current,
+    `(nbatch, ...)`: state components as columns of the state rows, other fields as
+    `Batch.bind` outputs (refreshed after every call, as `mj_step` leaves them)."""
+
+    def __init__(self, batch: mj_batch.Batch, config):
+        c = self.config = config
+        self.batch = batch
+        self.bound: dict = {}  # source -> live (nbatch, *source_shape) output
+        self.columns: dict = {}  # source (an mjtState spec) -> its columns of the state rows
+        for o in c.observations:
+            if isinstance(o.source, str):
+                self.bound[o.source] = batch.bind(o.source).reshape(c.nbatch, *o.source_shape)
+            else:
+                self.columns[o.source] = layout.component_columns(c.model, layout.INTEGRATION,
+                                                                  o.source)
+        self.control_columns = layout.component_columns(c.model, layout.INTEGRATION,
+                                                        c.control_spec)
+
+    def value(self, source) -> np.ndarray:
+        """The source's current values, `(nbatch, *source_shape)`; a view where MuJoCo's
+        memory is laid out so, else a copy."""
+        if source in self.bound:
+            return self.bound[source]
+        return self.batch.state[:, self.columns[source]]
+
+    def observations(self) -> dict[str, torch.Tensor]:
+        """The policy's observations now: a tensor of its own per key (the next step
+        overwrites MuJoCo's buffers; a copy of this size costs little next to a policy
+        call), on the dataset's device, floats in its dtype."""
+        c = self.config
+        out = {}
+        for o in c.observations:
+            value = torch.tensor(self.value(o.source), dtype=handoff.torch_dtype(o.dtype))
+            value = o.select(value[:, None])[:, 0]
+            out[o.key] = handoff.to_target(value, c.device,
+                                           c.dtype if o.floating else None)
+        return out
+
+    def record(self, out: dict, frame: int) -> None:
+        """Writes frame `frame` of every source into `out` ({source: (nbatch, nframes,
+        ...)})."""
+        for source, buffer in out.items():
+            buffer[:, frame] = self.value(source)
