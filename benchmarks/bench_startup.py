@@ -484,12 +484,7 @@ def main() -> None:
                    help="folder for the children's caches (default: a fresh temporary folder, "
                         "removed at the end)")
     p.add_argument("--keep-caches", action="store_true", help="leave the caches in place")
-    p.add_argument("--save", action="store_true",
-                   help="write the tables, the environment and the command line (and a plot) "
-                        "to RESULTS_DIR/bench_startup[-TAG]-<date>.md")
-    p.add_argument("--results-dir", type=pathlib.Path, default=REPO / "benchmarks" / "results",
-                   help="where --save writes (on the GPU machine: $OUT)")
-    p.add_argument("--tag", default="", help="suffix of the saved file names")
+    common.add_output_options(p)
     args = p.parse_args()
 
     chosen = args.workloads or [parse_workload(t) for t in (QUICK if args.quick else DEFAULT)]

@@ -66,12 +66,7 @@ def parser(description: str, workloads: Sequence[Workload], quick: Sequence[Work
         p.add_argument("--repeats", type=int, default=3,
                        help="timed repetitions of each measurement (the median is reported)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--save", action="store_true",
-                   help="write the table, the environment and the command line (and any plot) "
-                        "to RESULTS_DIR/<script>-<date>.md")
-    p.add_argument("--results-dir", type=pathlib.Path, default=REPO / "benchmarks" / "results",
-                   help="where --save writes (on the GPU machine: $OUT)")
-    p.add_argument("--tag", default="", help="suffix of the saved file names")
+    add_output_options(p)
     if throughput:
         p.add_argument("--batches", type=int,
                        help="timed batches per repetition, at least (default 4, --quick 3)")
@@ -82,6 +77,16 @@ def parser(description: str, workloads: Sequence[Workload], quick: Sequence[Work
                        help="steps of the Python loop per repetition (default 10000, --quick "
                             "1000)")
     return p
+
+
+def add_output_options(p: argparse.ArgumentParser) -> None:
+    """--save, --results-dir and --tag: where and under which name results are written."""
+    p.add_argument("--save", action="store_true",
+                   help="write the table, the environment and the command line (and any plot) "
+                        "to RESULTS_DIR/<script>[-TAG]-<date>.md")
+    p.add_argument("--results-dir", type=pathlib.Path, default=REPO / "benchmarks" / "results",
+                   help="where --save writes (on the GPU machine: $OUT)")
+    p.add_argument("--tag", default="", help="suffix of the saved file names")
 
 
 def parse(p: argparse.ArgumentParser) -> argparse.Namespace:
