@@ -20,6 +20,18 @@ import simloader
 from simloader import controls
 
 
+def peaks(samples: list[tuple[float, float]], warm_minutes: float,
+          window: float) -> tuple[float, float]:
+    """The highest GPU memory sampled in the first `window` minutes after warm-up and in the
+    last `window` minutes: a training loop's memory swings with its batch shapes (torch's
+    caching allocator, `empty_cache`), so two single samples compare two points of the swing,
+    where the peaks of two windows compare what the loop holds at most, early and late."""
+    end = samples[-1][0]
+    early = [g for m, g in samples if warm_minutes <= m <= warm_minutes + window]
+    late = [g for m, g in samples if m >= end - window]
+    return max(early), max(late)
+
+
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], [], [], repeats=False)
     p.add_argument("--minutes", type=float, default=20.0)
@@ -63,6 +75,8 @@ def main() -> None:
             samples.append((elapsed / 60, (total - free) / 2**30))
     free, total = torch.cuda.mem_get_info()
     used_warm, used_end = (warm[1] - warm[0]) / 2**30, (total - free) / 2**30
+    window = max(args.minutes / 10, 0.05)
+    early, late = peaks(samples, min(1.0, args.minutes / 4), window)
     rows = [["minutes", f"{(time.perf_counter() - start) / 60:.1f}"],
             ["training steps (batches of the train stream)", step],
             ["train / validation batches", f"{train.stats['batches']} / "
@@ -70,12 +84,17 @@ def main() -> None:
             ["steps simulated", f"{train.stats['steps'] + valid.stats['steps']:,}"],
             ["graph captures (train, validation)", f"{train.stats['graph_captures']}, "
                                                    f"{valid.stats['graph_captures']}"],
-            ["GPU memory used after warm-up", f"{used_warm:.2f} GiB"],
-            ["GPU memory used at the end", f"{used_end:.2f} GiB"],
-            ["growth", f"{100 * (used_end - used_warm) / used_warm:+.2f}%"]]
+            ["GPU memory used after warm-up (one sample)", f"{used_warm:.2f} GiB"],
+            ["GPU memory used at the end (one sample)", f"{used_end:.2f} GiB"],
+            [f"peak in the first {window:.1f} minutes after warm-up", f"{early:.3f} GiB"],
+            [f"peak in the last {window:.1f} minutes", f"{late:.3f} GiB"],
+            ["growth of the peak", f"{100 * (late - early) / early:+.2f}%"]]
     sections = [markdown_table(["what", "measured"], rows)]
     common.report(args, "soak_warp", "Soak: a training loop with a Warp train and validation "
                                      "stream", sections)
+    if args.save:  # every sample, for a later look
+        common.result_path(args, "soak_warp", ".csv").write_text(
+            "minutes,gib\n" + "".join(f"{m:.4f},{g:.4f}\n" for m, g in samples))
     if args.save and samples:
         common.save_plot(args, "soak_warp", {"GPU memory used": (
             [m for m, _ in samples], [g for _, g in samples])}, "minutes", "GiB",
