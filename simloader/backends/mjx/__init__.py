@@ -8,6 +8,7 @@
   program.py         the pure batch function (scan over vmapped steps) and its compilation
   stored_program.py  batch functions kept on disk, so that a fresh process does not trace
   closed_loop.py     a torch policy between jitted steps
+  drivers.py         the open or the closed loop, chosen once per backend
   backend.py         options, the backend, the hand-off to torch
 """
 

@@ -28,11 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 import torch
 
-from simloader import handoff, observe, policy, resume, sharding
+from simloader import handoff, observe, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
-from simloader.backends.mjx import runtime
+from simloader.backends.mjx import drivers, runtime
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.program import BatchArgs, Placed, Program
 from simloader.config import SimConfig
@@ -167,21 +167,7 @@ class MjxBackend(Backend):
         self.last_ready = 0.0
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch
         self.in_worker = torch.utils.data.get_worker_info() is not None
-        self.previous: Any = None  # closed loop: the last batch's data (donated to the next)
-        self.caller: Optional[policy.Caller] = None  # closed loop: this batch's policy calls
-        self.snapshot = policy.Snapshot(config.policy) if config.policy is not None else None
-
-    def _policy_step(self, obs: dict[str, torch.Tensor], t: int) -> torch.Tensor:
-        """The policy's control rows for step `t`, from the observations before it (tensors
-        on the simulation's device, as the closed loop hands them over), on that device."""
-        c = self.config
-        tensors = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
-                   for k, v in obs.items()}
-        control = self.caller(tensors, t).detach()
-        here = runtime.torch_device(self.device)
-        if control.device != here:  # a policy on another device than the simulation
-            control = control.to(here, non_blocking=True)
-        return control
+        self.driver = drivers.driver(self)  # the open or the closed loop
 
     def batch_args(self, index: int) -> BatchArgs:
         """The batch function's arguments for batch `index` (`program.batch_function`)."""
@@ -197,22 +183,8 @@ class MjxBackend(Backend):
                          self.carry, self.restart)
 
     def produce(self, index: int) -> _Produced:
-        c, p = self.config, self.program
-        args = self.batch_args(index)
-        dispatched = time.perf_counter()
-        extras = None
-        if p.closed_loop is not None:
-            act, version = self.snapshot.take()  # one version of the weights per batch
-            self.caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep,
-                                        c.device or runtime.torch_device(self.device))
-            outputs, carry, self.previous = p.closed_loop.run(
-                args, self._policy_step, c.nstep, self.previous)
-            extras = {**self.caller.extras,
-                      policy.VERSION: torch.tensor(version, dtype=torch.int64)}
-        else:
-            p.compile(args, self.stats)
-            dispatched = time.perf_counter()
-            outputs, carry = p.run(args)
+        c = self.config
+        dispatched, outputs, carry, extras = self.driver.dispatch(self.batch_args(index))
         self.last_dispatched = outputs
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting
