@@ -89,14 +89,38 @@ class SimConfig:
         """Recorded frames per trajectory per batch: `nstep // record_every`."""
         return self.nstep // self.record_every
 
-    def variant_defaults(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
-        """With variants, what each variant starts from: its undriven control columns
-        (nvariant, ncontrol), as mj_resetData leaves them, and its initial state
-        (nvariant, nstate) where initial states come from the model (else None)."""
-        controls_ = layout.reset_rows(self.variants, self.control_spec)
-        states = (initial.default_states(self.variants, self.initial.keyframe)
-                  if self.initial.from_model else None)
-        return controls_, states
+    def model_tables(self, spec: int) -> "ModelTables":
+        """What every engine starts a trajectory from, per model of `pool` (NumPy, float64;
+        each engine puts them where it simulates). `spec`: the mjtState bits of the reset
+        rows (the engine's state row)."""
+        if self.variants is None:
+            control_defaults, variant_states = self.control.default_rows, None
+        else:  # each variant's undriven control columns, as mj_resetData leaves them
+            control_defaults = layout.reset_rows(self.variants, self.control_spec)
+            variant_states = (initial.default_states(self.variants, self.initial.keyframe)
+                              if self.initial.from_model else None)
+        low, high = controls.applied_bounds(self.pool, self.control_spec)
+        return ModelTables(layout.reset_rows(self.pool, spec), control_defaults,
+                           variant_states, low, high)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelTables:
+    """Per model of `SimConfig.pool` (the model list, the variants, or the one model).
+
+    Attributes:
+      reset_rows: (npool, nspec): each model's state rows as mj_resetData leaves them.
+      control_defaults: ([npool or 1], ncontrol): the control columns no generator drives.
+      variant_states: with variants and initial states from the model, (nvariant, nstate)
+        each variant's; else None.
+      low, high: (npool, ncontrol): the range MuJoCo clamps each control column to.
+    """
+
+    reset_rows: np.ndarray
+    control_defaults: np.ndarray
+    variant_states: Optional[np.ndarray]
+    low: np.ndarray
+    high: np.ndarray
 
 
 def _int(name: str, value: Any, low: int, allow_none: bool = False) -> Optional[int]:

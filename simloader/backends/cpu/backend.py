@@ -65,15 +65,12 @@ class RolloutBackend(Backend):
         self.params: dict[str, np.ndarray] = {}  # what each trajectory runs with
         # per model (of the list, or variant): each row as mj_resetData leaves it (user
         # inputs, zero warmstart), the undriven control columns, and with variants the
-        # initial states that come from the model; `per_trajectory` picks them
-        self.reset_rows = layout.reset_rows(c.pool,
-                                            layout.INTEGRATION)
-        self.control_defaults, self.variant_states = (
-            (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
-        # what MuJoCo clamps each control column to, per model (the delivered control is
-        # what acted)
-        self.ctrl_bounds = controls.applied_bounds(c.pool,
-                                                   c.control_spec)
+        # initial states that come from the model; `per_trajectory` picks them. The range
+        # MuJoCo clamps each control column to, per model (the delivered control is what
+        # acted)
+        tables = c.model_tables(layout.INTEGRATION)
+        self.reset_rows, self.control_defaults = tables.reset_rows, tables.control_defaults
+        self.variant_states, self.ctrl_bounds = tables.variant_states, (tables.low, tables.high)
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"

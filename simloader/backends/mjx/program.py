@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import controls, layout, observe, resume, rules
+from simloader import controls, observe, resume, rules
 from simloader.backends.base import Stats, progress_line
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import stored_program
@@ -332,15 +332,14 @@ class Program:
         placed = placed or Placed.put(c, impl, device)
         self.model, pool_axes, self.data0 = placed.model, placed.pool_axes, placed.data0
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
-        # per model of the pool (variants too): the inputs and states mj_resetData leaves
-        inputs0 = layout.reset_rows(c.pool, MODEL_INPUTS).astype(self.dtype)
+        # per model of the pool (variants too): the inputs and states mj_resetData leaves,
+        # the range each control column is clamped to
+        tables = c.model_tables(MODEL_INPUTS)
+        inputs0 = tables.reset_rows.astype(self.dtype)
         self.inputs0 = jax.device_put(inputs0 if pooled(c) else inputs0[0], device)
-        # the range each control column is clamped to, per model of the pool
-        self.bounds = jax.device_put(tuple(
-            b.astype(self.dtype) for b in controls.applied_bounds(c.pool, c.control_spec)),
-            device)
-        control_defaults, variant_states = (
-            (c.control.default_rows, None) if c.variants is None else c.variant_defaults())
+        self.bounds = jax.device_put((tables.low.astype(self.dtype),
+                                      tables.high.astype(self.dtype)), device)
+        control_defaults, variant_states = tables.control_defaults, tables.variant_states
         constant = c.control.fixed if c.control.fixed is not None else control_defaults
         self.control = jax.device_put(constant.astype(self.dtype), device)
         # fixed initial states go to the device once; generated ones with every batch

@@ -24,7 +24,7 @@ import torch
 
 import mujoco
 
-from simloader import controls, handoff, initial, layout, policy, resume, sharding
+from simloader import handoff, layout, policy, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
@@ -56,17 +56,13 @@ class _Tables:
 
     def __init__(self, config: SimConfig, device: torch.device):
         c = config
-        models = c.pool
         f32 = dict(dtype=torch.float32, device=device)
-        self.reset_rows = torch.as_tensor(layout.reset_rows(models, layout.INTEGRATION), **f32)
-        defaults = c.control.default_rows if c.variants is None else c.variant_defaults()[0]
-        self.control_defaults = torch.as_tensor(defaults, **f32)
-        low, high = controls.applied_bounds(models, c.control_spec)
-        self.low, self.high = torch.as_tensor(low, **f32), torch.as_tensor(high, **f32)
-        self.variant_states = None
-        if c.variants is not None and c.initial.from_model:
-            self.variant_states = torch.as_tensor(
-                initial.default_states(c.variants, c.initial.keyframe), **f32)
+        tables = c.model_tables(layout.INTEGRATION)
+        self.reset_rows = torch.as_tensor(tables.reset_rows, **f32)
+        self.control_defaults = torch.as_tensor(tables.control_defaults, **f32)
+        self.low, self.high = (torch.as_tensor(b, **f32) for b in (tables.low, tables.high))
+        self.variant_states = (None if tables.variant_states is None else
+                               torch.as_tensor(tables.variant_states, **f32))
         self.physics_cols = torch.as_tensor(layout.component_columns(
             c.model, layout.INTEGRATION, layout.FULLPHYSICS), device=device)
         # the generators' parameters, for draws on the device
