@@ -353,3 +353,11 @@ def test_a_store_is_resumed_by_as_many_ranks_as_wrote_it(tmp_path, monkeypatch):
     monkeypatch.delenv("WORLD_SIZE")
     with pytest.raises(ValueError, match=r"written by 2 rank\(s\) .* with 2, not 1"):
         simloader.write(plain(), path, batches=4, progress=False)
+
+
+def test_images_without_numcodecs_are_refused_before_anything_runs(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "numcodecs", None)  # as if the extra were not installed
+    ds = rich(num_batches=1)
+    with pytest.raises(ImportError, match=r"need numcodecs: pip install 'simloader\[zarr\]'"):
+        simloader.write(ds, tmp_path / "store", batches=1, progress=False)
+    assert not (tmp_path / "store").exists() and ds.stats["batches"] == 0

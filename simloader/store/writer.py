@@ -14,7 +14,7 @@ import torch
 from simloader import sharding
 from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, WRITTEN, ArraySpec, leaves,
                                     read_json, safe_name, specs_of, write_json, write_shard,
-                                    written_slots)
+                                    written_slots, zstd)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
 
@@ -167,6 +167,8 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
                             metadata=provenance(dataset, batches))
     if format != "zarr":
         raise ValueError(f"format: expected 'zarr' or 'minari', got {format!r}")
+    if any(o.rendered for o in dataset.config.observations):
+        zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
     rank = sharding.distributed_rank() or (0, 1)
     try:
         info = _open_for_writing(path, dataset, batches, rank[1])
