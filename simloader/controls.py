@@ -621,6 +621,15 @@ def bad_controls(control: Any) -> Any:
     return bad.reshape(bad.shape[0], -1).any(axis=1)
 
 
+def as_applied(control: Any, low: Any, high: Any, xp: Any = np) -> tuple[Any, Any]:
+    """The rule every engine applies to control rows before they act, written once:
+    `(applied, bad)`, the rows clamped as MuJoCo clamps them (`clamp_applied`) and the
+    (nbatch,) trajectories flagged for a bad value before clamping (`bad_controls`). For a
+    whole batch (nbatch, nstep, ncontrol) with bounds (nbatch, 1, ncontrol), or one step's
+    rows (nbatch, ncontrol); NumPy, JAX and torch alike (`xp`: their module)."""
+    return clamp_applied(control, low, high, xp), bad_controls(control)
+
+
 def _fixed_control(control: Any, nbatch: int, nstep: int, model: mujoco.MjModel,
                    control_spec: int) -> np.ndarray:
     """Validates an explicit control array and tiles it to (nbatch, nstep, ncontrol), once."""

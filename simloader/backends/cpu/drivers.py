@@ -42,8 +42,7 @@ class OpenLoop:
             # control=None: the inputs stay as mj_resetData left them (in the rows), for every
             # step; delivered as such
             control[...] = b.per_trajectory(b.control_defaults)[:, None]
-        bad = controls.bad_controls(control)
-        control[...] = controls.clamp_applied(control, low[:, None], high[:, None])
+        control[...], bad = controls.as_applied(control, low[:, None], high[:, None])
         applied = control if c.control.fixed is not None or c.control.random else None
 
         def run(out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
@@ -129,8 +128,8 @@ class ClosedLoop:
             row[...] = u.detach().to("cpu", torch.float64).numpy()
             if noise is not None:
                 row += noise[:, t]
-            bad |= controls.bad_controls(row[:, None])
-            row[...] = controls.clamp_applied(row, low, high)
+            row[...], bad_now = controls.as_applied(row, low, high)
+            bad |= bad_now
             b.state[:, self.live.control_columns] = row
             b.step()
             if (t + 1) % k == 0:

@@ -66,8 +66,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         if "noise" in loop:
             u = u + jax.lax.dynamic_index_in_dim(loop["noise"], t, axis=1, keepdims=False)
         # as the open loop: a bad row flags its trajectory, MuJoCo's clamp is applied
-        bad = controls.bad_controls(u[:, None])
-        u = controls.clamp_applied(u, loop["low"], loop["high"], jnp)
+        u, bad = controls.as_applied(u, loop["low"], loop["high"], jnp)
         d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, loop["d"], u)
         d, unstable = P.restart_unstable(m, d)
         d, obs = P.observe(m, d)

@@ -283,8 +283,7 @@ def batch_function(pieces: Pieces) -> Callable:
         # the control rows as MuJoCo applies them (clamped where it clamps); a bad (non-finite
         # or absurd) control flags its trajectory diverged, as on the rollout backend
         low, high = P.bounds(m, bounds, variant)
-        bad = controls.bad_controls(control)
-        control = controls.clamp_applied(control, low[:, None], high[:, None], jnp)
+        control, bad = controls.as_applied(control, low[:, None], high[:, None], jnp)
         # (nframes, record_every, nbatch, ncontrol): the rows of each frame's steps
         xs = (jnp.swapaxes(control, 0, 1).reshape(nframes, every, *control.shape[::2])
               if given else None)

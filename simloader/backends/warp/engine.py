@@ -310,9 +310,10 @@ class Engine:
         self.t.zero_()
         self.diverged.zero_()
         if not self.closed:
-            self.diverged |= controls.bad_controls(self.controls)
-            self.controls.copy_(controls.clamp_applied(self.controls, self.low[:, None],
-                                                       self.high[:, None], torch))
+            applied, bad = controls.as_applied(self.controls, self.low[:, None],
+                                               self.high[:, None], torch)
+            self.diverged |= bad
+            self.controls.copy_(applied)
 
     def applied(self) -> torch.Tensor:
         """(nbatch, nstep, ncontrol): the control rows as they acted (a new tensor)."""
@@ -337,8 +338,8 @@ class Engine:
                 u = self.u
                 if self.noise is not None:
                     u = u + self.noise.index_select(1, self.t)[:, 0]
-                self.diverged |= controls.bad_controls(u)
-                u = controls.clamp_applied(u, self.low, self.high, torch)
+                u, bad = controls.as_applied(u, self.low, self.high, torch)
+                self.diverged |= bad
                 self.control.index_copy_(1, self.t, u[:, None])
             else:  # checked and clamped for the whole batch (`check_controls`)
                 u = self.controls.index_select(1, self.t)[:, 0]
