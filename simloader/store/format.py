@@ -32,12 +32,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import uuid
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from typing import Any, Optional
 
 import numpy as np
 import torch
+
+from simloader.atomic import atomic_write
 
 from simloader import sharding
 
@@ -157,24 +158,6 @@ def largest_divisor(n: int, most: int) -> int:
 WRITTEN = ArraySpec("provenance/written", np.dtype(np.bool_), (), 1)
 
 # --------------------------------------------------------------------------- files
-
-def atomic_write(path: str, parts: Sequence[Any]) -> None:
-    """Writes `parts` (bytes-like) to `path` through a temporary file renamed over it: a
-    reader or a resumed writer sees the whole file or none of it."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    temporary = f"{path}.{uuid.uuid4().hex}.partial"
-    try:
-        with open(temporary, "wb") as f:
-            for part in parts:
-                f.write(part)
-        os.replace(temporary, path)
-    except BaseException:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
-        raise
-
 
 def write_json(path: str, value: dict) -> None:
     atomic_write(path, [json.dumps(value, indent=2, sort_keys=True).encode()])

@@ -34,13 +34,13 @@ import json
 import os
 import pathlib
 import sys
-import tempfile
 from collections.abc import Sequence
 from typing import Any, Optional
 
 import jax
 
 from simloader import resume
+from simloader.atomic import atomic_write
 
 FOLDER = "simloader-programs"
 SUFFIX = ".jaxexport"
@@ -138,42 +138,31 @@ class ProgramStore:
         """Stores `exported` under `key`, whole or not at all (written aside, then renamed).
         A folder that cannot be written costs the next process a trace, nothing more."""
         try:
-            os.makedirs(self.folder, exist_ok=True)
-            blob = exported.serialize()
-            with tempfile.NamedTemporaryFile(dir=self.folder, suffix=".partial",
-                                             delete=False) as f:
-                f.write(blob)
-            os.replace(f.name, self.path(key))
+            atomic_write(self.path(key), [exported.serialize()])
         except OSError as error:
             _say(f"cannot store the batch function in {self.folder} ({error}); the next "
                  f"process traces it again")
 
     def last_compile_s(self, model_digest: str) -> Optional[float]:
         """Seconds the last cold compile of a configuration of this model took, if known."""
-        try:
-            with open(os.path.join(self.folder, TIMINGS)) as f:
-                return float(json.load(f)[model_digest])
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
+        seconds = self._timings().get(model_digest)
+        return float(seconds) if isinstance(seconds, (int, float)) else None
 
     def note_compile_s(self, model_digest: str, seconds: float) -> None:
-        path = os.path.join(self.folder, TIMINGS)
+        timings = {**self._timings(), model_digest: round(seconds, 1)}
         try:
-            with open(path) as f:
-                timings = json.load(f)
-        except (OSError, ValueError):
-            timings = {}
-        if not isinstance(timings, dict):
-            timings = {}
-        timings[model_digest] = round(seconds, 1)
-        try:
-            os.makedirs(self.folder, exist_ok=True)
-            with tempfile.NamedTemporaryFile("w", dir=self.folder, suffix=".partial",
-                                             delete=False) as f:
-                json.dump(timings, f)
-            os.replace(f.name, path)
+            atomic_write(os.path.join(self.folder, TIMINGS), [json.dumps(timings).encode()])
         except OSError:
             pass  # only a hint for the next cold start
+
+    def _timings(self) -> dict:
+        """{model digest: seconds of its last cold compile}; {} if unknown or unreadable."""
+        try:
+            with open(os.path.join(self.folder, TIMINGS)) as f:
+                timings = json.load(f)
+        except (OSError, ValueError):
+            return {}
+        return timings if isinstance(timings, dict) else {}
 
 
 def _say(message: str) -> None:
