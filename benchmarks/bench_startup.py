@@ -76,16 +76,21 @@ def mark(name):
     _LAST[0] = now
     return now
 SPEC = json.loads(os.environ["BENCH_STARTUP_SPEC"])
-def finish(t_torch):
+def finish():
     now = time.perf_counter()
     out = {"phases": P, "total": now - _PC0, "after_torch": now - t_torch, "extra": X}
     sys.stdout.flush()
     print("\n" + json.dumps(out), flush=True)
+def handed_over(first):
+    """The first batch ({key: tensor}) is in torch's hands: its device and shape, the line."""
+    X["device"] = str(next(iter(first.values())).device)
+    X["shape"] = list(first["state"].shape) if "state" in first else None
+    finish()
+import torch  # first, as a torch user has it
+t_torch = mark("import_torch")
 '''
 
 RAW_JAX = PRELUDE + r'''
-import torch
-t_torch = mark("import_torch")
 import contextlib, io
 import jax
 import jax.numpy as jnp
@@ -131,14 +136,10 @@ out = jax.block_until_ready(compiled(mx, d0, key, 0))
 mark("first_sim")
 first = {k: torch.from_dlpack(v) for k, v in out.items()}
 mark("handoff")
-X["device"] = str(first["state"].device)
-X["shape"] = list(first["state"].shape)
-finish(t_torch)
+handed_over(first)
 '''
 
 RAW_WARP = PRELUDE + r'''
-import torch
-t_torch = mark("import_torch")
 import mujoco
 import warp as wp
 import mujoco_warp as mjw
@@ -188,14 +189,10 @@ first = {"state": state, "sensordata": sensors, "control": controls,
 torch.cuda.current_stream().wait_stream(stream)
 torch.cuda.current_stream().synchronize()
 mark("handoff")
-X["device"] = str(first["state"].device)
-X["shape"] = list(first["state"].shape)
-finish(t_torch)
+handed_over(first)
 '''
 
 RAW_ROLLOUT = PRELUDE + r'''
-import torch
-t_torch = mark("import_torch")
 import numpy as np
 import mujoco
 from mujoco import rollout
@@ -224,13 +221,10 @@ first = {"state": torch.from_numpy(state), "sensordata": torch.from_numpy(sensor
          "control": torch.from_numpy(control)}
 mark("handoff")
 X["threads"] = nthread
-X["shape"] = list(first["state"].shape)
-finish(t_torch)
+handed_over(first)
 '''
 
 SIMLOADER = PRELUDE + r'''
-import torch
-t_torch = mark("import_torch")
 import simloader
 from simloader import controls
 mark("import_engine")
@@ -258,9 +252,7 @@ P["compile"] = comp
 P["first_sim"] = max(0.0, first_s - (trace or 0.0) - (comp or 0.0))
 X.update({k: stats.get(k) for k in ("traces", "compiles", "programs_loaded", "impl",
                                       "graph_captures")})
-X["device"] = str(next(iter(batch.values())).device)
-X["shape"] = list(batch["state"].shape) if "state" in batch else None
-finish(t_torch)
+handed_over(batch)
 it.close()
 '''
 
