@@ -84,6 +84,15 @@ class Stats:
         return out
 
 
+class GpuEngineChoice:
+    """What the options of a `backend="mjx"` engine say of themselves (a mixin of their
+    dataclass: its `impl`, `impl_reason` and `describe()`)."""
+
+    def simulated_by(self) -> str:
+        return (f"backend='mjx', impl={self.impl!r} ({self.describe()}; chosen: "
+                f"{self.impl_reason})")
+
+
 class Backend(abc.ABC):
     """Simulates batches for one shard of the stream."""
 
@@ -135,61 +144,52 @@ def refuse_forked_worker(what: str, why: str) -> None:
 
 
 @contextlib.contextmanager
-def progress_line(what: str, estimate_s: Optional[float] = None) -> Iterator[None]:
-    """Says on stderr that `what` runs and, at the end, how long it took: one opaque call that
-    can take a minute (a cold compilation) must not look like a hang. On a terminal the line
-    ticks every second. `estimate_s`: how long the last one took, shown when known."""
+def progress_line(what: str, *, after: float = 0.0, hint: str = "",
+                  estimate_s: Optional[float] = None) -> Iterator[None]:
+    """Says on stderr that `what` runs, once it has run `after` seconds (at once by default),
+    and then how long it took: one opaque call that can take a minute (a cold compilation)
+    must not look like a hang. On a terminal the line ticks every second. `hint`: said with
+    it; `estimate_s`: how long the last one took, shown when known."""
     last = f" (the last one took {estimate_s:.0f} s)" if estimate_s is not None else ""
+    tty = sys.stderr.isatty()
     start = time.perf_counter()
-    if not sys.stderr.isatty():  # a log file: two lines, not one refreshed every second
-        print(f"simloader: {what}{last}...", file=sys.stderr, flush=True)
-        try:
-            yield
-        finally:
-            print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
-                  file=sys.stderr, flush=True)
-        return
-    # written by hand, not with tqdm: its write lock deadlocked against tqdm's monitor thread
-    # when this ran in a prefetch thread (a pytest-xdist worker, 2026-11-25)
-    stop = threading.Event()
+    stop, said = threading.Event(), threading.Event()
 
-    def line(text: str, end: str = "") -> None:
-        sys.stderr.write(f"\rsimloader: {what}{text}{end}")
+    def write(text: str) -> None:
+        # on a terminal one line, rewritten in place; in a log file a line per message.
+        # Written by hand, not with tqdm: its write lock deadlocked against tqdm's monitor
+        # thread when this ran in a prefetch thread (a pytest-xdist worker, 2026-11-25)
+        sys.stderr.write(f"\rsimloader: {what}{text}\x1b[K" if tty else
+                         f"simloader: {what}{text}\n")
         sys.stderr.flush()
 
-    def tick() -> None:
-        while not stop.wait(1.0):
-            line(f"{last}: {time.perf_counter() - start:.0f} s")
+    def announce() -> None:
+        said.set()
+        write(f"{last}...{' ' + hint if hint else ''}")
 
-    line(f"{last}...")
-    ticker = threading.Thread(target=tick, daemon=True, name="simloader-progress")
-    ticker.start()
+    def watch() -> None:
+        if after > 0:
+            if stop.wait(after):
+                return
+            announce()
+        while tty and not stop.wait(1.0):
+            write(f"{last}: {time.perf_counter() - start:.0f} s")
+
+    if after <= 0:
+        announce()  # now, not from the thread: said even if `what` ends at once
+    watcher = threading.Thread(target=watch, daemon=True, name="simloader-progress")
+    watcher.start()
     try:
         yield
     finally:
         stop.set()
-        ticker.join()
-        line(f": done in {time.perf_counter() - start:.0f} s", end="\x1b[K\n")
-
-
-@contextlib.contextmanager
-def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Iterator[None]:
-    """Says on stderr what is happening when `what` takes longer than `after` seconds (a cold
-    compilation can take a minute and must not look like a hang), and how long it took."""
-    start = time.perf_counter()
-    said = threading.Event()
-
-    def say() -> None:
-        said.set()
-        print(f"simloader: {what}...{' ' + hint if hint else ''}", file=sys.stderr, flush=True)
-
-    timer = threading.Timer(after, say)
-    timer.daemon = True
-    timer.start()
-    try:
-        yield
-    finally:
-        timer.cancel()
+        watcher.join()
         if said.is_set():
-            print(f"simloader: {what}: done in {time.perf_counter() - start:.0f} s",
-                  file=sys.stderr, flush=True)
+            write(f": done in {time.perf_counter() - start:.0f} s")
+            if tty:
+                sys.stderr.write("\n")
+
+
+def slow_notice(what: str, after: float = 10.0, hint: str = "") -> Any:
+    """`progress_line` said only when `what` takes longer than `after` seconds."""
+    return progress_line(what, after=after, hint=hint)

@@ -30,7 +30,7 @@ import torch
 
 from simloader import handoff, observe, resume, sharding
 from simloader import randomize as dr
-from simloader.backends.base import Backend, Stats
+from simloader.backends.base import Backend, GpuEngineChoice, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import drivers, runtime
 from simloader.backends.mjx.impls import Implementation
@@ -38,7 +38,7 @@ from simloader.backends.mjx.program import BatchArgs, Placed, Program
 from simloader.config import SimConfig
 
 @dataclasses.dataclass(frozen=True)
-class MjxOptions:
+class MjxOptions(GpuEngineChoice):
     """The MJX backend's options, validated and resolved at construction.
 
     Attributes:
@@ -60,10 +60,6 @@ class MjxOptions:
 
     def implementation(self) -> Implementation:
         return Implementation()
-
-    def simulated_by(self) -> str:
-        return (f"backend='mjx', impl={self.impl!r} ({self.describe()}; chosen: "
-                f"{self.impl_reason})")
 
     def describe(self) -> str:
         return self.implementation().describe()

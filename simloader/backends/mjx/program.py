@@ -404,12 +404,13 @@ class Program:
         def simulate(*leaves):  # the batch function of the flattened arguments
             return self.simulate(*jax.tree.unflatten(tree, leaves))
 
-        c, digest = self.config, f"{self.device.platform}:{resume.model_digest(self.config.model)}"
+        c = self.config
+        digest = f"{self.device.platform}:{resume.model_digest(c.model)}"
         estimate = None if self.store is None else self.store.last_compile_s(digest)
         start = time.perf_counter()
         with progress_line(f"tracing and compiling the batch function ({c.nbatch} x "
                            f"{c.nstep}, MJX-{self.impl.name.upper()} on {self.device.platform})",
-                           estimate):
+                           estimate_s=estimate):
             if key is not None:
                 exported = self._export(simulate, leaves)
             lowered = (jax.jit(simulate) if exported is None else jax.jit(exported.call)

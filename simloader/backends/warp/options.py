@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from simloader import layout, observe
+from simloader.backends.base import GpuEngineChoice
 from simloader.backends.warp import cameras, runtime
 from simloader.config import SimConfig
 
@@ -46,7 +47,7 @@ SETCONST_OUTPUTS = ("body_subtreemass", "body_invweight0", "dof_invweight0", "te
 
 
 @dataclasses.dataclass(frozen=True)
-class WarpOptions:
+class WarpOptions(GpuEngineChoice):
     """The Warp engine's options, resolved at construction.
 
     Attributes:
@@ -61,10 +62,6 @@ class WarpOptions:
     naconmax: int
     njmax: int
     per_world: tuple[str, ...]
-
-    def simulated_by(self) -> str:
-        return (f"backend='mjx', impl={self.impl!r} ({self.describe()}; chosen: "
-                f"{self.impl_reason})")
 
     def describe(self) -> str:
         return f"MuJoCo Warp, naconmax={self.naconmax}, njmax={self.njmax}"
