@@ -1,5 +1,6 @@
 """Soak: a training loop fed by a Warp dataset, reading a Warp validation stream every few
-steps, for minutes; GPU memory after warm-up against the end, graph captures, errors.
+steps, for minutes; GPU memory early against late (after `empty_cache()`), graph captures,
+errors.
 
 The loop does what trainers do: `loss.item()` and `torch.cuda.synchronize()` every step, a
 model trained under `torch.autocast`, tensors of new shapes, `empty_cache()` now and then.
@@ -9,6 +10,7 @@ Run on the GPU machine:
 
 from __future__ import annotations
 
+import statistics
 import time
 
 import torch
@@ -20,16 +22,16 @@ import simloader
 from simloader import controls
 
 
-def peaks(samples: list[tuple[float, float]], warm_minutes: float,
-          window: float) -> tuple[float, float]:
-    """The highest GPU memory sampled in the first `window` minutes after warm-up and in the
-    last `window` minutes: a training loop's memory swings with its batch shapes (torch's
-    caching allocator, `empty_cache`), so two single samples compare two points of the swing,
-    where the peaks of two windows compare what the loop holds at most, early and late."""
+def medians(samples: list[tuple[float, float]], warm_minutes: float,
+            window: float) -> tuple[float, float]:
+    """The median memory sampled in the first `window` minutes after warm-up and in the last
+    `window` minutes. Samples are taken just after `empty_cache()`, where the loop holds only
+    what is alive; what is alive still swings with the batches in flight (0 to the prefetch
+    depth, per stream), so windows of samples are compared, not two single samples."""
     end = samples[-1][0]
     early = [g for m, g in samples if warm_minutes <= m <= warm_minutes + window]
     late = [g for m, g in samples if m >= end - window]
-    return max(early), max(late)
+    return statistics.median(early or [samples[0][1]]), statistics.median(late)
 
 
 def main() -> None:
@@ -49,7 +51,18 @@ def main() -> None:
                                 torch.nn.Linear(256, nstate)).cuda()
     opt = torch.optim.Adam(model.parameters(), 1e-3)
     it, vit = iter(train), iter(valid)
-    start, warm, samples, step = time.perf_counter(), None, [], 0
+    start, samples, allocated, step = time.perf_counter(), [], [], 0
+
+    def elapsed_minutes() -> float:
+        return (time.perf_counter() - start) / 60
+
+    def held() -> float:
+        """GiB this process holds on the GPU: torch's caching allocator and Warp's memory pool
+        (MuJoCo Warp's arrays, what its graph captures allocate). Unlike the device's used
+        memory, no other process on the GPU moves it."""
+        import warp as wp
+        return (torch.cuda.memory_reserved() + wp.get_mempool_used_mem_current("cuda:0")) / 2**30
+
     while time.perf_counter() - start < args.minutes * 60:
         batch = next(it)
         x = batch["state"][:, :-1].reshape(-1, nstate)[: 50000 + 13 * (step % 100)]
@@ -66,17 +79,13 @@ def main() -> None:
                 model(next(vit)["state"].reshape(-1, nstate)).mean().item()
         if step % 50 == 0:
             torch.cuda.empty_cache()
+            samples.append((elapsed_minutes(), held()))
+            allocated.append((elapsed_minutes(), torch.cuda.memory_allocated() / 2**30))
         step += 1
-        elapsed = time.perf_counter() - start
-        if warm is None and elapsed > min(60.0, args.minutes * 15):
-            warm = torch.cuda.mem_get_info()
-        if step % 20 == 0:
-            free, total = torch.cuda.mem_get_info()
-            samples.append((elapsed / 60, (total - free) / 2**30))
-    free, total = torch.cuda.mem_get_info()
-    used_warm, used_end = (warm[1] - warm[0]) / 2**30, (total - free) / 2**30
+    warm = min(1.0, args.minutes / 4)
     window = max(args.minutes / 10, 0.05)
-    early, late = peaks(samples, min(1.0, args.minutes / 4), window)
+    early, late = medians(samples, warm, window)
+    early_torch, late_torch = medians(allocated, warm, window)
     rows = [["minutes", f"{(time.perf_counter() - start) / 60:.1f}"],
             ["training steps (batches of the train stream)", step],
             ["train / validation batches", f"{train.stats['batches']} / "
@@ -84,21 +93,27 @@ def main() -> None:
             ["steps simulated", f"{train.stats['steps'] + valid.stats['steps']:,}"],
             ["graph captures (train, validation)", f"{train.stats['graph_captures']}, "
                                                    f"{valid.stats['graph_captures']}"],
-            ["GPU memory used after warm-up (one sample)", f"{used_warm:.2f} GiB"],
-            ["GPU memory used at the end (one sample)", f"{used_end:.2f} GiB"],
-            [f"peak in the first {window:.1f} minutes after warm-up", f"{early:.3f} GiB"],
-            [f"peak in the last {window:.1f} minutes", f"{late:.3f} GiB"],
-            ["growth of the peak", f"{100 * (late - early) / early:+.2f}%"]]
+            [f"GPU memory held (torch + Warp's pool), median of the first {window:.1f} "
+             f"minutes after warm-up", f"{early:.3f} GiB"],
+            [f"GPU memory held, median of the last {window:.1f} minutes", f"{late:.3f} GiB"],
+            ["growth of GPU memory held", f"{100 * (late - early) / early:+.2f}%"],
+            ["torch's live tensors, first / last window",
+             f"{early_torch:.3f} / {late_torch:.3f} GiB"],
+            ["growth of torch's live tensors",
+             f"{100 * (late_torch - early_torch) / early_torch:+.2f}%"],
+            ["samples (after each 50th step's empty_cache)", len(samples)]]
     sections = [markdown_table(["what", "measured"], rows)]
     common.report(args, "soak_warp", "Soak: a training loop with a Warp train and validation "
                                      "stream", sections)
     if args.save:  # every sample, for a later look
         common.result_path(args, "soak_warp", ".csv").write_text(
-            "minutes,gib\n" + "".join(f"{m:.4f},{g:.4f}\n" for m, g in samples))
+            "minutes,held_gib,torch_allocated_gib\n" + "".join(
+                f"{m:.4f},{g:.4f},{a:.4f}\n" for (m, g), (_, a) in zip(samples, allocated)))
     if args.save and samples:
-        common.save_plot(args, "soak_warp", {"GPU memory used": (
-            [m for m, _ in samples], [g for _, g in samples])}, "minutes", "GiB",
-            "GPU memory during the soak", log=False)
+        common.save_plot(args, "soak_warp", {
+            "held (torch + Warp's pool)": ([m for m, _ in samples], [g for _, g in samples]),
+            "torch's live tensors": ([m for m, _ in allocated], [a for _, a in allocated])},
+            "minutes", "GiB", "GPU memory during the soak (after empty_cache)", log=False)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Cameras on the MJX backend: MuJoCo Warp's renderer inside the scan (`render.py`).
+"""Cameras on the Warp engine: MuJoCo Warp's renderer inside the step (`backends/warp/cameras.py`).
 
 Without a GPU these run MuJoCo Warp's CPU kernels for real (`SIMLOADER_WARP_ON_CPU=1`, as in
 test_warp.py). The reference is MuJoCo C's own ray casting (`mj_multiRay`) through every pixel
@@ -198,3 +198,23 @@ def test_a_batch_of_frames_too_large_for_memory_is_refused(cache_dir):
     with pytest.raises(ValueError, match=r"nbatch, record: a batch needs .*GiB"):
         dataset("cartpole", cache_dir, nbatch=65536, nstep=100,
                 record=(simloader.Camera("front"),))
+
+
+@pytest.mark.parametrize("height, width", [(8, 6), (5, 3)])  # whole words, and not
+def test_rgb_unpacking_gives_each_pixels_channels_in_place(height, width):
+    """Warp's packed pixels (red in bits 16-23, blue in 0-7) as uint8 RGB in the asked frame
+    only, by the kernel of whole words and by the one of single pixels."""
+    import warp as wp
+
+    from simloader.backends.warp import cameras, runtime
+    runtime.warp()
+    n, nframes, npixel = 3, 4, height * width
+    gen = torch.Generator().manual_seed(0)
+    packed = torch.randint(0, 2**24, (n, npixel), generator=gen, dtype=torch.int32)
+    stored = torch.zeros((n, nframes, height, width, 3), dtype=torch.uint8)
+    with wp.ScopedDevice("cpu"):
+        cameras._unpack_rgb(wp, wp.from_torch(packed, dtype=wp.uint32),
+                            torch.tensor([2]), stored)
+    want = torch.stack([(packed >> s) & 255 for s in (16, 8, 0)], dim=-1).to(torch.uint8)
+    assert torch.equal(stored[:, 2], want.reshape(n, height, width, 3))
+    assert not stored[:, [0, 1, 3]].any()

@@ -105,9 +105,7 @@ class Cameras:
             n = pixels.shape[0]
             if kind == "rgb":
                 stored = frames[o.key]
-                e.wp.launch(_unpack_rgb(), dim=(n, pixels.shape[1], 3), inputs=[
-                    self.packed[o.key], e.wp.from_torch(frame),
-                    e.wp.from_torch(stored.view(n, stored.shape[1], -1, 3))])
+                _unpack_rgb(e.wp, self.packed[o.key], frame, stored)
                 if want:
                     out[o.key] = stored.index_select(1, frame)[:, 0]
                 continue
@@ -126,20 +124,59 @@ class Cameras:
 _KERNELS: dict = {}
 
 
-def _unpack_rgb():
-    """The kernel writing Warp's packed pixels (red in bits 16-23, blue in 0-7, as MJX's
-    get_rgb reads them) as uint8 RGB into frame `frame[0]`: out[world, frame, pixel, c].
-    Defined on first use, so that importing simloader does not import Warp."""
-    if "rgb" not in _KERNELS:
-        import warp as wp
+def _unpack_rgb(wp: Any, packed: Any, frame: torch.Tensor, stored: torch.Tensor) -> None:
+    """Warp's packed pixels (`packed`, (nworld, npixel) uint32: red in bits 16-23, blue in
+    0-7, as MJX's get_rgb reads them) as uint8 RGB into frame `frame[0]` of `stored`
+    ((nworld, nframes, height, width, 3)).
 
-        @wp.kernel
-        def unpack_rgb(packed: wp.array2d(dtype=wp.uint32), frame: wp.array(dtype=wp.int64),
-                       out: wp.array4d(dtype=wp.uint8)):
-            world, pixel, channel = wp.tid()
-            shift = wp.uint32(16 - 8 * channel)
-            value = (packed[world, pixel] >> shift) & wp.uint32(255)
-            out[world, int(frame[0]), pixel, channel] = wp.uint8(value)
+    Where an image's bytes are whole 32-bit words (npixel a multiple of 4, every usual size)
+    a thread turns 4 pixels into 3 words (4 loads, 3 stores: a twelfth of the threads and
+    stores of one byte per thread). Other sizes take one thread per pixel."""
+    kernels = _kernels(wp)
+    n, nframes, npixel = stored.shape[0], stored.shape[1], packed.shape[1]
+    frame = wp.from_torch(frame)
+    if npixel % 4 == 0:
+        words = stored.view(n, nframes, 3 * npixel).view(torch.int32)
+        wp.launch(kernels["quads"], dim=(n, npixel // 4),
+                  inputs=[packed, frame, wp.from_torch(words, dtype=wp.uint32)])
+    else:
+        wp.launch(kernels["pixels"], dim=(n, npixel),
+                  inputs=[packed, frame, wp.from_torch(stored.view(n, nframes, npixel, 3))])
 
-        _KERNELS["rgb"] = unpack_rgb
-    return _KERNELS["rgb"]
+
+def _kernels(wp: Any) -> dict:
+    """The unpacking kernels, defined on first use (importing simloader imports no Warp)."""
+    if _KERNELS:
+        return _KERNELS
+
+    @wp.func
+    def channel(pixel: wp.uint32, c: int) -> wp.uint32:  # c: 0 red, 1 green, 2 blue
+        return (pixel >> wp.uint32(16 - 8 * c)) & wp.uint32(255)
+
+    @wp.kernel
+    def unpack_rgb_pixels(packed: wp.array2d(dtype=wp.uint32),
+                          frame: wp.array(dtype=wp.int64), out: wp.array4d(dtype=wp.uint8)):
+        world, pixel = wp.tid()
+        value, f = packed[world, pixel], int(frame[0])
+        for c in range(3):
+            out[world, f, pixel, c] = wp.uint8(channel(value, c))
+
+    @wp.kernel
+    def unpack_rgb_quads(packed: wp.array2d(dtype=wp.uint32),
+                         frame: wp.array(dtype=wp.int64), out: wp.array3d(dtype=wp.uint32)):
+        # pixels a, b, c, d make the little-endian words rgbr, gbrg, brgb
+        world, quad = wp.tid()
+        a, b = packed[world, 4 * quad], packed[world, 4 * quad + 1]
+        c, d = packed[world, 4 * quad + 2], packed[world, 4 * quad + 3]
+        f, w = int(frame[0]), 3 * quad
+        out[world, f, w] = (channel(a, 0) | (channel(a, 1) << wp.uint32(8))
+                            | (channel(a, 2) << wp.uint32(16)) | (channel(b, 0) << wp.uint32(24)))
+        out[world, f, w + 1] = (channel(b, 1) | (channel(b, 2) << wp.uint32(8))
+                                | (channel(c, 0) << wp.uint32(16))
+                                | (channel(c, 1) << wp.uint32(24)))
+        out[world, f, w + 2] = (channel(c, 2) | (channel(d, 0) << wp.uint32(8))
+                                | (channel(d, 1) << wp.uint32(16))
+                                | (channel(d, 2) << wp.uint32(24)))
+
+    _KERNELS.update(pixels=unpack_rgb_pixels, quads=unpack_rgb_quads)
+    return _KERNELS
