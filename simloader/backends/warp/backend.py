@@ -90,7 +90,8 @@ class WarpBackend(Backend):
         engines = _ENGINES.setdefault(config, {})
         self.engine: Engine = engines.get(self.device)
         if self.engine is None:
-            with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE):
+            with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE), \
+                    runtime.building(runtime.warp()):
                 self.engine = engines[self.device] = Engine(
                     config, options, self.device,
                     on_capture=lambda: stats.add(graph_captures=1))
