@@ -90,8 +90,7 @@ class WarpBackend(Backend):
         engines = _ENGINES.setdefault(config, {})
         self.engine: Engine = engines.get(self.device)
         if self.engine is None:
-            with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE), \
-                    runtime.building(runtime.warp()):
+            with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE):
                 self.engine = engines[self.device] = Engine(
                     config, options, self.device,
                     on_capture=lambda: stats.add(graph_captures=1))

@@ -8,11 +8,9 @@ builds a dataset can still fork.
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import os
 import threading
-from collections.abc import Iterator
 from typing import Any, Optional
 
 import torch
@@ -65,30 +63,6 @@ def warp() -> Any:
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
     return wp
-
-
-@contextlib.contextmanager
-def building(wp: Any) -> Iterator[None]:
-    """Held while an engine is built (MuJoCo Warp's kernels compiled or loaded, the first step
-    run, the graph captured): one build at a time among the processes sharing Warp's kernel
-    cache. DataLoader workers on one GPU, or a training and a test process, would otherwise
-    compile the same kernels into the same cache at once, and two processes doing that on an
-    H200 ran wrong physics and then an illegal memory access; one after the other, each build
-    but the first loads the kernels the first compiled. A lock file in the cache (`flock`,
-    released by the system if the process dies); where there is no `fcntl`, no lock."""
-    try:
-        import fcntl
-    except ImportError:  # Windows
-        yield
-        return
-    path = os.path.join(wp.config.kernel_cache_dir, "simloader-build.lock")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def warp_device(device: torch.device) -> str:
