@@ -7,10 +7,14 @@ again (`stats["graph_captures"]`). Sizes are small; the humanoid has contacts an
 solver, the kernels that once broke.
 """
 
+import threading
 import warnings
 
+import mujoco
+import numpy as np
 import pytest
 import torch
+from mujoco import rollout
 
 import simloader
 from simloader import controls
@@ -18,6 +22,8 @@ from simloader import controls
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")]
 pytest.importorskip("mujoco_warp")
+
+ONE_STEP_TOL = 1e-4  # one step of a contact model against MuJoCo C, state, absolute
 
 
 def warp_dataset(model="humanoid", nbatch=256, nstep=20, **kwargs):
@@ -54,6 +60,40 @@ def test_a_training_loop_that_synchronizes_every_step():
         assert not batch["diverged"].all()
         train_step(model, opt, batch["state"], i)
     assert ds.stats["graph_captures"] == 1 and ds.stats["batches"] == 30
+
+
+def test_an_engine_built_while_another_queues_batches_steps_right():
+    """Engines built (first step, graph capture) while another dataset's producer queues
+    batches in another thread: each new engine's step agrees with MuJoCo C. Warp's current
+    stream belongs to the process; scoped by two threads at once, a build's kernels ran on
+    the other engine's stream, or escaped its capture."""
+    busy = warp_dataset("cartpole", nbatch=64, nstep=5, num_batches=10**6)
+    stop, failed = threading.Event(), []
+
+    def consume():
+        try:
+            for batch in busy:
+                if stop.is_set():
+                    return
+        except Exception as e:  # noqa: BLE001 (reported in the main thread)
+            failed.append(e)
+
+    reader = threading.Thread(target=consume)
+    reader.start()
+    model = simloader.load_model("humanoid")
+    try:
+        for seed in range(3):  # a new configuration each: a new engine, built now
+            ds = warp_dataset(model, nbatch=64, nstep=1, seed=seed, num_batches=1)
+            batch = next(iter(ds))
+            x0 = batch["initial_state"].cpu().numpy().astype(np.float64)
+            u = batch["control"].cpu().numpy().astype(np.float64)
+            state, _ = rollout.rollout(model, mujoco.MjData(model), x0, u,
+                                       control_spec=int(mujoco.mjtState.mjSTATE_CTRL))
+            np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=ONE_STEP_TOL)
+    finally:
+        stop.set()
+        reader.join()
+    assert not failed, failed
 
 
 def test_train_and_validation_datasets_read_alternately_over_epochs():

@@ -1,7 +1,8 @@
 """The Warp engine (`backend="mjx", impl="warp"`): MuJoCo Warp (the `mujoco-warp` package)
 driven from torch, without JAX.
 
-  runtime.py   can it run, on which device, importing Warp quietly, the capture lock
+  runtime.py   can it run, on which device, importing Warp quietly, the lock on
+               Warp's process-wide stream
   options.py   its options and checks at construction: models, per-world arrays, buffers
   engine.py    model and data that never move, torch views, the step captured once
   cameras.py   MuJoCo Warp's renderer inside the step

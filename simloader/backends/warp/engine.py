@@ -24,7 +24,6 @@ from __future__ import annotations
 import atexit
 import contextlib
 import gc
-import threading
 import weakref
 from typing import Any, Optional
 
@@ -85,10 +84,10 @@ class Engine:
         self.owner: Any = None  # the token of the iterator whose trajectories the data holds
         self.gpu = device.type == "cuda"
         self.wdevice = runtime.warp_device(device)
-        self.lock = threading.Lock()  # one batch at a time queues its work on these arrays
-        c = config
-        n = c.nbatch
-        with self.wp.ScopedDevice(self.wdevice):
+        # Warp's current device and stream are the process's (`runtime.WARP_LOCK`)
+        with runtime.WARP_LOCK, self.wp.ScopedDevice(self.wdevice):
+            c = config
+            n = c.nbatch
             model_fields = [f for f in options.per_world if not f.startswith("opt.")]
             self.m = mjw.put_model(c.model, batch_sizes={f: n for f in model_fields})
             for field in options.per_world:  # options: MuJoCo Warp's put_model batches none
@@ -97,39 +96,42 @@ class Engine:
             self.m.opt.warn_overflow = 0  # counted per batch instead
             self.d = mjw.make_data(c.model, nworld=n, naconmax=options.naconmax,
                                    njmax=options.njmax)
-        self.model_views = {k: self.wp.to_torch(v) for k, v in arrays(self.m).items()}
-        self.views = {name: self._data(name) for name in (
-            *_STATE_ARRAYS.values(), "qacc", "sensordata", "overflow")}
-        self.pool_tables = self._pool_tables()
-        # (data array, first column, end) of each non-empty mjSTATE_INTEGRATION component, in
-        # mjtState order: derived once, used by every batch's reset and checkpoint
-        self.integration_layout = []
-        for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):
-            cols = layout.component_columns(c.model, layout.INTEGRATION, int(bit))
-            if len(cols):
-                self.integration_layout.append((name, int(cols[0]), int(cols[-1]) + 1))
-        # randomized elements, on the device once (not uploaded every batch)
-        self.elements = ({} if c.randomization is None else {
-            r.param.key: torch.as_tensor(r.elements, device=device)
-            for r in c.randomization.resolved})
-        self.observations = [o for o in c.observations if not o.rendered]
-        for o in self.observations:
-            for name in o.fields():
-                self.views.setdefault(name, self._data(name))
-        self.cameras = (cameras.Cameras(self, [o for o in c.observations if o.rendered])
-                        if any(o.rendered for o in c.observations) else None)
-        # what the divergence check (`_restart`) leaves finite needs no second look
-        self.unchecked = [o.key for o in self.observations
-                          if o.floating and not set(o.fields()) <= rules.RESTARTED]
-        self.closed = c.policy is not None
-        self._buffers()
-        self.stream = torch.cuda.Stream(device) if self.gpu else None
-        self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
-        self.graph = self.warp_graph = None
-        if self.gpu:
-            self.graph = self._capture()
-            if on_capture is not None:
-                on_capture()
+            self.model_views = {k: self.wp.to_torch(v) for k, v in arrays(self.m).items()}
+            self.views = {name: self._data(name) for name in (
+                *_STATE_ARRAYS.values(), "qacc", "sensordata", "overflow")}
+            self.pool_tables = self._pool_tables()
+            # (data array, first column, end) of each non-empty mjSTATE_INTEGRATION component,
+            # in mjtState order: derived once, used by every batch's reset and checkpoint
+            self.integration_layout = []
+            for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):
+                cols = layout.component_columns(c.model, layout.INTEGRATION, int(bit))
+                if len(cols):
+                    self.integration_layout.append((name, int(cols[0]), int(cols[-1]) + 1))
+            # randomized elements, on the device once (not uploaded every batch)
+            self.elements = ({} if c.randomization is None else {
+                r.param.key: torch.as_tensor(r.elements, device=device)
+                for r in c.randomization.resolved})
+            self.observations = [o for o in c.observations if not o.rendered]
+            for o in self.observations:
+                for name in o.fields():
+                    self.views.setdefault(name, self._data(name))
+            self.cameras = (cameras.Cameras(self, [o for o in c.observations if o.rendered])
+                            if any(o.rendered for o in c.observations) else None)
+            # what the divergence check (`_restart`) leaves finite needs no second look
+            self.unchecked = [o.key for o in self.observations
+                              if o.floating and not set(o.fields()) <= rules.RESTARTED]
+            self.closed = c.policy is not None
+            self._buffers()
+            self.stream = torch.cuda.Stream(device) if self.gpu else None
+            self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
+            self.graph = self.warp_graph = None
+            if self.gpu:
+                # what Warp queued so far went on its own stream, which the engine's does not
+                # wait on (`queued`): finished before the engine's first step
+                self.wp.synchronize_device(self.wdevice)
+                self.graph = self._capture()
+                if on_capture is not None:
+                    on_capture()
         _LIVE.add(self)
         if self.gpu:
             _LIVE_GPU.append(True)
@@ -137,7 +139,7 @@ class Engine:
     def release(self) -> None:
         """Waits for the engine's queued work and destroys its graph (the engine is not used
         afterwards)."""
-        with self.lock:
+        with runtime.WARP_LOCK:
             if self.graph is not None:
                 self.stream.synchronize()
                 self.graph.reset()
@@ -214,22 +216,21 @@ class Engine:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
         MuJoCo Warp's kernels and torch's; everything it changes is reset per batch).
         Captured in thread-local mode, with garbage collection paused (a collection inside the
-        capture could free device memory), one capture at a time in the process."""
+        capture could free device memory), under `runtime.WARP_LOCK` (the constructor's)."""
         stream = self.stream
         stream.wait_stream(torch.cuda.current_stream(self.device))
-        with runtime.CAPTURE_LOCK:
-            with torch.cuda.stream(stream), \
-                    self.wp.ScopedStream(self.warp_stream, sync_enter=False):
-                self._step()
-            graph = torch.cuda.CUDAGraph()
-            collecting = gc.isenabled()
-            gc.disable()
-            try:
-                with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
-                    self._step(capturing=True)
-            finally:
-                if collecting:
-                    gc.enable()
+        with torch.cuda.stream(stream), \
+                self.wp.ScopedStream(self.warp_stream, sync_enter=False):
+            self._step()
+        graph = torch.cuda.CUDAGraph()
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
+                self._step(capturing=True)
+        finally:
+            if collecting:
+                gc.enable()
         torch.cuda.current_stream(self.device).wait_stream(stream)
         return graph
 
@@ -237,10 +238,11 @@ class Engine:
 
     @contextlib.contextmanager
     def queued(self):
-        """Work queued on the engine's stream (torch's and MuJoCo Warp's), one batch at a time.
-        The stream scope does not wait on Warp's previous stream (`sync_enter=False`): the
+        """Work queued on the engine's stream (torch's and MuJoCo Warp's), one batch at a time
+        in the process (`runtime.WARP_LOCK`: Warp's current stream is the process's). The
+        stream scope does not wait on Warp's previous stream (`sync_enter=False`): the
         engine's work is ordered by its own stream alone."""
-        with self.lock, self.wp.ScopedDevice(self.wdevice):
+        with runtime.WARP_LOCK, self.wp.ScopedDevice(self.wdevice):
             if not self.gpu:
                 yield
                 return

@@ -1,5 +1,5 @@
 """Process-wide concerns of the Warp engine: whether it can run, on which device, importing
-Warp quietly, and the one lock that orders graph captures.
+Warp quietly, and the one lock under which engines queue Warp work.
 
 Nothing here imports JAX: a Warp dataset never starts it. Nothing here initializes CUDA at
 construction either (the checks look for packages and devices only), so that the process that
@@ -21,9 +21,15 @@ WARP_ON_CPU = "SIMLOADER_WARP_ON_CPU"
 # what to install for impl="warp"
 INSTALL = "pip install 'simloader[warp]'"
 
-# One capture at a time in this process: a capture in thread-local mode tolerates other threads'
-# work, but two engines capturing at once would each see the other's Warp allocations
-CAPTURE_LOCK = threading.Lock()
+# Held by every engine while it queues Warp work: its build (allocations, the first step, the
+# graph capture), each batch, its release. Warp's current device and stream belong to the
+# process, not to a thread (`Device.set_stream`), and MuJoCo Warp launches and allocates on the
+# current stream; two threads each scoping their engine's stream at once send kernels to the
+# other engine's stream, or past a capture. On an H200, a validation engine built while the
+# training engine queued a batch crashed with an illegal memory access or stepped wrong
+# physics in 3 of 5 runs of the GPU tests. Queuing is asynchronous, so the lock is held for
+# host time only (graph replays, a few launches), not while the GPU works.
+WARP_LOCK = threading.RLock()
 
 
 def missing() -> Optional[str]:
