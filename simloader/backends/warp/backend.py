@@ -114,9 +114,11 @@ class WarpBackend(Backend):
 
     # -- host draws ------------------------------------------------------------------------
 
-    def _upload(self, array: np.ndarray) -> torch.Tensor:
-        """A host array on the simulation device in float32 (through pinned memory, queued)."""
-        host = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+    def _upload(self, array: np.ndarray, real: bool = True) -> torch.Tensor:
+        """A host array on the simulation device, in float32 if `real` (through pinned memory,
+        queued on the current stream: inside `queued`, the engine's)."""
+        host = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32) if real
+                                else np.ascontiguousarray(array))
         if self.device.type == "cuda":
             host = host.pin_memory()
         return host.to(self.device, non_blocking=True)
@@ -142,20 +144,25 @@ class WarpBackend(Backend):
 
     def produce(self, index: int) -> _Produced:
         c, e, tables = self.config, self.engine, self.tables
-        x0 = self._upload(c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch))
+        # the host's draws first (no lock held), put on the device inside `queued`: uploaded
+        # on the engine's stream, they are ordered before the reset that reads them (on the
+        # producer's own stream, the legacy default one that the consumer trains on, the
+        # reset could read them before they arrived)
+        x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
         randomize_seed = self.seed(index, sharding.RANDOMIZE)
         drawn = {}
         if c.variants is not None:
-            drawn["variant"] = torch.as_tensor(dr.draw_variants(
-                randomize_seed, len(c.variants), c.nbatch)).to(self.device, non_blocking=True)
+            drawn["variant"] = dr.draw_variants(randomize_seed, len(c.variants), c.nbatch)
         if c.randomization is not None:
-            drawn.update({k: self._upload(v) for k, v in
-                          c.randomization.sample(randomize_seed, c.nbatch).items()})
+            drawn.update(c.randomization.sample(randomize_seed, c.nbatch))
         # the weights this batch runs with, one version of them (a copy taken now)
         act, version = self.snapshot.take() if c.policy is not None else (None, None)
         dispatched = time.perf_counter()
         with e.queued():
-            self._start_trajectories(drawn, x0)
+            if act is not None and e.gpu:  # the weights' copy went to the default stream
+                e.stream.wait_stream(torch.cuda.default_stream(self.device))
+            self._start_trajectories({k: self._upload(v, k != "variant")
+                                      for k, v in drawn.items()}, self._upload(x0))
             initial_state = e.physics()
             e.low.copy_(self._per_trajectory(tables.low))
             e.high.copy_(self._per_trajectory(tables.high))
