@@ -420,3 +420,29 @@ def test_two_iterators_of_one_continuing_dataset_keep_their_own_trajectories():
     for got, want in zip([first[0], first[2]], alone[:2]):
         assert torch.equal(got["state"], want["state"])
     assert torch.equal(first[2]["initial_state"], first[0]["state"][:, -1])
+
+
+def test_a_dataset_checked_while_an_engine_queues_waits_for_warps_device(cache_dir):
+    """Checking a Warp dataset scopes Warp's CPU device, which belongs to the process: it
+    waits while an engine holds the device (`runtime.WARP_LOCK`), or that engine's kernels
+    would go to the CPU (seen on an H200: a CPU kernel compiled mid-run)."""
+    import threading
+    import time
+
+    from simloader.backends.warp import runtime
+    start = time.perf_counter()
+    dataset("cartpole", cache_dir, nbatch=2, nstep=2, seed=123)
+    alone = time.perf_counter() - start
+    done = []
+
+    def check():
+        dataset("cartpole", cache_dir, nbatch=2, nstep=2, seed=124)
+        done.append(time.perf_counter())
+
+    with runtime.WARP_LOCK:  # as an engine holds it while it queues
+        checker = threading.Thread(target=check)
+        checker.start()
+        time.sleep(2 * alone + 1.0)
+        released = time.perf_counter()
+    checker.join(60)
+    assert done and done[0] >= released, (alone, done, released)

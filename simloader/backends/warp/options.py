@@ -118,7 +118,9 @@ def _put(name: str, model: mujoco.MjModel) -> Any:
             raise ValueError(f"{name}: the Warp engine does not simulate {what} ({size}="
                              f"{mujoco.mj_stateSize(model, int(bit))}); use backend='rollout'")
     try:
-        with wp.ScopedDevice("cpu"):
+        # Warp's current device is the process's: scoped under the engines' lock, or another
+        # thread's engine would launch its kernels on the CPU meanwhile
+        with runtime.WARP_LOCK, wp.ScopedDevice("cpu"):
             return mjw.put_model(model)
     except NotImplementedError as e:
         raise ValueError(f"{name}: MuJoCo Warp does not support a feature of this model: {e}; "

@@ -21,14 +21,15 @@ WARP_ON_CPU = "SIMLOADER_WARP_ON_CPU"
 # what to install for impl="warp"
 INSTALL = "pip install 'simloader[warp]'"
 
-# Held by every engine while it queues Warp work: its build (allocations, the first step, the
-# graph capture), each batch, its release. Warp's current device and stream belong to the
-# process, not to a thread (`Device.set_stream`), and MuJoCo Warp launches and allocates on the
-# current stream; two threads each scoping their engine's stream at once send kernels to the
-# other engine's stream, or past a capture. On an H200, a validation engine built while the
-# training engine queued a batch crashed with an illegal memory access or stepped wrong
-# physics in 3 of 5 runs of the GPU tests. Queuing is asynchronous, so the lock is held for
-# host time only (graph replays, a few launches), not while the GPU works.
+# Held whenever simloader scopes a Warp device or stream: an engine's build (allocations, the
+# first step, the graph capture), each of its batches, its release, and the CPU model a
+# dataset's checks put. Warp's current device and stream belong to the process, not to a
+# thread (`ScopedDevice`, `Device.set_stream`), and MuJoCo Warp launches and allocates on
+# them. Unlocked, a dataset checked in one thread while another thread's engine was built sent
+# that engine's kernels to Warp's CPU device (an H200 run compiling CPU kernels mid-run, in
+# 3 of 4 runs of tests/test_warp_gpu.py's engine-built-while-another-queues test); two threads
+# scoping their engines' streams at once would send kernels to the other's stream or past a
+# capture. Queuing is asynchronous: the lock is held for host time, not while the GPU works.
 WARP_LOCK = threading.RLock()
 
 
