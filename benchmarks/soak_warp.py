@@ -10,6 +10,7 @@ Run on the GPU machine:
 
 from __future__ import annotations
 
+import pathlib
 import statistics
 import time
 
@@ -22,16 +23,41 @@ import simloader
 from simloader import controls
 
 
-def medians(samples: list[tuple[float, float]], warm_minutes: float,
-            window: float) -> tuple[float, float]:
-    """The median memory sampled in the first `window` minutes after warm-up and in the last
-    `window` minutes. Samples are taken just after `empty_cache()`, where the loop holds only
-    what is alive; what is alive still swings with the batches in flight (0 to the prefetch
-    depth, per stream), so windows of samples are compared, not two single samples."""
+def windows(samples: list[tuple[float, float]], warm_minutes: float,
+            window: float) -> tuple[list[float], list[float]]:
+    """The samples of the first `window` minutes after warm-up and of the last `window`."""
     end = samples[-1][0]
     early = [g for m, g in samples if warm_minutes <= m <= warm_minutes + window]
     late = [g for m, g in samples if m >= end - window]
-    return statistics.median(early or [samples[0][1]]), statistics.median(late)
+    return early or [samples[0][1]], late
+
+
+def memory_rows(held: list[tuple[float, float]], live: list[tuple[float, float]],
+                minutes: float) -> list[list]:
+    """GPU memory early against late. Samples are taken just after `empty_cache()`, where the
+    loop holds only what is alive; what is alive still steps with the batches in flight (0 to
+    the prefetch depth, per stream: one 4096 x 50 humanoid batch is ~45 MB), so single samples
+    compare two points of that swing. The floor of a window (its fewest batches in flight)
+    is what a leak would lift; the median is shown beside it."""
+    warm, window = min(1.0, minutes / 4), max(minutes / 10, 0.05)
+    rows = []
+    for what, samples in (("GPU memory held (torch + Warp's pool)", held),
+                          ("torch's live tensors", live)):
+        early, late = windows(samples, warm, window)
+        for stat, f in (("floor", min), ("median", statistics.median)):
+            rows.append([f"{what}, {stat}: first {window:.1f} min after warm-up / last "
+                         f"{window:.1f} min", f"{f(early):.3f} / {f(late):.3f} GiB "
+                         f"({100 * (f(late) - f(early)) / f(early):+.2f}%)"])
+    rows.append(["samples (after each 50th step's empty_cache)", len(held)])
+    return rows
+
+
+def from_csv(path: str) -> list[list]:
+    """`memory_rows` of a saved run's samples."""
+    lines = pathlib.Path(path).read_text().splitlines()[1:]
+    values = [[float(v) for v in line.split(",")] for line in lines]
+    held, live = [(m, g) for m, g, _ in values], [(m, a) for m, _, a in values]
+    return memory_rows(held, live, held[-1][0])
 
 
 def main() -> None:
@@ -39,7 +65,12 @@ def main() -> None:
     p.add_argument("--minutes", type=float, default=20.0)
     p.add_argument("--nbatch", type=int, default=4096)
     p.add_argument("--nstep", type=int, default=50)
+    p.add_argument("--from-csv", help="summarize the memory samples a saved run wrote "
+                                      "(no GPU needed) instead of running")
     args = common.parse(p)
+    if args.from_csv:
+        print(markdown_table(["what", "measured"], from_csv(args.from_csv)))
+        return
     if args.quick:
         args.minutes, args.nbatch, args.nstep = 0.2, 256, 10
     kwargs = dict(backend="mjx", impl="warp", control=controls.Uniform())
@@ -82,10 +113,6 @@ def main() -> None:
             samples.append((elapsed_minutes(), held()))
             allocated.append((elapsed_minutes(), torch.cuda.memory_allocated() / 2**30))
         step += 1
-    warm = min(1.0, args.minutes / 4)
-    window = max(args.minutes / 10, 0.05)
-    early, late = medians(samples, warm, window)
-    early_torch, late_torch = medians(allocated, warm, window)
     rows = [["minutes", f"{(time.perf_counter() - start) / 60:.1f}"],
             ["training steps (batches of the train stream)", step],
             ["train / validation batches", f"{train.stats['batches']} / "
@@ -93,15 +120,7 @@ def main() -> None:
             ["steps simulated", f"{train.stats['steps'] + valid.stats['steps']:,}"],
             ["graph captures (train, validation)", f"{train.stats['graph_captures']}, "
                                                    f"{valid.stats['graph_captures']}"],
-            [f"GPU memory held (torch + Warp's pool), median of the first {window:.1f} "
-             f"minutes after warm-up", f"{early:.3f} GiB"],
-            [f"GPU memory held, median of the last {window:.1f} minutes", f"{late:.3f} GiB"],
-            ["growth of GPU memory held", f"{100 * (late - early) / early:+.2f}%"],
-            ["torch's live tensors, first / last window",
-             f"{early_torch:.3f} / {late_torch:.3f} GiB"],
-            ["growth of torch's live tensors",
-             f"{100 * (late_torch - early_torch) / early_torch:+.2f}%"],
-            ["samples (after each 50th step's empty_cache)", len(samples)]]
+            *memory_rows(samples, allocated, args.minutes)]
     sections = [markdown_table(["what", "measured"], rows)]
     common.report(args, "soak_warp", "Soak: a training loop with a Warp train and validation "
                                      "stream", sections)
