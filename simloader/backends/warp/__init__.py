@@ -2,9 +2,10 @@
 driven from torch, without JAX.
 
   runtime.py   can it run, on which device, importing Warp quietly, the lock on
-               Warp's process-wide stream
+               Warp's process-wide device and stream
   options.py   its options and checks at construction: models, per-world arrays, buffers
   engine.py    model and data that never move, torch views, the step captured once
+  drivers.py   the open and the closed loop: their buffers, each step's control row, a batch
   cameras.py   MuJoCo Warp's renderer inside the step
   backend.py   each batch: host draws, per-trajectory state on the device, the hand-off
 """

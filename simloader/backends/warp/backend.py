@@ -105,7 +105,6 @@ class WarpBackend(Backend):
         self.rows: Optional[torch.Tensor] = None  # continuing: the rows after the last batch
         self.token = object()  # names this iterator as the engine's owner (holding nothing)
         self.snapshot = policy.Snapshot(config.policy) if config.policy is not None else None
-        self.fixed: Optional[torch.Tensor] = None  # an explicit control array, on the device
         self.last_ready = 0.0
         self.warned_overflow = False
         self.last: Optional[_Produced] = None
@@ -114,7 +113,7 @@ class WarpBackend(Backend):
 
     # -- host draws ------------------------------------------------------------------------
 
-    def _upload(self, array: np.ndarray, real: bool = True) -> torch.Tensor:
+    def upload(self, array: np.ndarray, real: bool = True) -> torch.Tensor:
         """A host array on the simulation device, in float32 if `real` (through pinned memory,
         queued on the current stream: inside `queued`, the engine's)."""
         host = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32) if real
@@ -122,23 +121,6 @@ class WarpBackend(Backend):
         if self.device.type == "cuda":
             host = host.pin_memory()
         return host.to(self.device, non_blocking=True)
-
-    def _controls(self, index: int) -> None:
-        """The open loop's (nbatch, nstep, ncontrol) rows into the engine's input: drawn on the
-        device (generators), or the explicit array, with each trajectory's model defaults in
-        the undriven columns. Inside `queued`: the stream orders these writes after the
-        previous batch's steps that read the input."""
-        c, e = self.config, self.engine
-        defaults = self._per_trajectory(self.tables.control_defaults)[:, None]
-        if c.control.fixed is not None:
-            if self.fixed is None:
-                self.fixed = self._upload(c.control.fixed)
-            e.controls.copy_(self.fixed)
-            return
-        e.controls.copy_(defaults.expand(e.controls.shape))
-        if c.control.random:
-            c.control.sample_torch(self.seed(index, sharding.CONTROL), e.controls,
-                                   self.tables.control_params)
 
     # -- one batch -------------------------------------------------------------------------
 
@@ -156,32 +138,19 @@ class WarpBackend(Backend):
         if c.randomization is not None:
             drawn.update(c.randomization.sample(randomize_seed, c.nbatch))
         # the weights this batch runs with, one version of them (a copy taken now)
-        act, version = self.snapshot.take() if c.policy is not None else (None, None)
+        weights = self.snapshot.take() if self.snapshot is not None else None
         dispatched = time.perf_counter()
         with e.queued():
-            if act is not None and e.gpu:  # the weights' copy went to the default stream
-                e.stream.wait_stream(torch.cuda.default_stream(self.device))
-            self._start_trajectories({k: self._upload(v, k != "variant")
-                                      for k, v in drawn.items()}, self._upload(x0))
+            self._start_trajectories({k: self.upload(v, k != "variant")
+                                      for k, v in drawn.items()}, self.upload(x0))
             initial_state = e.physics()
-            e.low.copy_(self._per_trajectory(tables.low))
-            e.high.copy_(self._per_trajectory(tables.high))
+            e.low.copy_(self.per_trajectory(tables.low))
+            e.high.copy_(self.per_trajectory(tables.high))
             if self.randomized_ctrlrange:
                 self._randomized_bounds()
-            if c.policy is None:
-                self._controls(index)
-            elif c.policy_noise is not None:  # drawn as controls are (undriven columns 0)
-                e.noise.zero_()
-                c.policy_noise.sample_torch(self.seed(index, sharding.CONTROL), e.noise,
-                                            tables.noise_params)
+            e.loop.prepare(self, index)
             e.start()
-            extras = {}
-            if c.policy is not None:
-                extras = self._closed_loop(act)
-                extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
-            else:
-                for _ in range(c.nstep):
-                    e.advance()
+            extras = e.loop.run(self, weights)
             outputs = {k: v.clone() for k, v in e.frames.items()}
             outputs.update(control=e.applied(), diverged=e.diverged.clone(),
                            initial_state=initial_state,
@@ -221,13 +190,13 @@ class WarpBackend(Backend):
                 old = self.params.get(key, value)
                 self.params[key] = torch.where(fresh[:, None], value, old)
         e.set_model(self.model_index, self.params)
-        rows = self._per_trajectory(tables.reset_rows).clone()
+        rows = self.per_trajectory(tables.reset_rows).clone()
         if tables.variant_states is not None:
-            x0 = self._per_trajectory(tables.variant_states)
+            x0 = self.per_trajectory(tables.variant_states)
         rows[:, tables.physics_cols] = x0
         e.reset(rows, fresh)
 
-    def _per_trajectory(self, table: torch.Tensor) -> torch.Tensor:
+    def per_trajectory(self, table: torch.Tensor) -> torch.Tensor:
         """(nbatch, ...): each trajectory's row of a per-model table."""
         if table.shape[0] == 1:
             return table.expand(self.config.nbatch, *table.shape[1:])
@@ -244,26 +213,6 @@ class WarpBackend(Backend):
         limited = self.tables.clamped
         e.low[:, :c.model.nu] = torch.where(limited, ranges[..., 0], -torch.inf)
         e.high[:, :c.model.nu] = torch.where(limited, ranges[..., 1], torch.inf)
-
-    def _closed_loop(self, act: Any) -> dict[str, torch.Tensor]:
-        """The batch's steps with the policy before each: its rows into the engine's input,
-        one replay. Nothing waits on the host. Returns the policy's extras."""
-        c, e = self.config, self.engine
-        target = c.device or self.device
-        caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, target)
-        obs = e.observe_now()
-        rendered = {o.key for o in c.observations if o.rendered}
-        for t in range(c.nstep):
-            tensors = {k: handoff.to_target(v, c.device, c.dtype if k not in rendered
-                                            and v.is_floating_point() else None)
-                       for k, v in obs.items()}
-            control = caller(tensors, t).detach()
-            e.u.copy_(control.to(self.device, non_blocking=True))
-            e.advance()
-            # the observations are views of MuJoCo Warp's arrays (or the graph's outputs),
-            # which the next step rewrites: the policy keeps copies of its own
-            obs = {k: v.clone() for k, v in e.obs.items()}
-        return caller.extras
 
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config

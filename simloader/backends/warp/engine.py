@@ -31,8 +31,8 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import controls, layout, rules
-from simloader.backends.warp import cameras, runtime
+from simloader import layout, rules
+from simloader.backends.warp import cameras, drivers, runtime
 from simloader.backends.warp.options import CONVERTED, WarpOptions, arrays
 
 S = mujoco.mjtState
@@ -120,7 +120,6 @@ class Engine:
             # what the divergence check (`_restart`) leaves finite needs no second look
             self.unchecked = [o.key for o in self.observations
                               if o.floating and not set(o.fields()) <= rules.RESTARTED]
-            self.closed = c.policy is not None
             self._buffers()
             self.stream = torch.cuda.Stream(device) if self.gpu else None
             self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
@@ -189,16 +188,11 @@ class Engine:
     def _buffers(self) -> None:
         """What `_step` reads and writes besides MuJoCo Warp's arrays."""
         c, like = self.config, self.views["qpos"]
-        shape = (c.nbatch, c.nstep, c.ncontrol)
         self.t = torch.zeros(1, dtype=torch.int64, device=like.device)
-        self.controls = torch.zeros(shape, dtype=like.dtype, device=like.device)  # open loop
-        self.u = torch.zeros(shape[0], shape[2], dtype=like.dtype, device=like.device)
-        self.noise = (torch.zeros(shape, dtype=like.dtype, device=like.device)
-                      if c.policy_noise is not None else None)
-        self.low = torch.full_like(self.u, -torch.inf)
-        self.high = torch.full_like(self.u, torch.inf)
-        self.control = (torch.empty(shape, dtype=like.dtype, device=like.device)
-                        if self.closed else None)  # the closed loop's applied rows
+        self.low = torch.full((c.nbatch, c.ncontrol), -torch.inf, dtype=like.dtype,
+                              device=like.device)
+        self.high = torch.full_like(self.low, torch.inf)
+        self.loop = drivers.driver(self)  # the open or closed loop's buffers and rows
         self.diverged = torch.zeros(c.nbatch, dtype=torch.bool, device=like.device)
         self.inputs = []  # (columns of a control row, MuJoCo Warp's array, boolean)
         for comp in layout.control_layout(c.model, c.control_spec):
@@ -306,20 +300,15 @@ class Engine:
         return obs
 
     def start(self) -> None:
-        """Before a batch's first step: step index and flags to zero; in the open loop the
-        batch's control rows checked and clamped at once, as the CPU backend does (fewer
-        kernels per step)."""
+        """Before a batch's first step: step index and flags to zero, then the driver's
+        start (the open loop checks and clamps the batch's rows at once)."""
         self.t.zero_()
         self.diverged.zero_()
-        if not self.closed:
-            applied, bad = controls.as_applied(self.controls, self.low[:, None],
-                                               self.high[:, None], torch)
-            self.diverged |= bad
-            self.controls.copy_(applied)
+        self.loop.start()
 
     def applied(self) -> torch.Tensor:
         """(nbatch, nstep, ncontrol): the control rows as they acted (a new tensor)."""
-        return (self.control if self.closed else self.controls).clone()
+        return self.loop.applied()
 
     def advance(self) -> None:
         """One step, as captured (the graph) or eagerly (the CPU)."""
@@ -329,22 +318,14 @@ class Engine:
             self._step()
 
     def _step(self, capturing: bool = False) -> None:
-        """Everything between two control rows, on the row of step `t` (the open loop's
-        `controls[:, t]`, or the policy's `u`): noise, the bad-control check, MuJoCo's clamp,
-        the inputs, MuJoCo Warp's step, the divergence check and restart, the observations
+        """Everything between two control rows, on the row of step `t` (the driver's
+        `row()`: the open loop's, or the policy's with noise, the bad-control check and
+        MuJoCo's clamp), the inputs, MuJoCo Warp's step, the divergence check and restart, the observations
         (views of Warp's arrays where they can be; cameras rendered) and their frames. Device
         tensors only, so that one graph serves every step."""
         c, n = self.config, self.config.nbatch
         with self._warp_capture(capturing):
-            if self.closed:
-                u = self.u
-                if self.noise is not None:
-                    u = u + self.noise.index_select(1, self.t)[:, 0]
-                u, bad = controls.as_applied(u, self.low, self.high, torch)
-                self.diverged |= bad
-                self.control.index_copy_(1, self.t, u[:, None])
-            else:  # checked and clamped for the whole batch (`check_controls`)
-                u = self.controls.index_select(1, self.t)[:, 0]
+            u = self.loop.row()
             for columns, target, boolean in self.inputs:
                 row = u[:, columns]
                 target.copy_(row != 0 if boolean else row)
@@ -358,12 +339,12 @@ class Engine:
             for key, value in obs.items():
                 self.frames[key].index_copy_(1, frame, value[:, None])
             if self.cameras is not None:
-                if self.closed:
+                if self.loop.observes:
                     # rendering brings the poses to the state: the policy sees what mj_step
                     # left in the fields the observations view (poses of the step's start)
                     obs = {k: v.clone() for k, v in obs.items()}
                 # images go straight into their frames; the policy gets this step's
-                obs.update(self.cameras.render(self.frames, frame, want=self.closed))
+                obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
         self.t += 1
         self.obs = obs
 
