@@ -96,6 +96,33 @@ def test_an_engine_built_while_another_queues_batches_steps_right():
     assert not failed, failed
 
 
+def test_a_busy_default_stream_does_not_reach_a_batchs_inputs():
+    """The consumer's work queued on the default stream (a training step's kernels, not
+    waited for) does not delay a batch's inputs past the reset that reads them: every batch
+    starts from the initial states the CPU backend draws from the same seeds, and its first
+    step agrees with MuJoCo C. (The inputs were once uploaded on the producer thread's
+    default stream, which the engine's stream does not wait on.)"""
+    model = simloader.load_model("humanoid")
+    kwargs = dict(nbatch=64, nstep=1, num_batches=6, control=controls.Uniform(),
+                  initial_state=simloader.initial.Perturbed(qvel_std=0.5))
+    drawn = simloader.SimDataset(model, backend="rollout", **kwargs)
+    a = torch.randn(4096, 4096, device="cuda")
+
+    def busy():  # about a hundred milliseconds of matmuls, queued, not waited for
+        for _ in range(50):
+            a.copy_(torch.tanh(a @ a))
+
+    busy()
+    for batch, on_cpu in zip(warp_dataset(model, **kwargs), drawn):
+        busy()
+        x0 = batch["initial_state"].cpu().numpy().astype(np.float64)
+        np.testing.assert_allclose(x0, on_cpu["initial_state"].numpy(), rtol=1e-6, atol=1e-6)
+        u = batch["control"].cpu().numpy().astype(np.float64)
+        state, _ = rollout.rollout(model, mujoco.MjData(model), x0, u,
+                                   control_spec=int(mujoco.mjtState.mjSTATE_CTRL))
+        np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=ONE_STEP_TOL)
+
+
 def test_train_and_validation_datasets_read_alternately_over_epochs():
     train = warp_dataset(nbatch=512, num_batches=12)
     valid = warp_dataset(nbatch=128, nstep=10, num_batches=4, seed=1)
