@@ -19,8 +19,9 @@ from simloader.config import SimConfig
 
 # 2: continuing checkpoints carry the randomized values and variants; 3: the configuration
 # covers control, initial state, randomization, dtype, options; 4: and whether a policy (and
-# its noise) picks the controls
-VERSION = 4
+# its noise) picks the controls; 5: continuing trajectories are one structure on every engine
+# (`encode_trajectories`)
+VERSION = 5
 
 # backend options that do not change the stream (where JAX caches, how much memory it takes,
 # why an implementation was chosen)
@@ -37,6 +38,26 @@ def encode_array(array: np.ndarray) -> dict[str, Any]:
 def decode_array(encoded: dict[str, Any]) -> np.ndarray:
     raw = base64.b64decode(encoded["data"])
     return np.frombuffer(raw, dtype=np.dtype(encoded["dtype"])).reshape(encoded["shape"]).copy()
+
+
+def encode_trajectories(spec: int, rows: np.ndarray, fresh: np.ndarray,
+                        params: dict[str, np.ndarray]) -> dict[str, Any]:
+    """What continuing trajectories carry into the next batch, one structure on every engine:
+    their state rows ((nbatch, n), mjtState `spec`: the engine's own state), which of them
+    start afresh ((nbatch,) bool: diverged ones), and the randomized values and variants they
+    run with ({key: (nbatch, ...)})."""
+    return {"spec": int(spec), "rows": encode_array(rows), "fresh": encode_array(fresh),
+            "params": {k: encode_array(v) for k, v in params.items()}}
+
+
+def decode_trajectories(encoded: dict[str, Any],
+                        spec: int) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """(rows, fresh, params) of `encode_trajectories`, whose rows must be of mjtState `spec`."""
+    if encoded.get("spec") != int(spec):
+        raise ValueError(f"state_dict: the continuing trajectories hold state rows of mjtState "
+                         f"spec {encoded.get('spec')}, this engine resumes from spec {int(spec)}")
+    return (decode_array(encoded["rows"]), decode_array(encoded["fresh"]),
+            {k: decode_array(v) for k, v in encoded["params"].items()})
 
 
 def model_digest(model: mujoco.MjModel) -> str:

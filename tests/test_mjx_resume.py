@@ -109,7 +109,7 @@ def test_checkpoint_is_small_json(dataset):
     next(it)
     state = ds.state_dict()
     trajectories = state["trajectories"]
-    assert sorted(trajectories) == ["params", "qacc_warmstart", "restart", "state"]
+    assert sorted(trajectories) == ["fresh", "params", "rows", "spec"]
     assert sorted(trajectories["params"]) == sorted(p.key for p in SPEC)
     assert len(json.dumps(state)) < 4096
     it.close()

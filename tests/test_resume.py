@@ -126,7 +126,8 @@ def test_mismatched_configuration_is_a_clear_error():
     with pytest.raises(ValueError, match="state_dict: the saved stream has another "
                                          "configuration: seed is 1 here but 0 in the state"):
         make(5, seed=1).load_state_dict(saved)
-    with pytest.raises(ValueError, match="state_dict: expected a simloader state of version 4"):
+    expected = f"state_dict: expected a simloader state of version {simloader.resume.VERSION}"
+    with pytest.raises(ValueError, match=expected):
         make(5).load_state_dict({"version": 99})
 
 
@@ -238,3 +239,17 @@ def test_resume_continues_each_trajectory_on_its_randomized_model(randomize):
         assert torch.equal(state, ref_state)
         assert params.keys() == ref_params.keys()
         assert all(torch.equal(params[k], ref_params[k]) for k in params)
+
+
+def test_continuing_trajectories_are_one_structure_and_refuse_another_engines_rows():
+    """Every engine checkpoints its continuing trajectories as {spec, rows, fresh, params};
+    rows of another mjtState spec are refused by name, not misread."""
+    from simloader import resume as resume_mod
+    rows, fresh = np.arange(12.0).reshape(3, 4), np.array([True, False, True])
+    encoded = resume_mod.encode_trajectories(7, rows, fresh, {"mass": np.ones((3, 1))})
+    assert sorted(encoded) == ["fresh", "params", "rows", "spec"]
+    back_rows, back_fresh, params = resume_mod.decode_trajectories(encoded, 7)
+    assert np.array_equal(back_rows, rows) and np.array_equal(back_fresh, fresh)
+    assert np.array_equal(params["mass"], np.ones((3, 1)))
+    with pytest.raises(ValueError, match="spec 7.*spec 24639"):
+        resume_mod.decode_trajectories(encoded, 24639)

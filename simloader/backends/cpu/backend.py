@@ -228,15 +228,14 @@ class RolloutBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict]:
         if not self.config.continue_episodes:
             return None
-        return {"rows": resume.encode_array(produced.rows_after),
-                "fresh": resume.encode_array(produced.warned),
-                "params": {k: resume.encode_array(v.numpy()) for k, v in produced.params.items()}}
+        return resume.encode_trajectories(layout.INTEGRATION, produced.rows_after,
+                                          produced.warned, {k: v.numpy() for k, v in
+                                                            produced.params.items()})
 
     def restore(self, trajectories: dict) -> None:
-        self.batch.state[...] = resume.decode_array(trajectories["rows"])
-        self.fresh = resume.decode_array(trajectories["fresh"])
+        rows, self.fresh, params = resume.decode_trajectories(trajectories, layout.INTEGRATION)
+        self.batch.state[...] = rows
         # the trajectories that continue run on the models they ran on
-        params = {k: resume.decode_array(v) for k, v in trajectories["params"].items()}
         self._set_params(params, np.arange(self.config.nbatch))
 
     def close(self) -> None:

@@ -25,10 +25,11 @@ from typing import Any, Optional
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import torch
 
-from simloader import handoff, observe, resume, sharding
+from simloader import handoff, layout, observe, resume, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, GpuEngineChoice, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
@@ -115,6 +116,9 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
 # programs by configuration and device; each epoch's iterator reuses its dataset's program,
 # which goes away with the dataset's configuration
 _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# the state rows a continuing trajectory carries: its physics and MuJoCo's warmstart
+_WARMSTART = int(mujoco.mjtState.mjSTATE_WARMSTART)
+_ROWS = layout.FULLPHYSICS | _WARMSTART
 
 
 @dataclasses.dataclass
@@ -229,20 +233,21 @@ class MjxBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
         if not self.config.continue_episodes:
             return None
-        carry = produced.carry
-        return {"state": resume.encode_array(np.asarray(carry["state"])),
-                "qacc_warmstart": resume.encode_array(np.asarray(carry["qacc_warmstart"])),
-                "restart": resume.encode_array(np.asarray(produced.outputs["diverged"])),
-                "params": {k: resume.encode_array(np.asarray(v))
-                           for k, v in carry["params"].items()}}
+        carry, model = produced.carry, self.config.model
+        state = np.asarray(carry["state"])
+        rows = np.empty((len(state), mujoco.mj_stateSize(model, _ROWS)), dtype=state.dtype)
+        rows[:, layout.component_columns(model, _ROWS, layout.FULLPHYSICS)] = state
+        rows[:, layout.component_columns(model, _ROWS, _WARMSTART)] = carry["qacc_warmstart"]
+        return resume.encode_trajectories(_ROWS, rows, np.asarray(produced.outputs["diverged"]),
+                                          {k: np.asarray(v) for k, v in carry["params"].items()})
 
     def restore(self, trajectories: dict[str, Any]) -> None:
-        carry = {"state": resume.decode_array(trajectories["state"]),
-                 "qacc_warmstart": resume.decode_array(trajectories["qacc_warmstart"]),
-                 "params": {k: resume.decode_array(v)
-                            for k, v in trajectories["params"].items()}}
+        rows, self.restart, params = resume.decode_trajectories(trajectories, _ROWS)
+        model = self.config.model
+        carry = {"state": rows[:, layout.component_columns(model, _ROWS, layout.FULLPHYSICS)],
+                 "qacc_warmstart": rows[:, layout.component_columns(model, _ROWS, _WARMSTART)],
+                 "params": params}
         self.carry = jax.device_put(carry, self.device)
-        self.restart = resume.decode_array(trajectories["restart"])
 
     def close(self, _finalizing: Callable[[], bool] = sys.is_finalizing) -> None:
         # (`_finalizing` is bound at definition: at exit this module's globals may be gone)

@@ -260,17 +260,17 @@ class WarpBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
         if not self.config.continue_episodes:
             return None
-        return {"rows": resume.encode_array(produced.rows_after.cpu().numpy()),
-                "fresh": resume.encode_array(produced.outputs["diverged"].cpu().numpy()),
-                "params": {k: resume.encode_array(v.cpu().numpy())
-                           for k, v in produced.params.items()}}
+        return resume.encode_trajectories(
+            layout.INTEGRATION, produced.rows_after.cpu().numpy(),
+            produced.outputs["diverged"].cpu().numpy(),
+            {k: v.cpu().numpy() for k, v in produced.params.items()})
 
     def restore(self, trajectories: dict[str, Any]) -> None:
+        rows, fresh, params = resume.decode_trajectories(trajectories, layout.INTEGRATION)
         to = dict(device=self.device)
-        self.restored = torch.as_tensor(resume.decode_array(trajectories["rows"]), **to)
-        self.restart = torch.as_tensor(resume.decode_array(trajectories["fresh"]), **to)
-        self.params = {k: torch.as_tensor(resume.decode_array(v), **to)
-                       for k, v in trajectories["params"].items()}
+        self.restored = torch.as_tensor(rows, **to)
+        self.restart = torch.as_tensor(fresh, **to)
+        self.params = {k: torch.as_tensor(v, **to) for k, v in params.items()}
         if "variant" in self.params:
             self.model_index = self.params["variant"]
 
