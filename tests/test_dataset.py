@@ -224,7 +224,10 @@ print(json.dumps({"delivered": delivered, "reports": reports}))
 
 
 def test_killed_worker_is_reported_promptly(fresh_python):
-    outputs = fresh_python(KILL_A_WORKER, [(["fork"], {}), (["spawn"], {})], timeout=120)
+    # the whole script's limit is generous (two fresh interpreters at once, each starting
+    # spawned workers, on a loaded 2-core machine once took over 120 s); promptness is
+    # what the reports' times below assert
+    outputs = fresh_python(KILL_A_WORKER, [(["fork"], {}), (["spawn"], {})], timeout=300)
     for context, output in zip(["fork", "spawn"], outputs):
         result = json.loads(output)
         reports = result["reports"]
