@@ -24,6 +24,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
+from simloader import randomize as dr
 from simloader import sharding
 from simloader.config import SimConfig
 
@@ -103,6 +104,19 @@ class Backend(abc.ABC):
 
     def seed(self, index: int, purpose: int) -> np.random.SeedSequence:
         return sharding.batch_seed(self.config.seed, self.shard, index, purpose)
+
+    def draw_models(self, index: int) -> dict[str, np.ndarray]:
+        """Batch `index`'s host draws of what each trajectory runs on: its variant
+        ("variant", (nbatch,)) and its randomized values ({key: (nbatch, ...)}), from the
+        batch's randomization seed; the engines that draw these on the host draw them here."""
+        c = self.config
+        seed = self.seed(index, sharding.RANDOMIZE)
+        drawn = {}
+        if c.variants is not None:
+            drawn["variant"] = dr.draw_variants(seed, len(c.variants), c.nbatch)
+        if c.randomization is not None:
+            drawn.update(c.randomization.sample(seed, c.nbatch))
+        return drawn
 
     @abc.abstractmethod
     def produce(self, index: int) -> Any:

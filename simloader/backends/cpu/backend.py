@@ -177,14 +177,7 @@ class RolloutBackend(Backend):
 
     def _randomize(self, index: int, fresh: np.ndarray) -> None:
         """Draws model parameters (or variants) for the trajectories that start afresh."""
-        c = self.config
-        seed = self.seed(index, sharding.RANDOMIZE)
-        values = {}
-        if c.variants is not None:
-            values["variant"] = dr.draw_variants(seed, len(c.variants), c.nbatch)
-        if c.randomization is not None:
-            values.update(c.randomization.sample(seed, c.nbatch))
-        self._set_params(values, fresh)
+        self._set_params(self.draw_models(index), fresh)
 
     def _set_params(self, values: dict[str, np.ndarray], rows: np.ndarray) -> None:
         """Trajectories `rows` run with their `values` ({key: (nbatch, ...)}) from now on."""

@@ -25,7 +25,6 @@ import torch
 import mujoco
 
 from simloader import handoff, layout, policy, resume, sharding
-from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
 from simloader.backends.warp import runtime
@@ -113,11 +112,13 @@ class WarpBackend(Backend):
 
     # -- host draws ------------------------------------------------------------------------
 
-    def upload(self, array: np.ndarray, real: bool = True) -> torch.Tensor:
-        """A host array on the simulation device, in float32 if `real` (through pinned memory,
-        queued on the current stream: inside `queued`, the engine's)."""
-        host = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32) if real
-                                else np.ascontiguousarray(array))
+    def upload(self, array: np.ndarray) -> torch.Tensor:
+        """A host array on the simulation device, real values in float32, integers (variant
+        indices) as they are (through pinned memory, queued on the current stream: inside
+        `queued`, the engine's)."""
+        array = np.asarray(array)
+        host = torch.from_numpy(np.ascontiguousarray(
+            array, dtype=np.float32 if array.dtype.kind == "f" else None))
         if self.device.type == "cuda":
             host = host.pin_memory()
         return host.to(self.device, non_blocking=True)
@@ -131,18 +132,13 @@ class WarpBackend(Backend):
         # producer's own stream, the legacy default one that the consumer trains on, the
         # reset could read them before they arrived)
         x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
-        randomize_seed = self.seed(index, sharding.RANDOMIZE)
-        drawn = {}
-        if c.variants is not None:
-            drawn["variant"] = dr.draw_variants(randomize_seed, len(c.variants), c.nbatch)
-        if c.randomization is not None:
-            drawn.update(c.randomization.sample(randomize_seed, c.nbatch))
+        drawn = self.draw_models(index)
         # the weights this batch runs with, one version of them (a copy taken now)
         weights = self.snapshot.take() if self.snapshot is not None else None
         dispatched = time.perf_counter()
         with e.queued():
-            self._start_trajectories({k: self.upload(v, k != "variant")
-                                      for k, v in drawn.items()}, self.upload(x0))
+            self._start_trajectories({k: self.upload(v) for k, v in drawn.items()},
+                                     self.upload(x0))
             initial_state = e.physics()
             e.low.copy_(self.per_trajectory(tables.low))
             e.high.copy_(self.per_trajectory(tables.high))

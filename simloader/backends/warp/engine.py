@@ -320,9 +320,9 @@ class Engine:
     def _step(self, capturing: bool = False) -> None:
         """Everything between two control rows, on the row of step `t` (the driver's
         `row()`: the open loop's, or the policy's with noise, the bad-control check and
-        MuJoCo's clamp), the inputs, MuJoCo Warp's step, the divergence check and restart, the observations
-        (views of Warp's arrays where they can be; cameras rendered) and their frames. Device
-        tensors only, so that one graph serves every step."""
+        MuJoCo's clamp), the inputs, MuJoCo Warp's step, the divergence check and restart,
+        the observations (views of Warp's arrays where they can be; cameras rendered) and
+        their frames. Device tensors only, so that one graph serves every step."""
         c, n = self.config, self.config.nbatch
         with self._warp_capture(capturing):
             u = self.loop.row()
