@@ -25,8 +25,10 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
+import mujoco
 import torch
 
 import common
@@ -170,7 +172,8 @@ def rows_for(w: common.Workload, model, args) -> list[list]:
     rates = measure(runners, steps, args.repeats)
     if args.jax and w.name == "cartpole":
         # in a process of its own: JAX and torch would share one GPU's memory here
-        rates["simloader impl='jax', open loop (own process)"] = jax_rate(w, n, args.repeats)
+        rates["simloader impl='jax', open loop (own process)"] = jax_rate(model, w, n,
+                                                                          args.repeats)
     same = rates["raw MuJoCo Warp graph, same work"]
     return [[str(w), name, f"{rate / 1e6:.2f}M", f"{rate / same:.3f}"]
             for name, rate in rates.items()]
@@ -180,8 +183,8 @@ _JAX_CHILD = """
 import json, statistics, sys, time
 import simloader
 from simloader import controls
-name, nbatch, nstep, n, repeats = sys.argv[1], *map(int, sys.argv[2:])
-ds = simloader.SimDataset(name, backend="mjx", impl="jax", nbatch=nbatch, nstep=nstep,
+path, nbatch, nstep, n, repeats = sys.argv[1], *map(int, sys.argv[2:])
+ds = simloader.SimDataset(path, backend="mjx", impl="jax", nbatch=nbatch, nstep=nstep,
                           control=controls.Uniform(), num_batches=n)
 for b in ds:
     pass
@@ -195,11 +198,19 @@ print(json.dumps(nbatch * nstep / statistics.median(times)))
 """
 
 
-def jax_rate(w: common.Workload, n: int, repeats: int) -> float:
-    """simloader's MJX-JAX steps/s on the workload, timed as `Simloader` times, in a child."""
-    out = subprocess.run([sys.executable, "-c", _JAX_CHILD, w.name, str(w.nbatch),
-                          str(w.nstep), str(n), str(repeats)], capture_output=True, text=True,
-                         env={**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+def jax_rate(model, w: common.Workload, n: int, repeats: int) -> float:
+    """simloader's MJX-JAX steps/s on the workload, timed as `Simloader` times, in a child.
+
+    The child gets this very model as an .mjb file: by name it would load simloader's built-in
+    model, which is not --model-dir's (the built-in cart-pole runs implicitfast with 100
+    solver iterations, dm_control's Euler with 1)."""
+    with tempfile.TemporaryDirectory() as folder:
+        path = os.path.join(folder, f"{w.name}.mjb")
+        mujoco.mj_saveModel(model, path, None)
+        out = subprocess.run([sys.executable, "-c", _JAX_CHILD, path, str(w.nbatch),
+                              str(w.nstep), str(n), str(repeats)], capture_output=True,
+                             text=True,
+                             env={**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
     if out.returncode:
         raise SystemExit(f"the JAX child failed:\n{out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
