@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import importlib
 import importlib.util
 from typing import Any, Optional
 
@@ -23,8 +24,21 @@ from simloader.config import SimConfig
 
 BACKENDS = ("auto", "rollout", "mjx")
 IMPLS = ("auto", "jax", "warp")
-# backend="mjx" options: the engine, MuJoCo Warp's buffers, JAX's caches and memory
-OPTIONS = ("impl", "naconmax", "njmax", "compilation_cache", "memory_fraction")
+# Each engine's package by its `impl` (the CPU backend's is "c"), imported when first needed.
+# Every package offers the same two entry points: `check_options(config, options, reason)`
+# returns its resolved options (with `impl`), `create(config, shard, stats)` its backend. The
+# registry decides which engine runs; it never branches on an engine's name to call it.
+ENGINES = {"c": "simloader.backends.cpu", "jax": "simloader.backends.mjx",
+           "warp": "simloader.backends.warp"}
+# backend="mjx" options beyond `impl`, by engine, known here without importing the engines
+# (for SimDataset's did-you-mean): MuJoCo Warp's buffers, JAX's caches and memory
+ENGINE_OPTIONS = {"warp": ("naconmax", "njmax"), "jax": ("compilation_cache", "memory_fraction")}
+OPTIONS = ("impl",) + tuple(name for names in ENGINE_OPTIONS.values() for name in names)
+
+
+def engine(impl: str) -> Any:
+    """The package of the engine `impl` (a key of `ENGINES`), imported now."""
+    return importlib.import_module(ENGINES[impl])
 
 
 def _mjx_installed() -> bool:
@@ -138,61 +152,26 @@ def has_contacts(model: mujoco.MjModel) -> bool:
     return bool(np.triu(mask, 1).any())
 
 
-def _positive(name: str, value: Any) -> Optional[int]:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name}: expected None or a positive integer, got "
-                        f"{type(value).__name__} {value!r}")
-    if value < 1:
-        raise ValueError(f"{name}: expected None or a positive integer, got {value}")
-    return int(value)
-
-
 def check_options(config: SimConfig, asked: str, options: dict[str, Any]) -> Any:
     """Validates engine-specific keyword options at construction (`asked`: the `backend`
-    argument before "auto" was resolved); returns them resolved, for `SimConfig.options`."""
+    argument before "auto" was resolved); returns them resolved by the chosen engine, for
+    `SimConfig.options`."""
     if config.backend == "mjx":
         unknown = sorted(set(options) - set(OPTIONS))
         if unknown:
             raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
                             f"backend='mjx' (its options are {list(OPTIONS)})")
         choice = choose(options.get("impl", "auto"), config)
-        naconmax = _positive("naconmax", options.get("naconmax"))
-        njmax = _positive("njmax", options.get("njmax"))
-        if choice.impl == "warp":
-            from simloader.backends import warp
-            _jax_options_unused(options)
-            return warp.check_options(config, choice.reason, naconmax, njmax)
-        if naconmax is not None or njmax is not None:
-            raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need "
-                             f"impl='warp', but impl resolved to 'jax' ({choice.reason})")
-        from simloader.backends import mjx
-        return mjx.check_options(config, options, choice.reason)
+        rest = {k: v for k, v in options.items() if k != "impl"}
+        return engine(choice.impl).check_options(config, rest, choice.reason)
     if "impl" in options and asked == "auto":
         raise ValueError(
             f"impl: {options['impl']!r} chooses the GPU engine, but backend='auto' resolved to "
             f"'rollout' here (no GPU visible, or the engine's packages missing); pass "
             f"backend='mjx' to run it anyway")
-    from simloader.backends import cpu
-    return cpu.check_options(config, options)
-
-
-def _jax_options_unused(options: dict[str, Any]) -> None:
-    """JAX's options mean nothing to the Warp engine: a value other than the default is an
-    error rather than silently ignored."""
-    for name in ("compilation_cache", "memory_fraction"):
-        if options.get(name) not in (None, False) and options.get("impl") == "warp":
-            raise ValueError(f"{name}: configures JAX, which impl='warp' does not use; drop it "
-                             f"(it matters only for impl='jax')")
+    return engine("c").check_options(config, options, "backend='rollout'")
 
 
 def create(config: SimConfig, shard: sharding.Shard, stats: Stats) -> Backend:
-    if config.backend == "mjx" and config.options.impl == "warp":
-        from simloader.backends.warp import WarpBackend
-        return WarpBackend(config, shard, stats, config.options)
-    if config.backend == "mjx":
-        from simloader.backends.mjx import MjxBackend
-        return MjxBackend(config, shard, stats, config.options)
-    from simloader.backends.cpu import RolloutBackend
-    return RolloutBackend(config, shard, stats)
+    """The engine of `config` (its resolved options say which) for one shard."""
+    return engine(config.options.impl).create(config, shard, stats)

@@ -10,4 +10,10 @@
 from simloader.backends.cpu.backend import RolloutBackend
 from simloader.backends.cpu.options import CpuOptions, check_options
 
-__all__ = ["CpuOptions", "RolloutBackend", "check_options"]
+
+def create(config, shard, stats) -> RolloutBackend:
+    """The engine of one shard (the registry's entry point, as every engine's)."""
+    return RolloutBackend(config, shard, stats)
+
+
+__all__ = ["CpuOptions", "RolloutBackend", "check_options", "create"]

@@ -20,8 +20,9 @@ class CpuOptions:
         return "backend='rollout' (mujoco.batch on CPU threads)"
 
 
-def check_options(config: Any, options: dict[str, Any]) -> CpuOptions:
-    """Validates a `backend="rollout"` configuration (it takes no options of its own).
+def check_options(config: Any, options: dict[str, Any], reason: str = "") -> CpuOptions:
+    """Validates a `backend="rollout"` configuration (it takes no options of its own;
+    `reason`, why this engine was chosen, is the registry's common argument).
 
     Raises:
       TypeError: any option (`options` must be empty).

@@ -15,4 +15,10 @@
 from simloader.backends.mjx.backend import MjxBackend, MjxOptions, check_options
 from simloader.backends.mjx.runtime import configure_memory
 
-__all__ = ["MjxBackend", "MjxOptions", "check_options", "configure_memory"]
+
+def create(config, shard, stats) -> MjxBackend:
+    """The engine of one shard (the registry's entry point, as every engine's)."""
+    return MjxBackend(config, shard, stats, config.options)
+
+
+__all__ = ["MjxBackend", "MjxOptions", "check_options", "configure_memory", "create"]

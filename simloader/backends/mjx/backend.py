@@ -88,6 +88,10 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
         differ in what MJX compiles in, a parameter MJX cannot randomize (`randomize.py`),
         cameras (MJX-JAX does not render).
     """
+    given = [name for name in ("naconmax", "njmax") if options.get(name) is not None]
+    if given:
+        raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need "
+                         f"impl='warp', but impl resolved to 'jax' ({reason})")
     if config.dtype == torch.float64 and not jax.config.jax_enable_x64:
         # stacklevel: the user's line (SimDataset, the registry, here)
         warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "

@@ -13,4 +13,10 @@ driven from torch, without JAX.
 from simloader.backends.warp.backend import WarpBackend
 from simloader.backends.warp.options import WarpOptions, check_options
 
-__all__ = ["WarpBackend", "WarpOptions", "check_options"]
+
+def create(config, shard, stats) -> WarpBackend:
+    """The engine of one shard (the registry's entry point, as every engine's)."""
+    return WarpBackend(config, shard, stats, config.options)
+
+
+__all__ = ["WarpBackend", "WarpOptions", "check_options", "create"]

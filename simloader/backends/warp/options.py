@@ -67,15 +67,29 @@ class WarpOptions(GpuEngineChoice):
         return f"MuJoCo Warp, naconmax={self.naconmax}, njmax={self.njmax}"
 
 
-def check_options(config: SimConfig, reason: str, naconmax: Optional[int],
-                  njmax: Optional[int]) -> WarpOptions:
+def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> WarpOptions:
     """Validates a Warp configuration in the constructing process.
 
+    Args:
+      config: the validated dataset configuration.
+      options: keyword options of `SimDataset` beyond its own: `naconmax` and `njmax`, MuJoCo
+        Warp's contact pool of the whole batch and constraint rows per trajectory (None: sized
+        from the model); JAX's options are refused, JAX does not run here.
+      reason: why the Warp engine simulates (asked, or what `impl="auto"` saw).
+
     Raises:
+      TypeError: `naconmax` or `njmax` not None or an integer.
       ValueError: the engine cannot run here (saying what is missing), MuJoCo Warp cannot
         simulate a model, models differ in an array MuJoCo Warp shares across trajectories, a
         randomized field MuJoCo Warp cannot hold per trajectory, a record it does not keep.
     """
+    naconmax = _positive("naconmax", options.get("naconmax"))
+    njmax = _positive("njmax", options.get("njmax"))
+    for name in ("compilation_cache", "memory_fraction"):
+        # a value other than the default is an error rather than silently ignored
+        if options.get(name) not in (None, False):
+            raise ValueError(f"{name}: configures JAX, which impl='warp' does not use; drop "
+                             f"it (it matters only for impl='jax')")
     why = runtime.missing()
     if why:
         raise ValueError(f"impl: 'warp' cannot run here: {why}; use impl='jax' (or 'auto')")
@@ -107,6 +121,17 @@ def check_options(config: SimConfig, reason: str, naconmax: Optional[int],
     x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
     naconmax, njmax = buffer_sizes(config.model, config.nbatch, x0, naconmax, njmax)
     return WarpOptions("warp", reason, naconmax, njmax, tuple(sorted(per_world)))
+
+
+def _positive(name: str, value: Any) -> Optional[int]:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name}: expected None or a positive integer, got "
+                        f"{type(value).__name__} {value!r}")
+    if value < 1:
+        raise ValueError(f"{name}: expected None or a positive integer, got {value}")
+    return int(value)
 
 
 def _put(name: str, model: mujoco.MjModel) -> Any:
