@@ -10,11 +10,12 @@ batch-major. simloader is timed as delivered: torch tensors in hand on the devic
 repetitions. A single-environment Python `mj_step` loop gives the speed-up column; `--cpu` adds
 raw `mujoco.rollout` and simloader's rollout backend on all cores (bench_rollout.py's code).
 
-`--impl` picks MJX's implementation for both (simloader's `impl=`; the raw baseline runs the
-implementation simloader resolved, with the same MuJoCo Warp buffer sizes). On `warp` a second
-raw row steps with no controls at all: the upper bound (MuJoCo Warp's own `testspeed` setting).
-A regression in how per-step inputs reach Warp (its CUDA graph re-captured every step) shows as
-simloader far below the raw rows.
+`--impl` picks simloader's `impl=`; the raw baseline runs the engine simloader resolved. On
+`warp` that is simloader's Warp engine, the public `mujoco_warp` from torch (not MJX's vendored
+Warp through JAX): the raw rows are `simloader.bench.RawWarp`, one captured step graph replayed
+with the same work (controls in, state and sensors out every step) and with no controls at all
+(the upper bound, MuJoCo Warp's own `testspeed` setting), with simloader's buffer sizes.
+benchmarks/bench_warp.py has more Warp rows (policy, pixels, startup).
 
 Compilation is reported apart: in this process (persistent cache off), and as the time to the
 first batch of a fresh process with empty persistent caches (cold: JAX's compilation cache and,
@@ -67,7 +68,7 @@ def output_gb(model: mujoco.MjModel, w: common.Workload) -> float:
     return w.steps * (nstate + model.nsensordata + model.nu) * 4 / 1e9
 
 
-RawMjx = bench.RawMjx  # the package's baseline (it backs `simloader bench` too)
+RawMjx = bench.RawMjx  # the package's baseline of impl="jax" (it backs `simloader bench` too)
 
 
 def simloader_dataset(model: mujoco.MjModel, w: common.Workload, seed: int,
@@ -148,10 +149,7 @@ def try_simloader(model: mujoco.MjModel, w: common.Workload, seed: int,
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
     p.add_argument("--impl", choices=("auto", "jax", "warp"), default="auto",
-                   help="MJX's implementation (simloader's impl=; raw runs the one it resolved)")
-    p.add_argument("--trap", action="store_true",
-                   help="impl warp: also raw MJX-Warp with controls set straight from the "
-                        "scanned array (its CUDA graph re-captured every step)")
+                   help="simloader's impl= (raw runs the engine it resolved)")
     p.add_argument("--cpu", action="store_true",
                    help="also raw mujoco.rollout and simloader's rollout backend on all cores")
     p.add_argument("--no-compile", action="store_true",
@@ -186,27 +184,28 @@ def main() -> None:
         sim, why = try_simloader(model, w, args.seed, args.impl)
         impl = sim.options.impl if sim is not None else ("jax" if args.impl == "auto"
                                                          else args.impl)
-        # MuJoCo Warp's buffer sizes as simloader resolved them (none on MJX-JAX)
-        sizes = {k: getattr(sim.options, k, None) for k in ("naconmax", "njmax")} if sim else {}
-        RAW, SIMLOADER = f"raw MJX-{impl} vmap+scan", f"simloader mjx ({impl})"
-        raw = RawMjx(model, w, args.seed, impl=impl, **sizes)
+        SIMLOADER = f"simloader mjx ({impl})"
+        if impl == "warp":
+            # simloader's Warp engine is mujoco_warp from torch: its raw loop, not MJX's Warp,
+            # with MuJoCo Warp's buffer sizes as simloader resolved them
+            sizes = (sim.options.naconmax, sim.options.njmax) if sim else (None, None)
+            RAW, raw = bench.RAW_WARP, bench.RawWarp(model, w, args.seed, sizes)
+        else:
+            RAW, raw = f"raw MJX-{impl} vmap+scan", RawMjx(model, w, args.seed)
         nbatches = common.batches_for(args, raw.batch_s)
         counts.append(f"{nbatches} for {w}")
         measures: dict[str, Callable[[], float]] = {RAW: lambda: raw.measure(nbatches)}
         runs_on = {RAW: gpu, SIMLOADER: gpu, bench_rollout.PYTHON: "1 core"}
         bare = None
         if impl == "warp":
-            BARE = f"raw MJX-{impl}, no controls"
-            bare = RawMjx(model, w, args.seed, impl=impl, controls=False, **sizes)
+            BARE = "raw MuJoCo Warp graph, no controls"
+            bare = bench.RawWarp(model, w, args.seed, sizes, same_work=False)
             measures[BARE] = lambda: bare.measure(nbatches)
             runs_on[BARE] = gpu
-            if args.trap:
-                TRAP = f"raw MJX-{impl}, controls not refreshed"
-                trap = RawMjx(model, w, args.seed, impl=impl, refresh=False, **sizes)
-                measures[TRAP] = lambda: trap.measure(1)
-                runs_on[TRAP] = gpu
-            notes.append(f"{w}: simloader chose {sim.options.impl} ({sim.options.impl_reason}), "
-                         f"naconmax={sim.options.naconmax}, njmax={sim.options.njmax}")
+            if sim is not None:
+                notes.append(f"{w}: simloader chose {sim.options.impl} "
+                             f"({sim.options.impl_reason}), naconmax={sim.options.naconmax}, "
+                             f"njmax={sim.options.njmax}")
         if sim is not None:
             measures[SIMLOADER] = lambda: sim.measure(nbatches)
             differ = {k: (sim.shapes[k], v) for k, v in raw.shapes.items() if sim.shapes[k] != v}

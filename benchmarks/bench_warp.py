@@ -3,9 +3,10 @@
 Rows, per workload, all measured in this process with alternating repetitions (medians):
 
 - raw, no controls (the ceiling): one `mjw.step` captured as a CUDA graph, replayed.
-- raw, same work: the same graph, plus what simloader does per step in the plainest torch a
-  user would write: the step's controls copied into `d.ctrl` from a (nworld, nstep, nu) tensor
-  drawn once on the GPU, and the state (time, qpos, qvel, act) and sensors copied into
+- raw, same work (`simloader.bench.RawWarp`, the baseline of `simloader bench` too): the same
+  graph, plus what simloader does per step in the plainest torch a user would write: the
+  step's controls copied into `d.ctrl` from a (nworld, nstep, nu) tensor drawn on the GPU
+  every batch, and the state (time, qpos, qvel, act) and sensors copied into
   (nworld, nstep, ...) frames.
 - simloader open loop: `SimDataset(impl="warp", control=controls.Uniform())` iterated (fresh
   controls drawn every batch, divergence checks, clamping, outputs handed over).
@@ -35,73 +36,15 @@ import common
 from common import markdown_table
 
 import simloader
-from simloader import controls
+from simloader import bench, controls
 
 WORKLOADS = [common.Workload("humanoid", 8192, 200), common.Workload("humanoid", 32768, 100),
              common.Workload("cartpole", 8192, 1000)]
 QUICK = [common.Workload("cartpole", 64, 20)]
 
 
-class RawWarp:
-    """A raw MuJoCo Warp loop: one step captured once, replayed; `same_work` adds a control
-    copy before and the state and sensor copies after every step."""
-
-    def __init__(self, model, nworld: int, nstep: int, same_work: bool, sizes: tuple,
-                 cameras: bool = False):
-        import mujoco_warp as mjw
-        import warp as wp
-        self.mjw, self.wp, self.nstep, self.same_work = mjw, wp, nstep, same_work
-        self.device = torch.device("cuda", 0)
-        with wp.ScopedDevice("cuda:0"):
-            self.m = mjw.put_model(model)
-            self.m.opt.warn_overflow = 0
-            self.d = mjw.make_data(model, nworld=nworld, naconmax=sizes[0], njmax=sizes[1])
-            self.rc = (mjw.create_render_context(mjm=model, nworld=nworld, cam_active=[0],
-                                                 cam_res=[(64, 64)], render_rgb=[True],
-                                                 render_depth=[False], render_seg=[False])
-                       if cameras else None)
-        t = lambda a: wp.to_torch(a).reshape(nworld, -1)  # noqa: E731
-        self.ctrl, self.parts = t(self.d.ctrl), [t(getattr(self.d, f)) for f in
-                                                 ("time", "qpos", "qvel", "act")]
-        self.sensordata = t(self.d.sensordata)
-        gen = torch.Generator(self.device).manual_seed(0)
-        self.controls = torch.rand((nworld, nstep, model.nu), device=self.device,
-                                   generator=gen) * 2 - 1
-        nstate = sum(p.shape[1] for p in self.parts)
-        self.state = torch.empty((nworld, nstep, nstate), device=self.device)
-        self.sensors = torch.empty((nworld, nstep, self.sensordata.shape[1]), device=self.device)
-        self.pixels = torch.empty((nworld, nstep, 64 * 64), dtype=torch.int32,
-                                  device=self.device) if cameras else None
-        self.stream = torch.cuda.Stream(self.device)
-        self.warp_stream = wp.stream_from_torch(self.stream)
-        with torch.cuda.stream(self.stream), wp.ScopedStream(self.warp_stream):
-            self._physics()
-            with wp.ScopedCapture() as capture:
-                self._physics()
-        self.graph = capture.graph
-
-    def _physics(self) -> None:
-        mjw = self.mjw
-        mjw.step(self.m, self.d)
-        if self.rc is not None:
-            mjw.kinematics(self.m, self.d)
-            mjw.camlight(self.m, self.d)
-            mjw.refit_bvh(self.m, self.d, self.rc)
-            mjw.render(self.m, self.d, self.rc)
-
-    def batch(self) -> None:
-        wp = self.wp
-        with torch.cuda.stream(self.stream):
-            for t in range(self.nstep):
-                if self.same_work:
-                    self.ctrl.copy_(self.controls[:, t])
-                wp.capture_launch(self.graph, stream=self.warp_stream)
-                if self.same_work:
-                    torch.cat(self.parts, dim=1, out=self.state[:, t])
-                    self.sensors[:, t] = self.sensordata
-                if self.pixels is not None:
-                    self.pixels[:, t] = wp.to_torch(self.rc.rgb_data)
-        self.stream.synchronize()
+# the raw loop (`simloader bench` compares the Warp engine with it too)
+RawWarp = bench.RawWarp
 
 
 class Simloader:
@@ -113,13 +56,13 @@ class Simloader:
         self.ds = simloader.SimDataset(model, backend="mjx", nbatch=nworld, nstep=nstep,
                                        num_batches=batches, **kwargs)
         self.batches = batches
-        self.batch()  # the first epoch: build, capture, compile
+        self()  # the first epoch: build, capture, compile
 
     def sizes(self) -> tuple:
         o = self.ds.config.options
         return o.naconmax, o.njmax
 
-    def batch(self) -> None:
+    def __call__(self) -> None:
         for b in self.ds:
             del b
         torch.cuda.synchronize()
@@ -145,11 +88,11 @@ def measure(runners: dict, steps: int, repeats: int) -> dict[str, float]:
     batch; a simloader runner's run is `batches` batches)."""
     times: dict[str, list] = {k: [] for k in runners}
     for r in runners.values():
-        r.batch()  # warm-up
+        r()  # warm-up
     for _ in range(repeats):
         for name, r in runners.items():
             start = time.perf_counter()
-            r.batch()
+            r()
             times[name].append((time.perf_counter() - start) / getattr(r, "batches", 1))
     return {k: steps / statistics.median(v) for k, v in times.items()}
 
@@ -160,10 +103,9 @@ def rows_for(w: common.Workload, model, args) -> list[list]:
     ours = Simloader(model, w.nbatch, w.nstep, n, impl="warp", control=controls.Uniform(),
                      **sizes(args))
     runners = {
-        "raw MuJoCo Warp graph, no controls (ceiling)": RawWarp(model, w.nbatch, w.nstep, False,
-                                                                ours.sizes()),
-        "raw MuJoCo Warp graph, same work": RawWarp(model, w.nbatch, w.nstep, True,
-                                                    ours.sizes()),
+        "raw MuJoCo Warp graph, no controls (ceiling)": RawWarp(
+            model, w, args.seed, ours.sizes(), same_work=False),
+        "raw MuJoCo Warp graph, same work": RawWarp(model, w, args.seed, ours.sizes()),
         "simloader impl='warp', open loop": ours,
     }
     if args.policy and w.name == "humanoid":
@@ -182,7 +124,7 @@ def rows_for(w: common.Workload, model, args) -> list[list]:
 _JAX_CHILD = """
 import json, statistics, sys, time
 import simloader
-from simloader import controls
+from simloader import bench, controls
 path, nbatch, nstep, n, repeats = sys.argv[1], *map(int, sys.argv[2:])
 ds = simloader.SimDataset(path, backend="mjx", impl="jax", nbatch=nbatch, nstep=nstep,
                           control=controls.Uniform(), num_batches=n)
@@ -273,7 +215,8 @@ def pixel_rows(args) -> list[list]:
                      record=("state", simloader.Camera(0, height=64, width=64)))
     runners = {
         "raw MuJoCo Warp step + render graph, RGB copied out": RawWarp(
-            model, nworld, nstep, False, ours.sizes(), cameras=True),
+            model, common.Workload("cartpole", nworld, nstep), args.seed, ours.sizes(),
+            same_work=False, cameras=True),
         "simloader impl='warp', Camera 64x64 RGB": ours,
     }
     rates = measure(runners, nworld * nstep, args.repeats)

@@ -2,13 +2,15 @@
 
 Every method does the same work: `nbatch` trajectories of `nstep` steps from the model's default
 state, controls drawn uniformly within `ctrlrange` for every batch, the `mjSTATE_FULLPHYSICS`
-state and the sensors recorded after every step. The raw baselines depend on MuJoCo (and JAX)
-alone, not on simloader's code:
+state and the sensors recorded after every step. The raw baselines depend on MuJoCo (and JAX
+or MuJoCo Warp) alone, not on simloader's code:
 
 - a Python loop stepping one `MjData` (the single-environment reference for speed-ups);
 - `mujoco.rollout` on all cores with a persistent thread pool (what the rollout backend wraps);
 - a jitted `lax.scan` over `vmap(mjx.step)`, controls drawn in the jitted function (what the mjx
-  backend wraps).
+  backend runs on `impl="jax"`);
+- a captured `mujoco_warp.step` graph replayed from torch, controls copied in and outputs
+  copied out every step (what the mjx backend runs on `impl="warp"`: its Warp engine).
 
 simloader is timed as delivered: torch tensors in hand (its producer simulating the next batch
 meanwhile), after a warm-up batch, blocked on the device after each. Measures run alternately in
@@ -34,8 +36,9 @@ from mujoco import rollout
 PYTHON, RAW_ROLLOUT, SIMLOADER_ROLLOUT = ("Python mj_step loop", "mujoco.rollout (raw)",
                                           "simloader rollout")
 RAW_MJX, SIMLOADER_MJX = "raw MJX vmap+scan", "simloader mjx"
+RAW_WARP, SIMLOADER_WARP = "raw MuJoCo Warp graph, same work", "simloader mjx (warp)"
 # the raw method each simloader method is compared with
-RAW_OF = {SIMLOADER_ROLLOUT: RAW_ROLLOUT, SIMLOADER_MJX: RAW_MJX}
+RAW_OF = {SIMLOADER_ROLLOUT: RAW_ROLLOUT, SIMLOADER_MJX: RAW_MJX, SIMLOADER_WARP: RAW_WARP}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +76,11 @@ def cpu_count() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
+
+
+def device_name(device: torch.device) -> str:
+    """What a torch device is, for the "runs on" column ("NVIDIA H200", "CPU")."""
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
 
 
 def jax_has_gpu() -> bool:
@@ -268,75 +276,62 @@ class RawBaseline:
             del out
         return (time.perf_counter() - start) / (nbatches * self.w.steps)
 
+    def _time_first_batch(self) -> None:
+        """Sets `shapes`, `first_s` (`compile_s` plus the first batch) and `batch_s` (a warm
+        batch), once built."""
+        start = time.perf_counter()
+        out = self()
+        self.shapes = {k: tuple(v.shape) for k, v in out.items()}
+        del out
+        self.first_s = self.compile_s + time.perf_counter() - start
+        self.batch_s = self.measure(1) * self.w.steps
+
 
 class RawMjx(RawBaseline):
-    """The raw MJX baseline: one jitted function per workload, `f(key, index) -> arrays`.
+    """The raw MJX-JAX baseline: one jitted function per workload, `f(key, index) -> arrays`.
+
+    What simloader's MJX backend runs on `impl="jax"` (its Warp engine is `RawWarp`'s).
 
     Args:
-      impl: MJX's implementation, "jax" or "warp" (MuJoCo Warp; `naconmax`/`njmax` size its
-        buffers, as simloader sizes them).
-      controls: draw uniform controls for every step (True), or step with none (the upper
-        bound MuJoCo Warp's own `testspeed` measures).
-      refresh: Warp only: give the controls a buffer of their own before each step (False:
-        set them straight from the scanned array, which re-captures Warp's CUDA graph every
-        step; kept to show what that costs).
+      controls: draw uniform controls for every step (True), or step with none.
       check: after each step, put back rows whose state is not finite (a per-row select over
         what a step reads, as simloader's divergence check does).
-      render: after each step, `render(mx, d) -> (d, {key: images})` on the batched data
-        (e.g. MuJoCo Warp's renderer); the images are returned batch-major with the rest.
+      render: after each step, `render(mx, d) -> (d, {key: images})` on the batched data;
+        the images are returned batch-major with the rest.
 
     Attributes:
       compile_s: seconds to trace and compile; first_s: to the first batch in hand;
       batch_s: seconds of one (warm) batch; shapes: the output shapes.
     """
 
-    def __init__(self, model: mujoco.MjModel, w: Workload, seed: int, impl: str = "jax",
-                 naconmax: Optional[int] = None, njmax: Optional[int] = None,
-                 controls: bool = True, refresh: bool = True, check: bool = False,
+    # its row in the tables, and the simloader row it is compared with
+    row, simloader_row = RAW_MJX, SIMLOADER_MJX
+    engine = "MJX-JAX, a jitted lax.scan over vmap(mjx.step)"
+
+    def __init__(self, model: mujoco.MjModel, w: Workload, seed: int, controls: bool = True,
+                 check: bool = False,
                  render: Optional[Callable[[Any, Any], tuple[Any, dict]]] = None):
         import jax
         import jax.numpy as jnp
-        if impl == "warp":
-            import warp  # noqa: F401  (before MJX: simloader imports MJX without Warp otherwise)
         from simloader.backends.mjx.runtime import mjx  # (imports MJX without its warp print)
-        if impl == "warp" and not sys.modules["mujoco.mjx.warp"].WARP_INSTALLED:
-            raise RuntimeError("the MJX-Warp baseline needs MJX imported with Warp, but a JAX "
-                               "dataset imported it without Warp earlier in this process; run "
-                               "it in a process of its own")
 
         self.w = w
         self.render = render  # alive as long as the compiled function (it may own buffers)
-        self.mx = mjx.put_model(model, impl=impl)
-        if impl == "warp":
-            # no printf from the kernels (MuJoCo Warp's default prints a notice every step the
-            # humanoid's solver hits its iteration limit, which slows it down): as simloader
-            self.mx = self.mx.replace(opt=self.mx.opt.replace(
-                _impl=self.mx.opt._impl.replace(warn_overflow=0)))
+        self.mx = mjx.put_model(model, impl="jax")
         self.key = jax.random.key(seed)
         low, high = (jnp.asarray(b, jnp.float32) for b in ctrl_bounds(model))
         step = jax.vmap(mjx.step, in_axes=(None, 0))
         nbatch, nstep, nu = w.nbatch, w.nstep, model.nu
-        if impl == "warp":
-            # make_data under vmap, as MuJoCo Warp's testspeed: the contact pool stays shared
-            self.d0 = jax.jit(jax.vmap(lambda _: mjx.make_data(
-                model, impl="warp", naconmax=naconmax, njmax=njmax)))(jnp.arange(nbatch))
-        else:
-            self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
+        self.d0 = mjx.make_data(self.mx, impl="jax")  # the state mj_resetData gives
 
         def batch(mx, d0, key, index):
             ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
                                       minval=low, maxval=high)
-            d = d0 if impl == "warp" else jax.tree.map(
-                lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
+            d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
 
             def body(d, u):
-                if impl == "warp":
-                    # Warp's CUDA graph is captured anew whenever an input buffer moves: every
-                    # input the step reads gets a buffer of its own, as MuJoCo Warp's testspeed
-                    # does for qpos (the fastest raw recipe measured)
-                    d = d.replace(**{n: getattr(d, n) + 0 * getattr(d, n) for n in STEP_READS})
                 if controls:
-                    d = d.replace(ctrl=u + 0 * d.ctrl if impl == "warp" and refresh else u)
+                    d = d.replace(ctrl=u)
                 d = step(mx, d)
                 if check:
                     ok = jnp.all(jnp.isfinite(d.qpos), axis=-1) & jnp.all(jnp.isfinite(d.qvel),
@@ -346,13 +341,10 @@ class RawMjx(RawBaseline):
                                                   getattr(d, n), 0 * getattr(d, n))
                                      for n in STEP_READS})
                 state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
-                # Warp: an output of its kernels stacked as it is would be written in place at
-                # a new address every step (its CUDA graph captured anew every step)
-                sensordata = d.sensordata + 0 * d.sensordata if impl == "warp" else d.sensordata
                 images = {}
                 if render is not None:
                     d, images = render(mx, d)
-                return d, (state, sensordata, images)
+                return d, (state, d.sensordata, images)
 
             _, (state, sensordata, images) = jax.lax.scan(body, d, ctrl)
             # batch-major, as simloader delivers
@@ -366,18 +358,141 @@ class RawMjx(RawBaseline):
             self.fn = jax.jit(batch).lower(self.mx, self.d0, self.key, 0).compile()
         self.compile_s = time.perf_counter() - start
         self.index = 0
-        start = time.perf_counter()
-        out = self()
-        self.shapes = {k: tuple(v.shape) for k, v in out.items()}
-        del out
-        self.first_s = self.compile_s + time.perf_counter() - start
-        self.batch_s = self.measure(1) * w.steps
+        self._time_first_batch()
+
+    @classmethod
+    def matching(cls, model: mujoco.MjModel, w: Workload, seed: int, options: Any) -> RawMjx:
+        """The baseline of a simloader dataset resolved to `options` (MJX-JAX has no sizes)."""
+        return cls(model, w, seed)
 
     def __call__(self) -> dict[str, Any]:
         import jax
         out = self.fn(self.mx, self.d0, self.key, self.index)
         self.index += 1
         return jax.block_until_ready(out)
+
+
+class RawWarp(RawBaseline):
+    """The raw MuJoCo Warp baseline: one `mujoco_warp.step` captured once as a CUDA graph and
+    replayed, from torch.
+
+    This is what simloader's Warp engine (`impl="warp"`) runs: the public `mujoco_warp`
+    package driven from torch, one CUDA graph per step, no MJX and no JAX; so it is the loop
+    simloader's `impl="warp"` is compared with (MJX's vendored Warp, through JAX, would be
+    another engine). "Same work" (`same_work=True`) is what simloader does besides stepping,
+    in the plainest torch a user would write: every batch, controls drawn uniformly within
+    `ctrl_bounds` into a (nbatch, nstep, nu) tensor; every step, its controls copied into
+    `d.ctrl` before the graph, and the state (time, qpos, qvel, act) and the sensors copied
+    into (nbatch, nstep, ...) tensors after it. `same_work=False` only replays the step (the
+    ceiling, MuJoCo Warp's `testspeed` setting).
+
+    Args:
+      sizes: (naconmax, njmax), MuJoCo Warp's contact pool (whole batch) and constraint rows
+        (per world): a simloader dataset's resolved `options.naconmax, options.njmax`, so that
+        both run with the same buffers (None: MuJoCo Warp's defaults).
+      cameras: also render camera 0 at 64x64 RGB every step and copy its pixels out.
+
+    Attributes:
+      compile_s: seconds to build the model and data, compile the kernels and capture the
+      graph; first_s: to the first batch in hand; batch_s: seconds of one (warm) batch;
+      shapes: the output shapes.
+    """
+
+    row, simloader_row = RAW_WARP, SIMLOADER_WARP
+    engine = "MuJoCo Warp (mujoco_warp from torch, one captured step graph), same work"
+
+    def __init__(self, model: mujoco.MjModel, w: Workload, seed: int,
+                 sizes: tuple[Optional[int], Optional[int]] = (None, None),
+                 same_work: bool = True, cameras: bool = False):
+        # imported here: the package (and `simloader bench` on the rollout backend) runs
+        # without Warp installed
+        import mujoco_warp as mjw
+        import warp as wp
+        wp.config.quiet = True
+        start = time.perf_counter()
+        self.mjw, self.wp, self.w, self.same_work = mjw, wp, w, same_work
+        if not torch.cuda.is_available():
+            raise RuntimeError("RawWarp needs a CUDA GPU (it replays a CUDA graph), and torch "
+                               "sees none")
+        self.device = torch.device("cuda", torch.cuda.current_device())
+        nworld, nstep = w.nbatch, w.nstep
+        with wp.ScopedDevice(f"cuda:{self.device.index}"):
+            self.m = mjw.put_model(model)
+            # no printf from the kernels (a notice every step the solver hits its iteration
+            # limit slows it down): as simloader
+            self.m.opt.warn_overflow = 0
+            self.d = mjw.make_data(model, nworld=nworld, naconmax=sizes[0], njmax=sizes[1])
+            self.rc = (mjw.create_render_context(mjm=model, nworld=nworld, cam_active=[0],
+                                                 cam_res=[(64, 64)], render_rgb=[True],
+                                                 render_depth=[False], render_seg=[False])
+                       if cameras else None)
+        t = lambda a: wp.to_torch(a).reshape(nworld, -1)  # noqa: E731
+        self.ctrl, self.parts = t(self.d.ctrl), [t(getattr(self.d, f)) for f in
+                                                 ("time", "qpos", "qvel", "act")]
+        self.sensordata = t(self.d.sensordata)
+        self.gen = torch.Generator(self.device).manual_seed(seed)
+        self.low, self.high = (torch.as_tensor(b, dtype=self.ctrl.dtype, device=self.device)
+                               for b in ctrl_bounds(model))
+        self.controls = torch.empty((nworld, nstep, model.nu), dtype=self.ctrl.dtype,
+                                    device=self.device)
+        nstate = sum(p.shape[1] for p in self.parts)
+        self.state = torch.empty((nworld, nstep, nstate), device=self.device)
+        self.sensors = torch.empty((nworld, nstep, self.sensordata.shape[1]), device=self.device)
+        self.pixels = torch.empty((nworld, nstep, 64 * 64), dtype=torch.int32,
+                                  device=self.device) if cameras else None
+        self.stream = torch.cuda.Stream(self.device)
+        self.warp_stream = wp.stream_from_torch(self.stream)
+        with torch.cuda.stream(self.stream), wp.ScopedStream(self.warp_stream):
+            self._physics()  # compiles the kernels (a capture cannot)
+            with wp.ScopedCapture() as capture:
+                self._physics()
+        self.graph = capture.graph
+        self.stream.synchronize()
+        self.compile_s = time.perf_counter() - start
+        self._time_first_batch()
+
+    @classmethod
+    def matching(cls, model: mujoco.MjModel, w: Workload, seed: int, options: Any) -> RawWarp:
+        """The same-work baseline of a simloader dataset resolved to `options` (its sizes)."""
+        return cls(model, w, seed, sizes=(options.naconmax, options.njmax))
+
+    def _physics(self) -> None:
+        mjw = self.mjw
+        mjw.step(self.m, self.d)
+        if self.rc is not None:
+            mjw.kinematics(self.m, self.d)
+            mjw.camlight(self.m, self.d)
+            mjw.refit_bvh(self.m, self.d, self.rc)
+            mjw.render(self.m, self.d, self.rc)
+
+    def __call__(self) -> dict[str, torch.Tensor]:
+        wp = self.wp
+        with torch.cuda.stream(self.stream):
+            if self.same_work:
+                torch.rand(self.controls.shape, generator=self.gen, device=self.device,
+                           out=self.controls)
+                self.controls.mul_(self.high - self.low).add_(self.low)
+            for t in range(self.w.nstep):
+                if self.same_work:
+                    self.ctrl.copy_(self.controls[:, t])
+                wp.capture_launch(self.graph, stream=self.warp_stream)
+                if self.same_work:
+                    torch.cat(self.parts, dim=1, out=self.state[:, t])
+                    self.sensors[:, t] = self.sensordata
+                if self.pixels is not None:
+                    self.pixels[:, t] = wp.to_torch(self.rc.rgb_data)
+        self.stream.synchronize()
+        out = {"state": self.state, "sensordata": self.sensors, "control": self.controls}
+        return out if self.pixels is None else {**out, "pixels": self.pixels}
+
+
+def raw_baseline(options: Any) -> type[RawMjx] | type[RawWarp]:
+    """The raw baseline of simloader's mjx backend resolved to `options` (`impl="auto"`
+    already decided): the engine simloader runs, `RawWarp` on "warp", `RawMjx` on "jax"."""
+    baselines = {"jax": RawMjx, "warp": RawWarp}
+    if options.impl not in baselines:
+        raise ValueError(f"options.impl: expected 'jax' or 'warp', got {options.impl!r}")
+    return baselines[options.impl]
 
 
 # -- simloader, measured the same way ---------------------------------------------------------
@@ -509,17 +624,16 @@ def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repe
             measures[SIMLOADER_ROLLOUT] = lambda sim=sim, n=n: sim.measure(n)
             runs_on[RAW_ROLLOUT] = runs_on[SIMLOADER_ROLLOUT] = f"{cpu_count()} cores"
         elif backend == "mjx":
-            import jax
             sim = SimloaderMeasure(model, w, "mjx", seed)
-            o = sim.ds.config.options  # the raw baseline runs the implementation simloader chose
-            raw_mjx = RawMjx(model, w, seed, impl=o.impl, naconmax=getattr(o, "naconmax", None),
-                             njmax=getattr(o, "njmax", None))
-            notes.append(f"mjx: impl={o.impl} ({o.impl_reason})")
-            n = batches_for(raw_mjx.batch_s, min_batches, min_seconds)
-            measures[RAW_MJX] = lambda raw_mjx=raw_mjx, n=n: raw_mjx.measure(n)
-            measures[SIMLOADER_MJX] = lambda sim=sim, n=n: sim.measure(n)
-            runs_on[RAW_MJX] = runs_on[SIMLOADER_MJX] = jax.devices()[0].device_kind
-            notes.append(f"mjx: compiled in {raw_mjx.compile_s:.1f} s (raw) and "
+            o = sim.ds.config.options  # the raw baseline runs the engine simloader chose
+            Raw = raw_baseline(o)
+            raw = Raw.matching(model, w, seed, o)
+            notes.append(f"mjx: impl={o.impl} ({o.impl_reason}); raw: {Raw.engine}")
+            n = batches_for(raw.batch_s, min_batches, min_seconds)
+            measures[Raw.row] = lambda raw=raw, n=n: raw.measure(n)
+            measures[Raw.simloader_row] = lambda sim=sim, n=n: sim.measure(n)
+            runs_on[Raw.row] = runs_on[Raw.simloader_row] = device_name(sim.device)
+            notes.append(f"mjx: compiled in {raw.compile_s:.1f} s (raw) and "
                          f"{sim.compile_s:.1f} s (simloader, first batch after "
                          f"{sim.first_s:.1f} s)")
         else:

@@ -298,20 +298,6 @@ def jax_frame(observations: Sequence[Observation], m: Any, d: Any) -> dict[str, 
     return {o.key: o.jax_value(m, d) for o in observations if not o.rendered}
 
 
-def jax_finite(observations: Sequence[Observation], frame: dict[str, Any]) -> Any:
-    """`(nbatch,)` bool: every floating value of a batched frame (`jax_frame` under `vmap`)
-    is finite, for the divergence flag."""
-    import jax.numpy as jnp
-    finite = None
-    for o in observations:
-        if not o.floating:
-            continue
-        value = frame[o.key]
-        ok = jnp.all(jnp.isfinite(value.reshape(value.shape[0], -1)), axis=1)
-        finite = ok if finite is None else finite & ok
-    return finite
-
-
 def _mjx_field(d: Any, name: str) -> Any:
     """MjData field `name` of an mjx.Data: a public field, or one the implementation keeps
     under `d._impl` (cfrc_ext, cacc, subtree_linvel, ... differ per implementation); None if

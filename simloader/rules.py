@@ -28,20 +28,50 @@ def unstable(time: Any, qpos: Any, qvel: Any, act: Any, qacc: Any, sensordata: A
     return ~stable
 
 
-def restart_unstable(fields: dict[str, Any], qpos0: Any, xp: Any) -> Any:
-    """Restarts, in place, the trajectories of MuJoCo Warp-style `fields` ({name: (nbatch,
-    ...) torch tensors}) that went unstable, as mj_resetData leaves them (time 0, qpos at
-    `qpos0` ([nbatch or 1] x nq), zero velocities, activations, warmstart and sensors).
-    A few fused kernels per step (one comparison, masked writes). Returns the (nbatch,) rows
-    that restarted."""
+# what a step reads of the previous one (its inputs aside, which are set before every step),
+# restarted as mj_resetData leaves them: qpos at qpos0, the others zero
+RESET = ("time", "qpos", "qvel", "act", "qacc_warmstart", "sensordata")
+
+
+def restart_unstable(fields: dict[str, Any], qpos0: Any, xp: Any) -> tuple[dict[str, Any], Any]:
+    """Flags the trajectories of batched `fields` ({name: (nbatch, ...) arrays of `xp`}: time,
+    qpos, qvel, act, qacc, qacc_warmstart, sensordata) that went `unstable`, and restarts their
+    `RESET` fields as mj_resetData leaves them, `qpos0` ([nbatch or 1] x nq) for qpos. As
+    MuJoCo does: their NaNs are never delivered, and the solver loops of a whole batch, which
+    run until every trajectory converges, do not keep iterating on them. A masked write per
+    field: torch tensors are written in place (a CUDA graph keeps their addresses), JAX's
+    arrays are immutable and come back new.
+
+    Returns:
+      (fields with the restarted rows, (nbatch,) bool: the rows that restarted).
+    """
     f = fields
     bad = unstable(f["time"], f["qpos"], f["qvel"], f["act"], f["qacc"], f["sensordata"], xp)
-    rows = bad[:, None]
-    f["time"].masked_fill_(bad.reshape(f["time"].shape), 0)
-    xp.where(rows, qpos0, f["qpos"], out=f["qpos"])
-    for name in ("qvel", "act", "qacc_warmstart", "sensordata"):
-        f[name].masked_fill_(rows, 0)
-    return bad
+    out = dict(f)
+    for name in RESET:
+        x = f[name]
+        rows = bad.reshape((-1,) + (1,) * (x.ndim - 1))
+        if name == "qpos":
+            out[name] = (xp.where(rows, qpos0, x, out=x) if _in_place(x) else
+                         xp.where(rows, qpos0, x))
+        else:
+            out[name] = x.masked_fill_(rows, 0) if _in_place(x) else xp.where(rows, 0, x)
+    return out, bad
+
+
+def _in_place(x: Any) -> bool:
+    return hasattr(x, "masked_fill_")  # a torch tensor
+
+
+def finite(values: Any, xp: Any) -> Any:
+    """(nbatch,) bool: every value of the batched arrays `values` ((nbatch, ...) each, of
+    module `xp`) is finite, or None for no value; a recorded frame's check for the
+    divergence flag."""
+    out = None
+    for value in values:
+        ok = xp.isfinite(value.reshape(value.shape[0], -1)).all(1)
+        out = ok if out is None else out & ok
+    return out
 
 
 def frame_index(t: Any, every: int) -> Any:

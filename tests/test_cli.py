@@ -3,6 +3,7 @@
 import re
 import subprocess
 import sys
+import types
 
 import pytest
 
@@ -51,15 +52,19 @@ def test_bench_rejects_unknown_backend():
         cli.main(["bench", "--backends", "warp"])
 
 
-def test_compare_mjx_next_to_raw_mjx():
+def test_compare_mjx_next_to_raw_baseline_of_its_engine():
     pytest.importorskip("mujoco.mjx")
     model = cli.simloader.load_model("cartpole")
     s_per_step, runs_on, notes = bench.compare(
         model, bench.Workload("cartpole", 8, 5), ["mjx"], repeats=1, min_batches=1,
         min_seconds=0, python_steps=50)
-    assert set(s_per_step) == {bench.RAW_MJX, bench.SIMLOADER_MJX, bench.PYTHON}
-    assert all(s > 0 for s in s_per_step.values())
     assert notes[0].startswith("mjx: impl=") and "compiled" in notes[1]
+    # the raw row is the engine simloader resolved (on "warp", mujoco_warp, not MJX's Warp)
+    impl = notes[0].split("impl=")[1].split()[0]
+    raw = bench.raw_baseline(types.SimpleNamespace(impl=impl))
+    assert f"raw: {raw.engine}" in notes[0]
+    assert set(s_per_step) == {raw.row, raw.simloader_row, bench.PYTHON}
+    assert all(s > 0 for s in s_per_step.values())
 
 
 def _usage_error(capsys, argv):

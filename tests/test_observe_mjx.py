@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from simloader import observe
+from simloader import observe, rules
 from tests.test_record import PILE_XML
 
 jax = pytest.importorskip("jax")
 mjx = pytest.importorskip("mujoco.mjx")
+jnp = jax.numpy
 
 # after one contact step from the same state (reliability check 2: 1e-4); forces are larger
 # numbers, compared relative to their scale
@@ -64,10 +65,12 @@ def test_jax_values_under_vmap_have_the_frame_shape():
     assert sorted(values) == sorted(o.key for o in observations)  # (JAX sorts dict keys)
     for o in observations:
         assert values[o.key].shape == (3, *o.shape), o.key
-    assert observe.jax_finite(observations, values).tolist() == [True] * 3
+    floating = [o.key for o in observations if o.floating]
+    assert rules.finite([values[k] for k in floating], jnp).tolist() == [True] * 3
     values["xpos"] = values["xpos"].at[1, 2, 0].set(np.nan)
     values["time"] = values["time"].at[2].set(np.inf)
-    assert observe.jax_finite(observations, values).tolist() == [True, False, False]
+    assert rules.finite([values[k] for k in floating], jnp).tolist() == [True, False, False]
+    assert rules.finite([], jnp) is None
 
 
 def test_a_batch_too_large_for_the_gpu_is_refused(rich_model):

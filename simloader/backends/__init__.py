@@ -162,8 +162,7 @@ def check_options(config: SimConfig, asked: str, options: dict[str, Any]) -> Any
             raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
                             f"backend='mjx' (its options are {list(OPTIONS)})")
         choice = choose(options.get("impl", "auto"), config)
-        rest = {k: v for k, v in options.items() if k != "impl"}
-        return engine(choice.impl).check_options(config, rest, choice.reason)
+        return engine(choice.impl).check_options(config, options, choice.reason)
     if "impl" in options and asked == "auto":
         raise ValueError(
             f"impl: {options['impl']!r} chooses the GPU engine, but backend='auto' resolved to "

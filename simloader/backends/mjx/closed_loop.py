@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import torch
 
-from simloader import controls
+from simloader import controls, rules
 from simloader.backends.mjx.runtime import mjx
 
 
@@ -75,7 +75,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         if finite is not None:
             diverged = diverged | ~finite
         # frame j holds the values after step (j + 1) * every: written in place when due
-        j, due = t // every, (t % every) == every - 1
+        j, due = rules.frame_index(t, every), (t % every) == every - 1
         frames = {}
         for key, buffer in loop["frames"].items():
             old = jax.lax.dynamic_index_in_dim(buffer, j, axis=1, keepdims=False)

@@ -111,23 +111,11 @@ class Pieces:
         return mjx.step(m, d)
 
     def restart_unstable(self, m, d):
-        """Flags the trajectories (of batched `d`) that went unstable, and restarts them as
-        mj_resetData leaves them, as MuJoCo does: their NaNs are never delivered, and the
-        solver loops of the whole batch, which run until every trajectory converges, do not
-        keep iterating on them. Done on the batch, not inside `vmap`: fewer, fused kernels."""
-        unstable = rules.unstable(d.time, d.qpos, d.qvel, d.act, d.qacc, d.sensordata, jnp)
-        stable = ~unstable
-
-        def keep(x, reset):
-            return jnp.where(_rows(stable, x), x, reset)
-
-        # a step reads only these of the previous one (besides the inputs, which are not
-        # simulated); mj_resetData zeroes all but qpos
-        d = d.replace(time=keep(d.time, 0.0), qpos=keep(d.qpos, m.qpos0),
-                      qvel=keep(d.qvel, 0.0), act=keep(d.act, 0.0),
-                      qacc_warmstart=keep(d.qacc_warmstart, 0.0),
-                      sensordata=keep(d.sensordata, 0.0))
-        return d, unstable
+        """`rules.restart_unstable` on the batched `d`: (d restarted, (nbatch,) unstable).
+        Done on the batch, not inside `vmap`: fewer, fused kernels."""
+        fields, unstable = rules.restart_unstable(
+            {name: getattr(d, name) for name in (*rules.RESET, "qacc")}, m.qpos0, jnp)
+        return d.replace(**{name: fields[name] for name in rules.RESET}), unstable
 
     def physics(self, m, d):
         return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (self.model_axes, 0))(m, d)
@@ -194,7 +182,7 @@ class Pieces:
     def finite(self, frame):
         """(nbatch,) bool, or None with no floating observation that `restart_unstable`
         leaves unchecked (a value made only of what it restarts is finite already)."""
-        return observe.jax_finite(self.unchecked, frame)
+        return rules.finite([frame[o.key] for o in self.unchecked], jnp)
 
     def finish(self, m, data, outputs, params):
         """The batch's outputs completed, and the carry of `continue_episodes`."""

@@ -323,18 +323,19 @@ class Engine:
         MuJoCo's clamp), the inputs, MuJoCo Warp's step, the divergence check and restart,
         the observations (views of Warp's arrays where they can be; cameras rendered) and
         their frames. Device tensors only, so that one graph serves every step."""
-        c, n = self.config, self.config.nbatch
+        c = self.config
         with self._warp_capture(capturing):
             u = self.loop.row()
             for columns, target, boolean in self.inputs:
                 row = u[:, columns]
                 target.copy_(row != 0 if boolean else row)
             self.mjw.step(self.m, self.d)
-            self.diverged |= rules.restart_unstable(self.views, self.model_views["qpos0"],
-                                                    torch)
+            _, unstable = rules.restart_unstable(self.views, self.model_views["qpos0"], torch)
+            self.diverged |= unstable
             obs = {o.key: o.torch_value(self.views) for o in self.observations}
-            for key in self.unchecked:
-                self.diverged |= ~torch.isfinite(obs[key].reshape(n, -1)).all(dim=1)
+            finite = rules.finite([obs[key] for key in self.unchecked], torch)
+            if finite is not None:
+                self.diverged |= ~finite
             frame = rules.frame_index(self.t, c.record_every)
             for key, value in obs.items():
                 self.frames[key].index_copy_(1, frame, value[:, None])

@@ -74,7 +74,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
       config: the validated dataset configuration.
       options: keyword options of `SimDataset` beyond its own: `naconmax` and `njmax`, MuJoCo
         Warp's contact pool of the whole batch and constraint rows per trajectory (None: sized
-        from the model); JAX's options are refused, JAX does not run here.
+        from the model); JAX's options are refused with `impl="warp"` (JAX does not run here),
+        left unused with `impl="auto"`.
       reason: why the Warp engine simulates (asked, or what `impl="auto"` saw).
 
     Raises:
@@ -86,8 +87,9 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
     naconmax = _positive("naconmax", options.get("naconmax"))
     njmax = _positive("njmax", options.get("njmax"))
     for name in ("compilation_cache", "memory_fraction"):
-        # a value other than the default is an error rather than silently ignored
-        if options.get(name) not in (None, False):
+        # asked for Warp by name, a value other than the default is an error rather than
+        # silently ignored (with impl="auto" the user may not know which engine runs)
+        if options.get(name) not in (None, False) and options.get("impl") == "warp":
             raise ValueError(f"{name}: configures JAX, which impl='warp' does not use; drop "
                              f"it (it matters only for impl='jax')")
     why = runtime.missing()
