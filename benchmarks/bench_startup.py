@@ -27,7 +27,7 @@ simloader alternate in the warm runs. "Cold" means cold compilation caches: the 
 not dropped (the libraries' files are read from memory after the first child).
 
 The raw scripts import neither simloader nor this folder; they are the recipes of
-`simloader.bench` (`RawMjx`, `raw_rollout`) and `bench_warp.py` (`RawWarp`), written out.
+`simloader.bench` (`RawMjx`, `RawWarp`, `raw_rollout`), written out.
 `XLA_PYTHON_CLIENT_PREALLOCATE=false` is set for both (simloader's default) unless already set.
 
 Run on the GPU machine from the repository root:

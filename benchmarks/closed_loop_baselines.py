@@ -94,7 +94,9 @@ class RawClosedLoopMjx(RawBaseline):
 
     Args:
       net: the torch MLP (`mlp`), on the GPU JAX runs on.
-      impl, naconmax, njmax: as `RawMjx`.
+      impl: MJX's implementation, "jax" or "warp" (MJX's vendored MuJoCo Warp through JAX:
+        the closed loop simloader ran before its own Warp engine, kept for those figures);
+        naconmax, njmax: Warp's contact pool and constraint rows (None: sized by MJX).
     """
 
     def __init__(self, model: mujoco.MjModel, w: Workload, net: Any, mode: str,
@@ -124,7 +126,8 @@ class RawClosedLoopMjx(RawBaseline):
         step = jax.vmap(mjx.step, in_axes=(None, 0))
 
         def fresh(d):
-            # Warp: every input a step reads in a buffer of its own (RawMjx explains why)
+            # Warp: every input a step reads in a buffer of its own (Warp keys its captured
+            # graph on buffer addresses; a scanned input would be re-captured every step)
             if impl != "warp":
                 return d
             return d.replace(**{n: getattr(d, n) + 0 * getattr(d, n) for n in STEP_READS})

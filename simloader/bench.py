@@ -83,24 +83,15 @@ def device_name(device: torch.device) -> str:
     return torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
 
 
-def jax_has_gpu() -> bool:
-    """Whether JAX (if installed) sees a GPU; starts JAX."""
-    try:
-        import jax
-    except ImportError:
-        return False
-    return any(d.platform == "gpu" for d in jax.devices())
-
-
 # -- timing -----------------------------------------------------------------------------------
 
 def sync() -> None:
     """Waits for the GPU work queued on torch's current stream.
 
-    Not a device-wide `torch.cuda.synchronize()`: MuJoCo Warp (`impl="warp"`) may be capturing
-    a CUDA graph on JAX's stream for the next batch meanwhile, and a device-wide synchronize
-    during a capture invalidates it (CUDA error 901). simloader's batches are complete when
-    delivered (it waits for JAX's results), so torch's stream is all there is left to wait for.
+    Not a device-wide `torch.cuda.synchronize()`: simloader orders each delivered batch before
+    the consumer's stream, so that stream is all a timing of delivered batches must wait for;
+    a device-wide synchronize would also wait for the batches the producer thread simulates
+    ahead, and time them twice.
     """
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         torch.cuda.current_stream().synchronize()

@@ -145,7 +145,9 @@ def bench(args: argparse.Namespace) -> None:
         except OSError as e:
             raise BadArgument(f"--out: expected a folder that can be created, got {args.out!r} "
                               f"({e.strerror})") from None
-    backends = args.backends or (["rollout", "mjx"] if b.jax_has_gpu() else ["rollout"])
+    # mjx where a GPU engine runs (MuJoCo Warp on a CUDA GPU, or JAX seeing a GPU)
+    gpu = simloader.backends.resolve("auto") == "mjx"
+    backends = args.backends or (["rollout", "mjx"] if gpu else ["rollout"])
     name = args.model if len(args.model) < 40 else "model"
     w = b.Workload(name, args.nbatch, args.nstep)
     print(f"simloader {simloader.__version__} bench: {w} on {', '.join(backends)}, median of "
@@ -223,7 +225,7 @@ def main(argv: list[str] | None = None) -> None:
     b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")
     add_model_argument(b)
     b.add_argument("--backends", nargs="+", choices=("rollout", "mjx"),
-                   help="default: rollout, and mjx where JAX sees a GPU")
+                   help="default: rollout, and mjx where a GPU engine runs")
     b.add_argument("--nbatch", type=positive_int, default=1024)
     b.add_argument("--nstep", type=positive_int, default=200)
     b.add_argument("--repeats", type=positive_int, default=3,

@@ -93,13 +93,13 @@ class SimConfig:
         """What every engine starts a trajectory from, per model of `pool` (NumPy, float64;
         each engine puts them where it simulates). `spec`: the mjtState bits of the reset
         rows (the engine's state row)."""
-        if self.variants is None:
-            control_defaults, variant_states = self.control.default_rows, None
-        else:  # each variant's undriven control columns, as mj_resetData leaves them
-            control_defaults = layout.reset_rows(self.variants, self.control_spec)
-            variant_states = (initial.default_states(self.variants, self.initial.keyframe)
-                              if self.initial.from_model else None)
+        variants = self.variants is not None
+        variant_states = (initial.default_states(self.variants, self.initial.keyframe)
+                          if variants and self.initial.from_model else None)
         low, high = controls.applied_bounds(self.pool, self.control_spec)
+        # with variants, each one's undriven control columns as mj_resetData leaves them
+        control_defaults = (layout.reset_rows(self.variants, self.control_spec) if variants
+                            else self.control.default_rows)
         return ModelTables(layout.reset_rows(self.pool, spec), control_defaults,
                            variant_states, low, high)
 

@@ -6,13 +6,25 @@ beside it; neither waits for the device."""
 from __future__ import annotations
 
 import time
+import weakref
 from typing import Any, Optional
 
 import torch
 
 from simloader import handoff, policy
-from simloader.backends.mjx import runtime
-from simloader.backends.mjx.program import BatchArgs
+from simloader.backends.mjx import closed_loop, runtime
+from simloader.backends.mjx.program import BatchArgs, Program
+
+# each program's closed loop, jitted once and shared by every iterator of its dataset (as the
+# program's open-loop batch function is)
+_CLOSED_LOOPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _closed_loop(program: Program, noise: Any) -> closed_loop.ClosedLoop:
+    if program not in _CLOSED_LOOPS:
+        _CLOSED_LOOPS[program] = closed_loop.ClosedLoop(
+            program.pieces, () if noise is None else noise.drivers)
+    return _CLOSED_LOOPS[program]
 
 # (dispatched: time.perf_counter() at dispatch, outputs, carry, extras: the policy's tensors
 # delivered beside the batch, or None)
@@ -39,6 +51,7 @@ class ClosedLoop:
     def __init__(self, backend: Any):
         self.backend = backend
         self.snapshot = policy.Snapshot(backend.config.policy)
+        self.loop = _closed_loop(backend.program, backend.config.policy_noise)
         self.previous: Any = None  # the last batch's data (donated to the next)
         self.caller: Optional[policy.Caller] = None  # this batch's policy calls
 
@@ -49,7 +62,7 @@ class ClosedLoop:
         act, version = self.snapshot.take()  # one version of the weights per batch
         self.caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep,
                                     c.device or runtime.torch_device(b.device))
-        outputs, carry, self.previous = b.program.closed_loop.run(
+        outputs, carry, self.previous = self.loop.run(
             args, self._step, c.nstep, self.previous)
         extras = {**self.caller.extras,
                   policy.VERSION: torch.tensor(version, dtype=torch.int64)}

@@ -42,7 +42,6 @@ from simloader import controls, observe, resume, rules
 from simloader.backends.base import Stats, progress_line
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import stored_program
-from simloader.backends.mjx.closed_loop import ClosedLoop
 from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.pool import PHYSICS, pooled, put_models
 from simloader.backends.mjx.runtime import mjx
@@ -345,11 +344,6 @@ class Program:
                            tuple(r.param.key for r in c.randomization.resolved))
         self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype)
         self.simulate = batch_function(self.pieces)
-        policy = getattr(c, "policy", None)
-        noise = getattr(c, "policy_noise", None)
-        self.closed_loop: Any = None
-        if policy is not None:
-            self.closed_loop = ClosedLoop(self.pieces, () if noise is None else noise.drivers)
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
 
