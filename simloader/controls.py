@@ -554,6 +554,22 @@ class ControlPlan:
             out[..., torch.as_tensor(driver.columns, device=out.device)] = draw
 
 
+def sample_jax(drivers: Sequence[Driver], defaults: Any, key: Any, shape: tuple[int, int, int],
+               dtype: Any) -> Any:
+    """One draw of `ControlPlan.drivers` in JAX (inside a jitted function; `sample_numpy` and
+    `sample_torch` are the other engines'): (nbatch, nstep, ncontrol) `defaults` rows
+    ([nbatch or 1] x ncontrol) with the drivers' columns drawn, each driver from its own
+    split of `key`."""
+    import jax
+    import jax.numpy as jnp
+    control = jnp.broadcast_to(defaults[:, None, :], shape)
+    for driver, k in zip(drivers, jax.random.split(key, len(drivers))):
+        params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
+        sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
+        control = control.at[..., driver.columns].set(sample.astype(dtype))
+    return control
+
+
 # mjMAXVAL: MuJoCo's bound for a sane value (its checks of qpos, qvel, qacc and ctrl)
 MAXVAL = 1e10
 

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import torch
 
 from simloader import controls, rules
+from simloader.backends.mjx.program import seed_key
 from simloader.backends.mjx.runtime import mjx
 
 
@@ -43,7 +44,8 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         initial = P.physics(m, data)
         low, high = P.bounds(m, bounds, variant)
         shape = P.shape
-        noise = (P.draw(jnp.zeros(shape[::2], P.dtype), seeds[0], noise_drivers)
+        noise = (controls.sample_jax(noise_drivers, jnp.zeros(shape[::2], P.dtype),
+                                     seed_key(seeds[0]), shape, P.dtype)
                  if noise_drivers else None)
         data = jax.vmap(mjx.forward, (P.model_axes, 0))(m, data)
         data, obs = P.observe(m, data)

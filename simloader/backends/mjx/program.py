@@ -62,7 +62,7 @@ def _restarted(restart: jax.Array, fresh: jax.Array, kept: jax.Array) -> jax.Arr
     return jnp.where(_rows(restart, fresh), fresh, kept)
 
 
-def _key(seed: jax.Array) -> jax.Array:
+def seed_key(seed: jax.Array) -> jax.Array:
     """A JAX key from a (2,) uint32 row of a batch's SeedSequence."""
     return jax.random.fold_in(jax.random.key(seed[0]), seed[1])
 
@@ -119,16 +119,6 @@ class Pieces:
     def physics(self, m, d):
         return jax.vmap(lambda m, d: mjx.get_state(m, d, PHYSICS), (self.model_axes, 0))(m, d)
 
-    def draw(self, defaults, seed, drivers):
-        """(nbatch, nstep, ncontrol): `defaults` rows with the `drivers`' columns drawn."""
-        control = jnp.broadcast_to(defaults[:, None, :], self.shape)
-        for driver, k in zip(drivers, jax.random.split(_key(seed), len(drivers))):
-            params = {name: jnp.asarray(v, self.dtype) for name, v in driver.params.items()}
-            sample = driver.generator.sample_jax(k, params,
-                                                 (*self.shape[:2], len(driver.columns)))
-            control = control.at[..., driver.columns].set(sample.astype(self.dtype))
-        return control
-
     def bounds(self, m, bounds, variant):
         """(low, high), each (nbatch or 1, ncontrol): the range MuJoCo clamps each
         trajectory's controls to (its model's ctrlrange where it clamps)."""
@@ -153,7 +143,7 @@ class Pieces:
             x0 = x0[variant] if self.x0_per_variant else x0
             params["variant"] = variant
         if self.randomizer is not None:
-            values = self.randomizer.plan.sample_jax(_key(seeds[1]), self.nbatch, self.dtype)
+            values = self.randomizer.plan.sample_jax(seed_key(seeds[1]), self.nbatch, self.dtype)
             if self.continuing:
                 values = {k: _restarted(restart, v, carry["params"][k])
                           for k, v in values.items()}
@@ -246,7 +236,7 @@ def batch_function(pieces: Pieces) -> Callable:
                                                     variant, carry, restart)
         initial = P.physics(m, data)
         if P.drivers:
-            control = P.draw(control, seeds[0], P.drivers)
+            control = controls.sample_jax(P.drivers, control, seed_key(seeds[0]), shape, P.dtype)
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
 
