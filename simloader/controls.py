@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from simloader import layout
+from simloader.rules import MAXVAL
 
 Names = Optional[Union[str, Sequence[str]]]
 
@@ -569,9 +570,6 @@ def sample_jax(drivers: Sequence[Driver], defaults: Any, key: Any, shape: tuple[
         control = control.at[..., driver.columns].set(sample.astype(dtype))
     return control
 
-
-# mjMAXVAL: MuJoCo's bound for a sane value (its checks of qpos, qvel, qacc and ctrl)
-MAXVAL = 1e10
 
 
 def applied_bounds(models: Sequence[mujoco.MjModel], control_spec: int,

@@ -1,6 +1,6 @@
 """The step rules every engine applies, written once over an array module (`xp`: NumPy, JAX's
 `jax.numpy` or torch): what counts as unstable, how an unstable trajectory restarts, and which
-frame a step records into. The control rules (bad controls, MuJoCo's clamp) live beside the
+frame a step records into, and mjMAXVAL. The control rules (bad controls, MuJoCo's clamp) live beside the
 control generators, in `controls.py`.
 """
 
@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from simloader.controls import MAXVAL
+# mjMAXVAL: MuJoCo's bound for a sane value (its checks of qpos, qvel, qacc and ctrl)
+MAXVAL = 1e10
 
 # the fields `restart_unstable` leaves finite in every trajectory (a recorded value made only
 # of these needs no second finiteness check)

@@ -235,10 +235,17 @@ def batch_function(pieces: Pieces) -> Callable:
         m, data, control, variant, params = P.begin(m, d0, inputs0, x0, control, seeds,
                                                     variant, carry, restart)
         initial = P.physics(m, data)
+        low, high = P.bounds(m, bounds, variant)
         if P.drivers:
             control = controls.sample_jax(P.drivers, control, seed_key(seeds[0]), shape, P.dtype)
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
+        # the control rows as MuJoCo applies them (clamped where it clamps); a bad (non-finite
+        # or absurd) control flags its trajectory diverged, as on the rollout backend
+        control, bad = controls.as_applied(control, low[:, None], high[:, None], jnp)
+        # (nframes, record_every, nbatch, ncontrol): the rows of each frame's steps
+        xs = (jnp.swapaxes(control, 0, 1).reshape(nframes, every, *control.shape[::2])
+              if given else None)
 
         def advance(loop, u):
             d, diverged = loop
@@ -257,13 +264,6 @@ def batch_function(pieces: Pieces) -> Callable:
             finite = P.finite(frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
 
-        # the control rows as MuJoCo applies them (clamped where it clamps); a bad (non-finite
-        # or absurd) control flags its trajectory diverged, as on the rollout backend
-        low, high = P.bounds(m, bounds, variant)
-        control, bad = controls.as_applied(control, low[:, None], high[:, None], jnp)
-        # (nframes, record_every, nbatch, ncontrol): the rows of each frame's steps
-        xs = (jnp.swapaxes(control, 0, 1).reshape(nframes, every, *control.shape[::2])
-              if given else None)
         (data, diverged), frames = jax.lax.scan(record, (data, bad), xs, length=nframes)
         outputs = {key: jnp.swapaxes(value, 0, 1) for key, value in frames.items()}
         outputs.update(control=control, initial_state=initial, diverged=diverged)
