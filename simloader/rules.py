@@ -1,7 +1,7 @@
 """The step rules every engine applies, written once over an array module (`xp`: NumPy, JAX's
-`jax.numpy` or torch): what counts as unstable, how an unstable trajectory restarts, and which
-frame a step records into, and mjMAXVAL. The control rules (bad controls, MuJoCo's clamp) live beside the
-control generators, in `controls.py`.
+`jax.numpy` or torch): what counts as unstable (beyond mjMAXVAL), how an unstable trajectory
+restarts, whether a recorded frame is finite, and which frame a step records into. The control
+rules (bad controls, MuJoCo's clamp) live beside the control generators, in `controls.py`.
 """
 
 from __future__ import annotations
