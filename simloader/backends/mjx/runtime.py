@@ -21,7 +21,7 @@ from typing import Any, Optional
 import jax
 import numpy as np
 import torch
-from jax._src import xla_bridge
+from jax._src import xla_bridge  # private: whether JAX has started (no public query)
 
 from simloader.backends import base
 

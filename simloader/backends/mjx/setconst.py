@@ -98,6 +98,8 @@ class SetConst:
         body = jnp.where(self.world_welded[:, None], 0.0, body)
         dof = jnp.where(self.simple_dof, inverse_mass[self.dof_bodyid],
                         jnp.asarray(self.average, dtype) @ jnp.diagonal(minv))
+        # MJX-JAX keeps these under its implementation's private data (the public mjx.Data
+        # holds only what every implementation has)
         ten_j, moment = d._impl.ten_J, d._impl.actuator_moment  # (ntendon, nv), (nu, nv)
         return {
             "body_subtreemass": jnp.asarray(self.subtree, dtype) @ m.body_mass,

@@ -168,6 +168,8 @@ def arrays(warp_model: Any) -> dict[str, Any]:
 
 def batchable(name: str) -> bool:
     """Whether MuJoCo Warp can hold model array `name` per world (its spec starts with `*`)."""
+    # private: MuJoCo Warp's public API does not say which arrays `put_model(batch_sizes=)`
+    # can batch; the `*` of each field's array spec in its type definitions is the record
     from mujoco_warp._src import types, warp_util
     cls, field = (types.Option, name[4:]) if name.startswith("opt.") else (types.Model, name)
     spec = {f.name: f.type for f in dataclasses.fields(cls)}.get(field)
@@ -252,6 +254,8 @@ def buffer_sizes(model: mujoco.MjModel, nbatch: int, x0: np.ndarray,
     (n, nstate)) under uniform random controls for `_CALIBRATION_STEPS` steps; each buffer gets
     twice the most a trajectory used, and at least MuJoCo Warp's own per-world guess.
     """
+    # private: MuJoCo Warp's own per-world guesses of the buffer sizes (what `make_data`
+    # takes without sizes), kept as the floor of ours; not exported
     from mujoco_warp._src import io as warp_io
     if naconmax is not None and njmax is not None:
         return naconmax, njmax
