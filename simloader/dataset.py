@@ -61,8 +61,9 @@ class SimDataset(torch.utils.data.IterableDataset):
       model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a model name
         (`simloader.named_models()`: the built-in `cartpole` and `humanoid`, Gymnasium's
         `gymnasium/hopper` and the like where gymnasium is installed).
-      backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (JAX) or "auto" (mjx when JAX
-        sees a GPU, else rollout).
+      backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (a GPU engine: MJX on JAX or
+        MuJoCo Warp, see `impl`) or "auto" (mjx when a GPU engine can run: MuJoCo Warp on a
+        CUDA GPU, or JAX seeing a GPU; else rollout).
       nbatch: trajectories per batch.
       nstep: steps per trajectory per batch.
       control: None (inputs as `mj_resetData` leaves them, as `mujoco.rollout`), an array
