@@ -215,7 +215,7 @@ class MjxBackend(Backend):
         # stays float32 metres), keep their dtype
         batch = {key: self._tensor(array, c.dtype if jnp.issubdtype(array.dtype, jnp.floating)
                                    else None)
-                 for key, array in outputs.items() if key not in ("params", "overflow")}
+                 for key, array in outputs.items() if key != "params"}
         batch.update({k: handoff.to_target(v, c.device, None)
                       for k, v in (produced.extras or {}).items()})
         if "params" in outputs:

@@ -1,6 +1,6 @@
 """MJX's implementation behind one small interface, `Implementation` (`impl="jax"`: MJX in
-XLA): how a model and a trajectory's data are put on the device, what must happen to inputs
-before a step, which model fields can differ per trajectory. The batch function
+XLA): how a model and a trajectory's data are put on the device, which model fields can differ
+per trajectory. The batch function
 (`program.py`) is written against it. MuJoCo Warp is an engine of its own
 (`simloader/backends/warp/`), driven from torch, not through MJX.
 """
@@ -32,21 +32,6 @@ class Implementation:
 
     # what a user is told while the first batch runs, if it may take long (None: nothing)
     first_batch_hint: Optional[str] = None
-
-    def refresh(self, d: Any, names: tuple[str, ...]) -> Any:
-        """`d` after inputs `names` were set from a per-step control row, ready for
-        `mjx.step`: each input as `detach` gives it."""
-        return d.replace(**{n: self.detach(getattr(d, n)) for n in names})
-
-    def detach(self, value: jax.Array) -> jax.Array:
-        """`value` in the buffer the implementation needs it in: an input set from the scanned
-        controls before a step, or a recorded value the scan stacks into the batch's output."""
-        return value
-
-    def overflow(self, d: Any) -> Optional[jax.Array]:
-        """Per trajectory (of batched `d`), the buffer-overflow bits since the reset, or None
-        for an implementation without fixed-size buffers."""
-        return None
 
     def cannot_randomize(self, field: str) -> Optional[str]:
         """Why a model field cannot differ per trajectory on this implementation, or None."""

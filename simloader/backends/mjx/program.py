@@ -82,8 +82,6 @@ class Pieces:
         self.randomizer, self.dtype = randomizer, dtype
         self.nbatch, self.nstep, self.control_spec = c.nbatch, c.nstep, c.control_spec
         self.drivers = c.control.drivers
-        self.control_components = tuple(c.control.components)
-        self.inputs = tuple(component.name for component in self.control_components)
         self.observations, self.every, self.nframes = c.observations, c.record_every, c.nframes
         self.unchecked = [o for o in c.observations
                           if o.floating and not set(o.fields()) <= rules.RESTARTED]
@@ -106,7 +104,7 @@ class Pieces:
     def step(self, m, d, u):
         """One trajectory's step, its `control_spec` inputs set from the row `u` first."""
         if self.given:
-            d = self.impl.refresh(mjx.set_state(m, d, u, self.control_spec), self.inputs)
+            d = mjx.set_state(m, d, u, self.control_spec)
         return mjx.step(m, d)
 
     def restart_unstable(self, m, d):
@@ -162,11 +160,10 @@ class Pieces:
         return m, data, control, variant, params
 
     def observe(self, m, d):
-        """One frame of every observation of the batched `d`: (d, {key: (nbatch, *shape)}),
-        each in a buffer of its own (`Implementation.detach`)."""
+        """One frame of every observation of the batched `d`: (d, {key: (nbatch, *shape)})."""
         frame = jax.vmap(lambda m, d: observe.jax_frame(self.observations, m, d),
                          (self.model_axes, 0))(m, d)
-        return d, {key: self.impl.detach(value) for key, value in frame.items()}
+        return d, frame
 
     def finite(self, frame):
         """(nbatch,) bool, or None with no floating observation that `restart_unstable`
@@ -177,9 +174,6 @@ class Pieces:
         """The batch's outputs completed, and the carry of `continue_episodes`."""
         if params:
             outputs["params"] = params
-        overflow = self.impl.overflow(data)  # sticky bits since the reset: the whole batch's
-        if overflow is not None:
-            outputs["overflow"] = overflow
         if not self.continuing:
             return outputs, None
         return outputs, {"state": self.physics(m, data), "qacc_warmstart": data.qacc_warmstart,
