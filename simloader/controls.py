@@ -571,7 +571,6 @@ def sample_jax(drivers: Sequence[Driver], defaults: Any, key: Any, shape: tuple[
     return control
 
 
-
 def applied_bounds(models: Sequence[mujoco.MjModel], control_spec: int,
                    ctrlrange: Any = None, xp: Any = np) -> tuple[Any, Any]:
     """The range MuJoCo clamps each control column to before a step, per model.

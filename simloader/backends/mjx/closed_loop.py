@@ -48,7 +48,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                                      seed_key(seeds[0]), shape, P.dtype)
                  if noise_drivers else None)
         data = jax.vmap(mjx.forward, (P.model_axes, 0))(m, data)
-        data, obs = P.observe(m, data)
+        obs = P.observe(m, data)
         loop = {"d": data, "t": jnp.zeros((), jnp.int32),
                 "diverged": jnp.zeros(P.nbatch, bool),
                 "frames": {k: jnp.zeros((P.nbatch, nframes, *v.shape[1:]), v.dtype)
@@ -71,7 +71,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         u, bad = controls.as_applied(u, loop["low"], loop["high"], jnp)
         d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, loop["d"], u)
         d, unstable = P.restart_unstable(m, d)
-        d, obs = P.observe(m, d)
+        obs = P.observe(m, d)
         diverged = loop["diverged"] | unstable | bad
         finite = P.finite(obs)
         if finite is not None:

@@ -1,8 +1,7 @@
 """MJX's implementation behind one small interface, `Implementation` (`impl="jax"`: MJX in
 XLA): how a model and a trajectory's data are put on the device, which model fields can differ
-per trajectory. The batch function
-(`program.py`) is written against it. MuJoCo Warp is an engine of its own
-(`simloader/backends/warp/`), driven from torch, not through MJX.
+per trajectory. The batch function (`program.py`) is written against it. MuJoCo Warp is an
+engine of its own (`simloader/backends/warp/`), driven from torch, not through MJX.
 """
 
 from __future__ import annotations

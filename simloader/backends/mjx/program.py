@@ -76,9 +76,9 @@ class Pieces:
     configuration and must not keep the configuration alive.
     """
 
-    def __init__(self, c: SimConfig, impl: Implementation, model_axes: Any, pool_axes: Any,
+    def __init__(self, c: SimConfig, model_axes: Any, pool_axes: Any,
                  randomizer: Optional[mjx_randomize.Randomizer], dtype: np.dtype):
-        self.impl, self.model_axes, self.pool_axes = impl, model_axes, pool_axes
+        self.model_axes, self.pool_axes = model_axes, pool_axes
         self.randomizer, self.dtype = randomizer, dtype
         self.nbatch, self.nstep, self.control_spec = c.nbatch, c.nstep, c.control_spec
         self.drivers = c.control.drivers
@@ -160,10 +160,9 @@ class Pieces:
         return m, data, control, variant, params
 
     def observe(self, m, d):
-        """One frame of every observation of the batched `d`: (d, {key: (nbatch, *shape)})."""
-        frame = jax.vmap(lambda m, d: observe.jax_frame(self.observations, m, d),
-                         (self.model_axes, 0))(m, d)
-        return d, frame
+        """One frame of every observation of the batched `d`: {key: (nbatch, *shape)}."""
+        return jax.vmap(lambda m, d: observe.jax_frame(self.observations, m, d),
+                        (self.model_axes, 0))(m, d)
 
     def finite(self, frame):
         """(nbatch,) bool, or None with no floating observation that `restart_unstable`
@@ -254,7 +253,7 @@ def batch_function(pieces: Pieces) -> Callable:
             else:
                 loop, _ = jax.lax.scan(advance, loop, us, length=every)
             d, diverged = loop
-            d, frame = P.observe(m, d)
+            frame = P.observe(m, d)
             finite = P.finite(frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
 
@@ -326,7 +325,7 @@ class Program:
         self.param_keys = (("variant",) if c.variants is not None else
                            () if c.randomization is None else
                            tuple(r.param.key for r in c.randomization.resolved))
-        self.pieces = Pieces(c, impl, model_axes, pool_axes, self.randomizer, self.dtype)
+        self.pieces = Pieces(c, model_axes, pool_axes, self.randomizer, self.dtype)
         self.simulate = batch_function(self.pieces)
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()

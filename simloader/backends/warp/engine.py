@@ -117,7 +117,8 @@ class Engine:
                     self.views.setdefault(name, self._data(name))
             self.cameras = (cameras.Cameras(self, [o for o in c.observations if o.rendered])
                             if any(o.rendered for o in c.observations) else None)
-            # what the divergence check (`_restart`) leaves finite needs no second look
+            # what the divergence check (`rules.restart_unstable`) leaves finite needs no
+            # second look
             self.unchecked = [o.key for o in self.observations
                               if o.floating and not set(o.fields()) <= rules.RESTARTED]
             self._buffers()
