@@ -8,7 +8,7 @@ thread, worker or compilation starts.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import SimpleNamespace
 from typing import Any, Optional
 
@@ -187,7 +187,7 @@ def _torch_device(device: Any) -> Optional[torch.device]:
     return dev
 
 
-def _torch_dtype(dtype: Any, backend: str) -> Optional[torch.dtype]:
+def _torch_dtype(dtype: Any) -> Optional[torch.dtype]:
     if dtype is None:
         return None
     half = (torch.float16, torch.bfloat16, np.float16, "float16", "bfloat16", "half")
@@ -243,34 +243,19 @@ def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, contro
     return plan
 
 
-def _check_memory(c: SimConfig) -> None:
-    """Refuses a CPU batch that cannot fit in host memory, before anything runs (the MJX
-    backend checks its device's memory when it has the device)."""
-    if c.backend == "rollout":  # the prefetched batches and the one being simulated
-        observe.check_batch_fits(c, observe.host_available(), "host memory",
-                                 count=c.prefetch + 1)
-
-
-def _check_memory_early(model: mujoco.MjModel, backend: str, control_spec: int,
-                        observations: Sequence[observe.Observation], nbatch: int, nstep: int,
-                        record_every: int, prefetch: int) -> None:
-    """`_check_memory` from the sizes alone, before the (nbatch x ...) tables are built."""
-    if backend != "rollout":
-        return
-    sizes = SimpleNamespace(observations=observations, nbatch=nbatch, nframes=nstep // record_every,
-                            nstep=nstep, ncontrol=mujoco.mj_stateSize(model, control_spec),
-                            nstate=mujoco.mj_stateSize(model, layout.FULLPHYSICS),
-                            record_every=record_every)
-    observe.check_batch_fits(sizes, observe.host_available(), "host memory", count=prefetch + 1)
-
-
 def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
                  prefetch: Any, record: Any, record_every: Any, policy: Any = None,
-                 policy_noise: Any = None) -> SimConfig:
+                 policy_noise: Any = None,
+                 check_sizes: Optional[Callable[[Any], None]] = None) -> SimConfig:
     """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`, for a
-    resolved `backend` (its options are validated next, by the backend)."""
+    resolved `backend` (its options are validated next, by the backend).
+
+    `check_sizes`: the engine's refusal of a batch too large for it, from the sizes alone
+    (`backends.size_check`; the namespace holds `SimConfig`'s size fields and `prefetch`),
+    called before the (nbatch x ...) tables are built: seconds of work, and memory, for an
+    nbatch that is refused anyway."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
     # 0 batches would be a dataset that silently yields nothing
@@ -299,10 +284,12 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     elif variants is not None:
         base = variants[0]
     observations, record_every = _record(base, record, record_every, nstep)
-    # the size check first: the plans below build (nbatch x ...) tables, seconds of work (and
-    # memory) for an nbatch that is refused anyway
-    _check_memory_early(base, backend, control_spec, observations, nbatch, nstep,
-                        record_every, prefetch)
+    if check_sizes is not None:
+        check_sizes(SimpleNamespace(
+            observations=observations, nbatch=nbatch, nstep=nstep,
+            nframes=nstep // record_every, record_every=record_every, prefetch=prefetch,
+            ncontrol=mujoco.mj_stateSize(base, control_spec),
+            nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS)))
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep)
@@ -313,7 +300,6 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
         variants=variants, control=plan, initial=init, observations=observations,
         record_every=record_every, continue_episodes=continue_episodes,
         num_batches=num_batches, seed=seed, device=_torch_device(device),
-        dtype=_torch_dtype(dtype, backend), nthread=nthread, prefetch=prefetch,
+        dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch,
         torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise)
-    _check_memory(config)
     return config

@@ -171,8 +171,23 @@ class Normal(Generator):
         return torch.clamp(out, params["low"], params["high"])
 
 
+class _Given(Generator):
+    """Values given before the batch (`params()["value"]`, shaped to broadcast to
+    (nbatch, nstep, ncolumns)): each sampler only broadcasts them, in its array module."""
+
+    def sample_numpy(self, rng, params, shape):
+        return np.broadcast_to(params["value"], shape)
+
+    def sample_jax(self, key, params, shape):
+        import jax.numpy as jnp
+        return jnp.broadcast_to(params["value"], shape)
+
+    def sample_torch(self, generator, params, shape):
+        return params["value"].expand(shape)
+
+
 @dataclasses.dataclass(frozen=True)
-class Constant(Generator):
+class Constant(_Given):
     """The same value at every step of every trajectory.
 
     Args:
@@ -188,16 +203,6 @@ class Constant(Generator):
         if not np.all(np.isfinite(value)):
             raise ValueError(f"Constant.value: expected finite values, got {value}")
         return {"value": value}
-
-    def sample_numpy(self, rng, params, shape):
-        return np.broadcast_to(params["value"], shape)
-
-    def sample_jax(self, key, params, shape):
-        import jax.numpy as jnp
-        return jnp.broadcast_to(params["value"], shape)
-
-    def sample_torch(self, generator, params, shape):
-        return params["value"].expand(shape)
 
 
 def _gaussian_params(gen: Any, model: mujoco.MjModel, component: layout.Component,
@@ -395,7 +400,7 @@ class Sinusoid(Generator):
 
 
 @dataclasses.dataclass(frozen=True)
-class FromArray(Generator):
+class FromArray(_Given):
     """A user array `([nbatch or 1] x [nstep or 1] x ncolumns)` for the driven columns.
 
     Args:
@@ -412,7 +417,7 @@ class FromArray(Generator):
             raise ValueError(f"FromArray.values: expected [nbatch or 1] x [nstep or 1] x "
                              f"{len(columns)} (the driven columns of {component.name}), got "
                              f"shape {arr.shape}")
-        return {"values": arr}
+        return {"value": arr}
 
     def check_shape(self, shape):
         try:
@@ -420,16 +425,6 @@ class FromArray(Generator):
         except ValueError:
             raise ValueError(f"FromArray.values: shape {np.shape(self.values)} does not "
                              f"broadcast to (nbatch, nstep, ncolumns) = {shape}") from None
-
-    def sample_numpy(self, rng, params, shape):
-        return np.broadcast_to(params["values"], shape)
-
-    def sample_jax(self, key, params, shape):
-        import jax.numpy as jnp
-        return jnp.broadcast_to(params["values"], shape)
-
-    def sample_torch(self, generator, params, shape):
-        return params["values"].expand(shape)
 
 
 def _uniform_torch(generator: Any, low: Any, high: Any, shape: tuple[int, ...]) -> Any:

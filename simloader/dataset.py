@@ -127,13 +127,14 @@ class SimDataset(torch.utils.data.IterableDataset):
         super().__init__()
         _check_keywords(backend_options)
         backends.prepare(backend, backend_options)
+        resolved = backends.resolve(backend, backend_options)
         config = build_config(
-            model, backend=backends.resolve(backend, backend_options), nbatch=nbatch, nstep=nstep,
+            model, backend=resolved, nbatch=nbatch, nstep=nstep,
             control=control, control_spec=control_spec, initial_state=initial_state,
             randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
             seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
             record=record, record_every=record_every, policy=policy,
-            policy_noise=policy_noise)
+            policy_noise=policy_noise, check_sizes=backends.size_check(resolved))
         # one route for every backend option: validated by the backend, kept in the config
         self.config: SimConfig = dataclasses.replace(
             config, options=backends.check_options(config, backend, backend_options))

@@ -291,11 +291,14 @@ def cameras(observations: Sequence[Observation]) -> dict[Camera, tuple[CameraIma
     return {cam: tuple(images) for cam, images in out.items()}
 
 
-def jax_frame(observations: Sequence[Observation], m: Any, d: Any) -> dict[str, Any]:
-    """One frame of every observation, `{key: (*shape)}`, from one trajectory's `mjx.Model` and
-    `mjx.Data` (pure: for `jax.vmap` inside the scan body, whose stacked outputs are then
-    `(nframes, nbatch, *shape)`)."""
-    return {o.key: o.jax_value(m, d) for o in observations if not o.rendered}
+def jax_frame(observations: Sequence[Observation], model_axes: Any, m: Any,
+              d: Any) -> dict[str, Any]:
+    """One frame of every observation, `{key: (nbatch, *shape)}`, from the batched `mjx.Data`
+    `d` and its `mjx.Model` `m` (batched along `model_axes`); pure, for the scan body, whose
+    stacked outputs are then `(nframes, nbatch, *shape)`."""
+    import jax
+    return jax.vmap(lambda m, d: {o.key: o.jax_value(m, d) for o in observations
+                                  if not o.rendered}, (model_axes, 0))(m, d)
 
 
 def _mjx_field(d: Any, name: str) -> Any:

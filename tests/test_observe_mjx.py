@@ -61,7 +61,7 @@ def test_jax_values_under_vmap_have_the_frame_shape():
     observations = observe.parse(model, ("xpos", "sensor:tip_force", "state", "time"))
     m = mjx.put_model(model, impl="jax")
     d = jax.vmap(lambda _: mjx.make_data(model, impl="jax"))(np.arange(3))
-    values = jax.vmap(lambda d: observe.jax_frame(observations, m, d))(d)
+    values = observe.jax_frame(observations, None, m, d)
     assert sorted(values) == sorted(o.key for o in observations)  # (JAX sorts dict keys)
     for o in observations:
         assert values[o.key].shape == (3, *o.shape), o.key

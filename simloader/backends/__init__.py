@@ -13,6 +13,7 @@ import dataclasses
 import glob
 import importlib
 import importlib.util
+from collections.abc import Callable
 from typing import Any, Optional
 
 import mujoco
@@ -150,6 +151,14 @@ def has_contacts(model: mujoco.MjModel) -> bool:
     mask = ((contype[:, None] & conaffinity[None, :]) | (conaffinity[:, None] & contype[None, :]))
     mask = (mask != 0) & (body[:, None] != body[None, :])
     return bool(np.triu(mask, 1).any())
+
+
+def size_check(backend: str) -> Optional[Callable[[Any], None]]:
+    """The resolved `backend`'s refusal of a batch too large for it, from its sizes alone
+    (`config.build_config` calls it before building tables): the CPU engine's check of host
+    memory. None for `"mjx"`: its engines check their device's memory once they have the
+    device (`check_options`, `create`)."""
+    return engine("c").check_sizes if backend == "rollout" else None
 
 
 def check_options(config: SimConfig, asked: str, options: dict[str, Any]) -> Any:

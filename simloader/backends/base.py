@@ -53,15 +53,18 @@ class Stats:
         dataset and device, at its first batch, never again.
     """
 
+    # every engine
     batches: int = 0
     steps: int = 0
     diverged: int = 0
     simulate_s: float = 0.0
+    # making the MJX batch function ready
     compile_s: float = 0.0
     compiles: int = 0
     traces: int = 0
     trace_s: float = 0.0
     programs_loaded: int = 0
+    # MuJoCo Warp's buffers, solver and graphs
     overflow: int = 0
     solver_limit: int = 0
     graph_captures: int = 0

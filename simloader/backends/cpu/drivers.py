@@ -14,6 +14,7 @@ import torch
 from mujoco import batch as mj_batch
 
 from simloader import controls, handoff, layout, policy, sharding
+from simloader.backends import policy_loop
 
 # run(out) -> (bad, extras): simulates the batch into `out` ({source: (nbatch, nframes, ...)});
 # bad: (nbatch,) bool, a trajectory got a bad (non-finite or absurd) control; extras: tensors
@@ -95,46 +96,49 @@ class ClosedLoop:
         control[...] = 0.0
 
         def run(out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
-            bad, extras = self._steps(index, control, low, high, out, act)
-            extras[policy.VERSION] = torch.tensor(version, dtype=torch.int64)
-            return bad, extras
+            return self._steps(index, control, low, high, out, act, version)
         return run
 
     def _steps(self, index: int, control: np.ndarray, low: np.ndarray, high: np.ndarray,
-               out: dict, act: Any) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
-        """Runs the batch's `nstep` steps, recording the sources into `out` as the open loop.
+               out: dict, act: Any, version: int) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+        """Runs the batch's `nstep` steps (`policy_loop.run`), recording the sources into
+        `out` as the open loop.
 
-        Each step: the observations (views of the state rows and of the fields the batch
-        binds, which MuJoCo refreshes after every call) go to the policy; its rows, plus
-        noise, clamped as MuJoCo clamps, go into the rows' `control_spec` components; one
-        `mj_step` per trajectory (`Batch.step`). The first observations are those of the
-        initial state, derived fields by `mj_forward`.
+        Each step: the policy's rows, plus noise, clamped as MuJoCo clamps, go into the rows'
+        `control_spec` components; one `mj_step` per trajectory (`Batch.step`); the next
+        observations are views of the state rows and of the fields the batch binds, which
+        MuJoCo refreshes after every call. The first observations are those of the initial
+        state, derived fields by `mj_forward`.
         """
         backend = self.backend
         c, b, k = backend.config, backend.batch, backend.config.record_every
         if self.live is None:
             self.live = LiveSources(b, c)
+        live = self.live
         noise = None
         if c.policy_noise is not None:
             noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
             c.policy_noise.sample_numpy(backend.seed(index, sharding.CONTROL), noise,
                                         c.policy_noise.default_rows)
-        call = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, c.device)
         bad = np.zeros(c.nbatch, dtype=bool)
-        b.forward()
-        for t in range(c.nstep):
-            u = call(self.live.observations(), t)
+
+        def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
             row = control[:, t]
-            row[...] = u.detach().to("cpu", torch.float64).numpy()
+            row[...] = rows.to(torch.float64).numpy()
             if noise is not None:
                 row += noise[:, t]
             row[...], bad_now = controls.as_applied(row, low, high)
-            bad |= bad_now
-            b.state[:, self.live.control_columns] = row
+            bad[...] |= bad_now
+            b.state[:, live.control_columns] = row
             b.step()
             if (t + 1) % k == 0:
-                self.live.record(out, (t + 1) // k - 1)
-        return bad, call.extras
+                live.record(out, (t + 1) // k - 1)
+            return live.observations()
+
+        b.forward()
+        extras = policy_loop.run((act, version), c, live.observations(), step,
+                                 torch.device("cpu"))
+        return bad, extras
 
     def close(self) -> None:
         self.live = None  # its bound outputs keep the native batch (and its threads) alive
@@ -142,7 +146,7 @@ class ClosedLoop:
 
 def driver(backend: Any) -> Any:
     """The backend's driver: the closed loop with a policy, else the open loop."""
-    return ClosedLoop(backend) if backend.config.policy is not None else OpenLoop(backend)
+    return ClosedLoop(backend) if policy_loop.chosen(backend.config) else OpenLoop(backend)
 
 
 class LiveSources:
@@ -174,14 +178,11 @@ class LiveSources:
     def observations(self) -> dict[str, torch.Tensor]:
         """The policy's observations now: a tensor of its own per key (the next step
         overwrites MuJoCo's buffers; a copy of this size costs little next to a policy
-        call), on the dataset's device, floats in its dtype."""
-        c = self.config
+        call)."""
         out = {}
-        for o in c.observations:
+        for o in self.config.observations:
             value = torch.tensor(self.value(o.source), dtype=handoff.torch_dtype(o.dtype))
-            value = o.select(value[:, None])[:, 0]
-            out[o.key] = handoff.to_target(value, c.device,
-                                           c.dtype if o.floating else None)
+            out[o.key] = o.select(value[:, None])[:, 0]
         return out
 
     def record(self, out: dict, frame: int) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, ClassVar
 
+from simloader import observe
 from simloader.backends.cpu import render
 
 
@@ -42,3 +43,15 @@ def check_options(config: Any, options: dict[str, Any], reason: str = "") -> Cpu
     render.check(config.model, images)
     render.gl_platform()  # fails here, naming what to install, if no GL works
     return CpuOptions()
+
+
+def check_sizes(sizes: Any) -> None:
+    """Refuses a batch whose copies in flight (the prefetched ones and the one being simulated)
+    cannot fit in host memory, from its sizes alone (`config.build_config` calls it before the
+    tables are built).
+
+    Raises:
+      ValueError: naming `nbatch` and `record`, with the size and what is available.
+    """
+    observe.check_batch_fits(sizes, observe.host_available(), "host memory",
+                             count=sizes.prefetch + 1)

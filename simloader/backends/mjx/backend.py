@@ -166,7 +166,7 @@ class MjxBackend(Backend):
         self.restart: Any = None
         if config.continue_episodes:
             # the first batch starts every row from x0, so any carry of the right shapes will do
-            self.carry = jax.device_put(self.program.initial_carry(config), device)
+            self.carry = jax.device_put(self.program.pieces.blank_carry, device)
             self.restart = np.ones(config.nbatch, dtype=bool)
         self.last_ready = 0.0
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch

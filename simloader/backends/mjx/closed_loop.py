@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import torch
 
-from simloader import controls, rules
+from simloader import controls, observe, rules
 from simloader.backends.mjx.program import seed_key
 from simloader.backends.mjx.runtime import mjx
 
@@ -48,7 +48,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                                      seed_key(seeds[0]), shape, P.dtype)
                  if noise_drivers else None)
         data = jax.vmap(mjx.forward, (P.model_axes, 0))(m, data)
-        obs = P.observe(m, data)
+        obs = observe.jax_frame(P.observations, P.model_axes, m, data)
         loop = {"d": data, "t": jnp.zeros((), jnp.int32),
                 "diverged": jnp.zeros(P.nbatch, bool),
                 "frames": {k: jnp.zeros((P.nbatch, nframes, *v.shape[1:]), v.dtype)
@@ -71,7 +71,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         u, bad = controls.as_applied(u, loop["low"], loop["high"], jnp)
         d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, loop["d"], u)
         d, unstable = P.restart_unstable(m, d)
-        obs = P.observe(m, d)
+        obs = observe.jax_frame(P.observations, P.model_axes, m, d)
         diverged = loop["diverged"] | unstable | bad
         finite = P.finite(obs)
         if finite is not None:
@@ -88,17 +88,18 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                 "control": control}
         return loop, obs
 
-    def finish_outputs(m, d, outputs, delivered):
-        """The batch's outputs (frames, control, diverged; the initial state and parameters
-        added) and the carry of `continue_episodes`, from the final data `d`."""
-        outputs = {**outputs, "initial_state": delivered["initial_state"]}
-        return P.finish(m, d, outputs, delivered["params"])
-
     def finish(m, loop, delivered):
-        """`finish_outputs` of the loop state, and the data (whose buffers the next batch's
-        `start` takes)."""
-        outputs = {**loop["frames"], "control": loop["control"], "diverged": loop["diverged"]}
-        return (*finish_outputs(m, loop["d"], outputs, delivered), loop["d"])
+        """The batch's outputs (frames, control, diverged, the initial state and parameters)
+        and the carry of `continue_episodes`, from the loop state; and the final data (whose
+        buffers the next batch's `start` takes)."""
+        d, params = loop["d"], delivered["params"]
+        outputs = {**loop["frames"], "control": loop["control"], "diverged": loop["diverged"],
+                   "initial_state": delivered["initial_state"]}
+        if params:
+            outputs["params"] = params
+        carry = ({"state": P.physics(m, d), "qacc_warmstart": d.qacc_warmstart,
+                  "params": params} if P.continuing else None)  # as the open loop's
+        return outputs, carry, d
 
     return start, advance, finish
 
@@ -118,18 +119,22 @@ class ClosedLoop:
         # `start` makes them
         self.blank = jax.jit(lambda *args: pieces.begin(*args)[1])
 
-    def run(self, args: Any, policy: Callable[[dict[str, torch.Tensor], int], torch.Tensor],
-            nstep: int, previous: Any) -> tuple[dict[str, Any], Any, Any]:
-        """One batch: `policy(observations, t) -> control rows` (torch tensors in and out,
-        exchanged with JAX through DLPack) before every step. Only dispatches: nothing here
-        waits for the device.
+    def run(self, args: Any, previous: Any, drive: Callable[[dict, Callable], Any]
+            ) -> tuple[dict[str, Any], Any, Any, Any]:
+        """One batch, its steps driven by `drive(first, step)` (`policy_loop.run` with the
+        batch's weights): `first` the observations of the initial state, `step(rows, t)` one
+        step of every trajectory with the policy's rows, returning the next observations
+        (torch tensors in and out, exchanged with JAX through DLPack). Only dispatches:
+        nothing here waits for the device.
 
         Args:
           args: the open loop's batch function's arguments (`program.BatchArgs`).
           previous: the data the last batch of this iterator returned (donated), or None.
+          drive: runs the steps; what it returns is returned last.
 
         Returns:
-          (outputs, carry) as the open loop's, and the data for the next batch's `previous`.
+          (outputs, carry) as the open loop's, the data for the next batch's `previous`, and
+          what `drive` returned.
         """
         # true float32 dot products, as the open loop (JAX's GPU default is TF32)
         with jax.default_matmul_precision("float32"):
@@ -141,10 +146,14 @@ class ClosedLoop:
             m_leaves, m_def = jax.tree.flatten(m)
             leaves, loop_def = jax.tree.flatten(loop)
             advance = self._flat_advance(m_def, loop_def)
-            for t in range(nstep):
-                u = policy({k: torch.from_dlpack(v) for k, v in obs.items()}, t)
-                leaves, obs = advance(m_leaves, leaves, jax.dlpack.from_dlpack(u.contiguous()))
-            return self.finish(m, jax.tree.unflatten(loop_def, leaves), delivered)
+
+            def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
+                nonlocal leaves
+                leaves, obs = advance(m_leaves, leaves, jax.dlpack.from_dlpack(rows.contiguous()))
+                return {k: torch.from_dlpack(v) for k, v in obs.items()}
+
+            driven = drive({k: torch.from_dlpack(v) for k, v in obs.items()}, step)
+            return (*self.finish(m, jax.tree.unflatten(loop_def, leaves), delivered), driven)
 
     def _flat_advance(self, m_def: Any, loop_def: Any) -> Callable:
         """`advance` jitted on lists of leaves, the loop's donated. MJX's Model and Data are

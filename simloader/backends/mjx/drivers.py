@@ -11,7 +11,8 @@ from typing import Any, Optional
 
 import torch
 
-from simloader import handoff, policy
+from simloader import policy
+from simloader.backends import policy_loop
 from simloader.backends.mjx import closed_loop, runtime
 from simloader.backends.mjx.program import BatchArgs, Program
 
@@ -53,34 +54,20 @@ class ClosedLoop:
         self.snapshot = policy.Snapshot(backend.config.policy)
         self.loop = _closed_loop(backend.program, backend.config.policy_noise)
         self.previous: Any = None  # the last batch's data (donated to the next)
-        self.caller: Optional[policy.Caller] = None  # this batch's policy calls
 
     def dispatch(self, args: BatchArgs) -> Dispatched:
         b = self.backend
-        c = b.config
         dispatched = time.perf_counter()
-        act, version = self.snapshot.take()  # one version of the weights per batch
-        self.caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep,
-                                    c.device or runtime.torch_device(b.device))
-        outputs, carry, self.previous = self.loop.run(
-            args, self._step, c.nstep, self.previous)
-        extras = {**self.caller.extras,
-                  policy.VERSION: torch.tensor(version, dtype=torch.int64)}
-        return dispatched, outputs, carry, extras
+        taken = self.snapshot.take()  # one version of the weights per batch
+        here = runtime.torch_device(b.device)
 
-    def _step(self, obs: dict[str, torch.Tensor], t: int) -> torch.Tensor:
-        """The policy's control rows for step `t`, from the observations before it (tensors
-        on the simulation's device, as the closed loop hands them over), on that device."""
-        c = self.backend.config
-        tensors = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
-                   for k, v in obs.items()}
-        control = self.caller(tensors, t).detach()
-        here = runtime.torch_device(self.backend.device)
-        if control.device != here:  # a policy on another device than the simulation
-            control = control.to(here, non_blocking=True)
-        return control
+        def drive(first: dict[str, torch.Tensor], step: policy_loop.Step) -> dict:
+            return policy_loop.run(taken, b.config, first, step, here)
+
+        outputs, carry, self.previous, extras = self.loop.run(args, self.previous, drive)
+        return dispatched, outputs, carry, extras
 
 
 def driver(backend: Any) -> Any:
     """The backend's driver: the closed loop with a policy, else the open loop."""
-    return ClosedLoop(backend) if backend.config.policy is not None else OpenLoop(backend)
+    return ClosedLoop(backend) if policy_loop.chosen(backend.config) else OpenLoop(backend)

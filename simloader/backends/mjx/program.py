@@ -95,6 +95,15 @@ class Pieces:
         self.randomized_ctrlrange = c.randomization is not None and any(
             r.field == "actuator_ctrlrange" for r in c.randomization.resolved)
         self.ctrl_model = c.model if self.randomized_ctrlrange else None
+        # with `continue_episodes`, a carry of the right shapes for the first batch (which
+        # restarts every row): what `batch_function` returns beside its outputs
+        zeros = lambda *shape: np.zeros((c.nbatch, *shape), dtype)  # noqa: E731
+        params = ({} if randomizer is None else
+                  {r.param.key: zeros(len(r.elements)) for r in randomizer.plan.resolved})
+        if c.variants is not None:
+            params["variant"] = np.zeros(c.nbatch, np.int32)
+        self.blank_carry = ({"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv),
+                             "params": params} if c.continue_episodes else None)
 
     def reset(self, m, d0, inputs0, x0):
         """One trajectory as mj_resetData leaves it, with the physics state `x0`."""
@@ -159,25 +168,10 @@ class Pieces:
                 restart, jnp.zeros_like(data.qacc_warmstart), carry["qacc_warmstart"]))
         return m, data, control, variant, params
 
-    def observe(self, m, d):
-        """One frame of every observation of the batched `d`: {key: (nbatch, *shape)}."""
-        return jax.vmap(lambda m, d: observe.jax_frame(self.observations, m, d),
-                        (self.model_axes, 0))(m, d)
-
     def finite(self, frame):
         """(nbatch,) bool, or None with no floating observation that `restart_unstable`
         leaves unchecked (a value made only of what it restarts is finite already)."""
         return rules.finite([frame[o.key] for o in self.unchecked], jnp)
-
-    def finish(self, m, data, outputs, params):
-        """The batch's outputs completed, and the carry of `continue_episodes`."""
-        if params:
-            outputs["params"] = params
-        if not self.continuing:
-            return outputs, None
-        return outputs, {"state": self.physics(m, data), "qacc_warmstart": data.qacc_warmstart,
-                         "params": params}
-
 
 class BatchArgs(NamedTuple):
     """One batch's arguments of the batch function, by name (`batch_function` says what each
@@ -253,14 +247,20 @@ def batch_function(pieces: Pieces) -> Callable:
             else:
                 loop, _ = jax.lax.scan(advance, loop, us, length=every)
             d, diverged = loop
-            frame = P.observe(m, d)
+            frame = observe.jax_frame(P.observations, P.model_axes, m, d)
             finite = P.finite(frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
 
         (data, diverged), frames = jax.lax.scan(record, (data, bad), xs, length=nframes)
         outputs = {key: jnp.swapaxes(value, 0, 1) for key, value in frames.items()}
         outputs.update(control=control, initial_state=initial, diverged=diverged)
-        return P.finish(m, data, outputs, params)
+        if params:
+            outputs["params"] = params
+        if not P.continuing:
+            return outputs, None
+        # what the next batch continues from (`begin`; the closed loop's `finish` alike)
+        return outputs, {"state": P.physics(m, data), "qacc_warmstart": data.qacc_warmstart,
+                         "params": params}
 
     return simulate
 
@@ -329,15 +329,6 @@ class Program:
         self.simulate = batch_function(self.pieces)
         self.compiled: Optional[Callable] = None
         self.lock = threading.Lock()
-
-    def initial_carry(self, c: SimConfig) -> Any:
-        """A carry of the right shapes for the first batch, which restarts every row."""
-        zeros = lambda *shape: np.zeros((c.nbatch, *shape), self.dtype)  # noqa: E731
-        params = ({} if self.randomizer is None else
-                  {r.param.key: zeros(len(r.elements)) for r in self.randomizer.plan.resolved})
-        if c.variants is not None:
-            params["variant"] = np.zeros(c.nbatch, np.int32)
-        return {"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv), "params": params}
 
     def compile(self, args: BatchArgs, stats: Stats) -> None:
         """Makes the batch function ready to run on `args` (as `run` takes them), once: loaded

@@ -18,7 +18,8 @@ from typing import Any, Optional
 
 import torch
 
-from simloader import controls, handoff, policy, sharding
+from simloader import controls, sharding
+from simloader.backends import policy_loop
 
 
 class OpenLoop:
@@ -127,28 +128,21 @@ class ClosedLoop:
                                         backend.tables.noise_params)
 
     def run(self, backend: Any, taken: tuple[Any, int]) -> dict[str, torch.Tensor]:
-        """The batch's steps, the policy (`taken`: its weights' copy and their version)
-        before each: its rows into the input, one replay. Nothing waits on the host. Returns
-        the policy's extras."""
-        c, e = backend.config, self.engine
-        act, version = taken
-        target = c.device or backend.device
-        caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, target)
-        obs = e.observe_now()
-        rendered = {o.key for o in c.observations if o.rendered}
-        for t in range(c.nstep):
-            tensors = {k: handoff.to_target(v, c.device, c.dtype if k not in rendered
-                                            and v.is_floating_point() else None)
-                       for k, v in obs.items()}
-            control = caller(tensors, t).detach()
-            self.u.copy_(control.to(backend.device, non_blocking=True))
+        """The batch's steps (`policy_loop.run`; `taken`: the weights' copy and their
+        version): the policy's rows into the graph's input, one replay each. Nothing waits on
+        the host. Returns the policy's extras."""
+        e = self.engine
+
+        def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
+            self.u.copy_(rows)
             e.advance()
             # the observations are views of MuJoCo Warp's arrays (or the graph's outputs),
             # which the next step rewrites: the policy keeps copies of its own
-            obs = {k: v.clone() for k, v in e.obs.items()}
-        return {**caller.extras, policy.VERSION: torch.tensor(version, dtype=torch.int64)}
+            return {k: v.clone() for k, v in e.obs.items()}
+
+        return policy_loop.run(taken, backend.config, e.observe_now(), step, backend.device)
 
 
 def driver(engine: Any) -> Any:
     """The engine's driver: the closed loop with a policy, else the open loop."""
-    return ClosedLoop(engine) if engine.config.policy is not None else OpenLoop(engine)
+    return ClosedLoop(engine) if policy_loop.chosen(engine.config) else OpenLoop(engine)
