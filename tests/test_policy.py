@@ -158,6 +158,12 @@ def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
                                    err_msg=key)
     assert gpu["policy/value"].shape == (4, 10)
     assert not gpu2["diverged"].any() and not torch.equal(gpu2["qpos"], gpu["qpos"])
+    for out in (cpu, gpu):  # what the policy saw (its extra "seen" is obs["qpos"])
+        seen = out["policy/seen"].cpu()
+        assert seen.dtype == torch.float32  # `dtype=` applies to the observations too
+        # step t's rows come from the state before it: the initial state, then each frame
+        torch.testing.assert_close(seen[:, 0], out["initial_state"].cpu()[:, 1:1 + model.nq])
+        torch.testing.assert_close(seen[:, 1:], out["qpos"].cpu()[:, :-1])
 
 
 def test_weights_version_follows_training():

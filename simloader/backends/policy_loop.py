@@ -50,7 +50,8 @@ def run(taken: tuple[Callable, int], config: Any, first: dict[str, torch.Tensor]
     """
     c = config
     act, version = taken
-    caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, c.device or device)
+    # rows on a named `device=` are checked there; any rows are then brought to the simulation
+    caller = policy.Caller(act, c.nbatch, c.ncontrol, c.nstep, c.device)
     # `dtype=` applies to floating values, never to images (depth stays float32 metres)
     floating = {o.key for o in c.observations if o.floating}
     obs = first
