@@ -112,3 +112,16 @@ def fresh_python():
     """`fresh_python(script, [(args, env), ...], timeout=300) -> [stdout, ...]`: the script run
     in fresh interpreters at once, importing this checkout."""
     return _fresh_python
+
+
+# The heaviest test files (seconds on the 2-core CI machine, most of it MJX compilation), run
+# first: `--dist loadfile` hands files to the two workers in collection order, and a heavy file
+# collected last keeps one worker busy long after the other has finished.
+HEAVY_FIRST = ("test_mjx.py", "test_warp.py", "test_startup.py", "test_examples.py",
+               "test_mjx_randomize.py", "test_distributed.py", "test_observe_mjx.py",
+               "test_render_cpu.py", "test_policy.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a file

@@ -173,6 +173,7 @@ class Pieces:
         leaves unchecked (a value made only of what it restarts is finite already)."""
         return rules.finite([frame[o.key] for o in self.unchecked], jnp)
 
+
 class BatchArgs(NamedTuple):
     """One batch's arguments of the batch function, by name (`batch_function` says what each
     holds). A NamedTuple: JAX flattens it, and `simulate(*args)` unpacks it."""
