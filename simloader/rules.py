@@ -79,3 +79,9 @@ def frame_index(t: Any, every: int) -> Any:
     """The frame step `t` (0-based) records into with `record_every=every`: every step of a
     group writes its frame, the due one (the group's last) last."""
     return t // every
+
+
+def frame_due(t: Any, every: int) -> Any:
+    """Whether step `t` (0-based) ends its group of `every`: the state after it is the one
+    its frame (`frame_index`) records."""
+    return t % every == every - 1

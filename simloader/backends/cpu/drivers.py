@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, policy, sharding
+from simloader import controls, handoff, layout, policy, rules, sharding
 from simloader.backends import policy_loop
 
 # run(out) -> (bad, extras): simulates the batch into `out` ({source: (nbatch, nframes, ...)});
@@ -131,8 +131,8 @@ class ClosedLoop:
             bad[...] |= bad_now
             b.state[:, live.control_columns] = row
             b.step()
-            if (t + 1) % k == 0:
-                live.record(out, (t + 1) // k - 1)
+            if rules.frame_due(t, k):
+                live.record(out, rules.frame_index(t, k))
             return live.observations()
 
         b.forward()

@@ -77,7 +77,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         if finite is not None:
             diverged = diverged | ~finite
         # frame j holds the values after step (j + 1) * every: written in place when due
-        j, due = rules.frame_index(t, every), (t % every) == every - 1
+        j, due = rules.frame_index(t, every), rules.frame_due(t, every)
         frames = {}
         for key, buffer in loop["frames"].items():
             old = jax.lax.dynamic_index_in_dim(buffer, j, axis=1, keepdims=False)
