@@ -5,7 +5,6 @@ import os
 
 import jax
 import numpy as np
-import pytest
 
 import simloader
 from simloader import controls, models
