@@ -1,23 +1,33 @@
 """Files written whole or not at all: a reader, a resumed writer or a later process sees the
-whole file or none of it, never a part left by a killed process or a full disk."""
+whole file or none of it, never a part left by a killed process or a full disk; and, where
+asked, durable: on the disk before the call returns, as SQLite and git commit (the file
+fsync'd before its rename, then the directories that name it)."""
 
 from __future__ import annotations
 
 import os
 import uuid
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
+PARTIAL = ".partial"  # the suffix of a file being written (a killed writer may leave one)
 
-def atomic_write(path: str, parts: Sequence[Any]) -> None:
+
+def atomic_write(path: str, parts: Sequence[Any], durable: bool = False) -> None:
     """Writes `parts` (bytes-like) to `path` through a temporary file renamed over it: a
-    reader or a resumed writer sees the whole file or none of it."""
+    reader or a resumed writer sees the whole file or none of it. `durable=True` also
+    fsyncs the file before the rename (a power loss after the rename cannot leave it empty);
+    the caller fsyncs the directories (`sync_directories`) before it records the file as
+    committed, once for all the files of a commit."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    temporary = f"{path}.{uuid.uuid4().hex}.partial"
+    temporary = f"{path}.{uuid.uuid4().hex}{PARTIAL}"
     try:
         with open(temporary, "wb") as f:
             for part in parts:
                 f.write(part)
+            if durable:
+                f.flush()
+                os.fsync(f.fileno())
         os.replace(temporary, path)
     except BaseException:
         try:
@@ -25,3 +35,27 @@ def atomic_write(path: str, parts: Sequence[Any]) -> None:
         except OSError:
             pass
         raise
+
+
+def sync_directories(directories: Iterable[str]) -> None:
+    """fsyncs each directory, so the names of the files renamed into it (and of the
+    directories made in it) survive a power loss."""
+    for directory in sorted(set(directories), key=len, reverse=True):  # deepest first
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def parents(path: str, top: str) -> list[str]:
+    """The directories from `path`'s own up to and including `top` (which contains it): those
+    whose entries a new file at `path` (and the directories made for it) changed."""
+    out = []
+    directory = os.path.dirname(path)
+    top = os.path.normpath(top)
+    while True:
+        out.append(directory)
+        if os.path.normpath(directory) == top or len(directory) <= len(top):
+            return out
+        directory = os.path.dirname(directory)

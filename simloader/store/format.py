@@ -18,29 +18,37 @@ Layout, chosen for writers that never coordinate and readers that never decode t
   stored raw: MuJoCo's float64 states compress by about 1.13x with zstd at 87 MB/s per core,
   which would cost more generation throughput than the disk it saves; integer and boolean
   chunks of 4 KiB or more (images, segmentation) are compressed with zstd.
-- `provenance/written[s]` is written last, so a reader sees complete slots only, and a resumed
-  `write` redoes exactly the slots that were not completed.
+- A slot is committed as SQLite and git commit: every shard file fsync'd and renamed, the
+  directories that name them fsync'd, then `provenance/checksum[s]` (each shard's size and
+  CRC-32, in the order of that array's attribute `arrays`), then `provenance/written[s]`
+  last. A reader sees complete slots only; a resumed `write` checks every committed slot
+  against its checksums and redoes the missing and the damaged ones.
+- Array paths come from batch keys, and batch keys from the model (sensor, camera and body
+  names) and the user (policy extras): each part is percent-encoded (`store_path`), so no
+  name can make a path outside the store, and the key itself is kept in the array's
+  attribute `key`.
 
 A shard is written by `write_shard` in zarr's sharding format (inner chunks in C order,
-then the index of (offset, length) pairs; no checksum), and read back by `StoredDataset` by
-memory-mapping raw shards (a trajectory is a slice of the file) or decoding compressed chunks;
-the tests read every store through zarr-python as well.
+then the index of (offset, length) pairs), and read back by `simloader.store.shards`; the
+tests read every store through zarr-python as well.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
+import zlib
 from collections.abc import Iterator, Mapping
 from typing import Any, Optional
+from urllib.parse import unquote
 
 import numpy as np
 import torch
 
-from simloader.atomic import atomic_write
-
 from simloader import sharding
+from simloader.atomic import atomic_write, parents
 
 FORMAT = 1  # of the `simloader` attribute and the layout below it
 ATTRIBUTE = "simloader"
@@ -62,6 +70,7 @@ class ArraySpec:
     nbatch: int
     chunk_frames: Optional[int] = None  # images: frames per chunk; None: all
     compressed: bool = False
+    attributes: tuple = ()  # (name, value) pairs: the array's zarr attributes
 
     @property
     def chunk(self) -> tuple:
@@ -94,12 +103,25 @@ class ArraySpec:
                 "chunk_shape": list(self.chunk), "codecs": inner,
                 "index_codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
                 "index_location": "end"}}],
-            "attributes": {},
+            "attributes": dict(self.attributes),
             "dimension_names": ["trajectory"] + [None] * len(self.trailing),
         }
 
     def shard_key(self, slot: int) -> str:
         return shard_key(self.name, len(self.trailing), slot)
+
+    @property
+    def raw_bytes(self) -> Optional[int]:
+        """The size of a raw shard's file (its rows, then the chunk index); None when its
+        chunks are compressed (their sizes are recorded in the slot's checksums)."""
+        return raw_shard_bytes(self.nbatch, self.trailing, self.chunk, self.dtype) \
+            if not self.compressed else None
+
+
+def raw_shard_bytes(nbatch: int, trailing: tuple, chunk: tuple, dtype: np.dtype) -> int:
+    shape = (nbatch, *trailing)
+    nchunks = int(np.prod([s // c for s, c in zip(shape, chunk)]))
+    return int(np.prod(shape, dtype=np.int64)) * dtype.itemsize + 16 * nchunks
 
 
 def shard_key(name: str, ntrailing: int, slot: int) -> str:
@@ -121,10 +143,47 @@ def leaves(batch: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, An
             yield prefix + key, value
 
 
-def safe_name(name: str) -> str:
-    """A batch key as a zarr path: its "/" are groups; other characters are kept except a
-    leading "__" (reserved by zarr)."""
-    return "/".join(("_" + p[2:] if p.startswith("__") else p) for p in name.split("/"))
+# characters kept as they are in a part of an array's path; the others are percent-encoded
+_PLAIN = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-.:[]()+,=@")
+_GROUPS = ("params", "policy", "provenance")  # KEY/NAME: a group, then one encoded part
+_MAX_PART = 200  # bytes: file systems refuse names past 255
+
+
+def store_path(key: str) -> str:
+    """The path in the store of batch key `key`: "/" separates groups only where simloader
+    makes them ("camera/NAME/KIND", "params/NAME", "policy/NAME"); every name from a model
+    or a user is one percent-encoded part, so "..", "/" and other characters never leave
+    the array's directory. Readable keys ("state", "sensor:touch") are unchanged."""
+    head, _, rest = key.partition("/")
+    if head == "camera" and rest.count("/") >= 1:
+        name, _, kind = rest.rpartition("/")
+        parts = [head, name, kind]
+    elif head in _GROUPS and rest:
+        parts = [head, rest]
+    else:
+        parts = [key]
+    return "/".join(_encode_part(p, key) for p in parts)
+
+
+def batch_key(path: str, meta: Mapping[str, Any]) -> str:
+    """The batch key of the array at `path`: its attribute `key`, or for a store written
+    before the attribute existed, its path decoded."""
+    key = meta.get("attributes", {}).get("key")
+    return key if isinstance(key, str) else "/".join(unquote(p) for p in path.split("/"))
+
+
+def _encode_part(part: str, key: str) -> str:
+    if not part:
+        raise ValueError(f"batch key {key!r}: an empty name cannot be stored")
+    out = "".join(c if c in _PLAIN else "".join(f"%{b:02X}" for b in c.encode())
+                  for c in part)
+    if out.startswith("."):  # ".", ".." and hidden files
+        out = "%2E" + out[1:]
+    if out.startswith("__"):  # reserved by zarr
+        out = "%5F" + out[1:]
+    if len(out.encode()) > _MAX_PART:  # the key itself stays in the array's attribute
+        out = out[:_MAX_PART - 17] + "~" + hashlib.sha256(part.encode()).hexdigest()[:16]
+    return out
 
 
 def specs_of(batch: Mapping[str, Any], nbatch: int) -> list[ArraySpec]:
@@ -146,9 +205,18 @@ def specs_of(batch: Mapping[str, Any], nbatch: int) -> list[ArraySpec]:
         chunk_bytes = (int(np.prod(trailing)) * dtype.itemsize if chunk_frames is None else
                        chunk_frames * int(np.prod(trailing[1:])) * dtype.itemsize)
         compressed = dtype.kind in "biu" and chunk_bytes >= _COMPRESS_MIN_BYTES
-        specs.append(ArraySpec(safe_name(name), dtype, trailing, nbatch, chunk_frames, compressed))
+        specs.append(ArraySpec(store_path(name), dtype, trailing, nbatch, chunk_frames,
+                               compressed, (("key", name),)))
     specs += [ArraySpec("provenance/" + p, np.dtype(np.int64), (), nbatch) for p in PROVENANCE]
     return specs
+
+
+def checksum_spec(specs: list[ArraySpec]) -> ArraySpec:
+    """`provenance/checksum`: per batch slot, the (bytes, CRC-32) of each array's shard, in
+    the order its attribute `arrays` names them (0, 0 for an array without values)."""
+    names = sorted(s.name for s in specs)
+    return ArraySpec(CHECKSUM, np.dtype(np.uint64), (len(names), 2), 1,
+                     attributes=(("arrays", names),))
 
 
 def largest_divisor(n: int, most: int) -> int:
@@ -156,19 +224,29 @@ def largest_divisor(n: int, most: int) -> int:
 
 
 WRITTEN = ArraySpec("provenance/written", np.dtype(np.bool_), (), 1)
+CHECKSUM = "provenance/checksum"
 
 # --------------------------------------------------------------------------- files
 
-def write_json(path: str, value: dict) -> None:
-    atomic_write(path, [json.dumps(value, indent=2, sort_keys=True).encode()])
+def write_json(path: str, value: dict, durable: bool = False) -> None:
+    atomic_write(path, [json.dumps(value, indent=2, sort_keys=True).encode()], durable)
+
+
+class DamagedStore(ValueError):
+    """A store's files disagree with its metadata or with themselves (truncated, emptied,
+    missing, linked, or edited): the message names each file, its slot and what differs."""
 
 
 def read_json(path: str) -> Optional[dict]:
+    """A metadata file (None if absent); one that is not JSON is named, not a bare error."""
     try:
         with open(path, encoding="utf-8") as f:
             return json.load(f)
     except FileNotFoundError:
         return None
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DamagedStore(f"{path}: not valid JSON ({e}); the store's metadata was edited "
+                           f"or damaged") from None
 
 
 def zstd():
@@ -195,11 +273,15 @@ def _encoders():
     return _POOL[1]
 
 
-def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray) -> None:
+def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray,
+                durable: bool = True) -> tuple[int, int, list[str]]:
     """One batch slot of one array, in zarr's sharding format: the inner chunks in C order of
-    the chunk grid, then one (offset, length) pair of little-endian uint64 per chunk."""
+    the chunk grid, then one (offset, length) pair of little-endian uint64 per chunk.
+
+    Returns the file's size, its CRC-32, and the directories to fsync before the slot is
+    committed (`durable`: the file itself is fsync'd before its rename)."""
     if spec.empty:
-        return
+        return 0, 0, []
     rows = np.ascontiguousarray(rows, dtype=spec.dtype.newbyteorder("<"))
     if spec.chunk_frames is None:
         chunks = [rows] if not spec.compressed else [rows[i] for i in range(len(rows))]
@@ -217,114 +299,34 @@ def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray) -> None
     offsets = np.concatenate([[0], np.cumsum(lengths[:-1])]).astype("<u8") if lengths else []
     index = np.stack([np.asarray(offsets, dtype="<u8"), np.asarray(lengths, dtype="<u8")],
                      axis=1)
-    atomic_write(os.path.join(root, spec.shard_key(slot)), [*parts, index.tobytes()])
+    parts.append(index.tobytes())
+    crc = 0
+    for part in parts:  # zlib releases the GIL: other writer threads run meanwhile
+        crc = zlib.crc32(part, crc)
+    file = inside(root, spec.shard_key(slot))
+    atomic_write(file, parts, durable)
+    return sum(memoryview(p).nbytes for p in parts), crc, parents(file, os.path.join(
+        root, spec.name))
 
 
-# --------------------------------------------------------------------------- reading
-
-class ShardFile:
-    """One shard file of one array: a trajectory's chunks, read by memory map (raw chunks
-    laid back to back) or decoded one by one (compressed)."""
-
-    def __init__(self, file: str, spec_shape: tuple, chunk: tuple, dtype: np.dtype,
-                 compressed: bool):
-        nchunks = int(np.prod([s // c for s, c in zip(spec_shape, chunk)]))
-        self.chunk, self.dtype, self.compressed = chunk, dtype, compressed
-        self.grid = tuple(s // c for s, c in zip(spec_shape, chunk))
-        with open(file, "rb") as f:
-            f.seek(-16 * nchunks, os.SEEK_END)
-            self.index = np.frombuffer(f.read(16 * nchunks), dtype="<u8").reshape(-1, 2)
-        self.file = file
-        raw = (not compressed and
-               np.array_equal(self.index[:, 0], np.arange(nchunks) * self.index[0, 1]) and
-               (self.index[:, 1] == np.prod(chunk) * dtype.itemsize).all())
-        # a plain ndarray over the map: np.memmap's Python-level indexing costs more than
-        # the small gathers themselves
-        self.rows = (np.memmap(file, dtype=dtype, mode="r", shape=spec_shape).view(np.ndarray)
-                     if raw else None)
-
-    def trajectory(self, row: int) -> np.ndarray:
-        if self.rows is not None:
-            return self.rows[row]
-        per = int(np.prod(self.grid[1:]))  # chunks per trajectory (frame blocks)
-        codec = zstd() if self.compressed else None
-        blocks = []
-        with open(self.file, "rb") as f:
-            for k in range(row * per, (row + 1) * per):
-                offset, length = (int(v) for v in self.index[k])
-                if offset == _NO_CHUNK:
-                    blocks.append(np.zeros(self.chunk[1:], dtype=self.dtype))
-                    continue
-                f.seek(offset)
-                data = f.read(length)
-                data = codec.decode(data) if codec is not None else data
-                blocks.append(np.frombuffer(data, dtype=self.dtype).reshape(self.chunk[1:]))
-        return np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
+def inside(root: str, key: str) -> str:
+    """`root/key`, refused if it would lead outside `root` (a last guard: `store_path` already
+    keeps every name inside)."""
+    path = os.path.normpath(os.path.join(root, key))
+    if os.path.commonpath([os.path.abspath(path), os.path.abspath(root)]) != \
+            os.path.abspath(root):
+        raise ValueError(f"store: the path {key!r} leads outside the store at {root!r}")
+    return path
 
 
-class StoredArray:
-    def __init__(self, root: str, name: str, meta: dict):
-        self.root, self.name = root, name
-        sharding_codec = meta["codecs"][0]
-        if sharding_codec["name"] != "sharding_indexed" or \
-                sharding_codec["configuration"]["index_location"] != "end" or \
-                [c["name"] for c in sharding_codec["configuration"]["index_codecs"]] != ["bytes"]:
-            raise ValueError(f"{name}: not a store written by simloader.write (codecs "
-                             f"{meta['codecs']}); read it with zarr")
-        inner = [c["name"] for c in sharding_codec["configuration"]["codecs"]]
-        self.compressed = inner[1:] == ["zstd"]
-        self.shard_shape = tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
-        self.chunk = tuple(sharding_codec["configuration"]["chunk_shape"])
-        dtype = {v: k for k, v in _ZARR_DTYPES.items()}[meta["data_type"]]
-        self.dtype = np.dtype(dtype).newbyteorder("<") if np.dtype(dtype).itemsize > 1 \
-            else np.dtype(dtype)
-        self.trailing = tuple(meta["shape"][1:])
-        self._shards: dict[int, ShardFile] = {}
-
-    def _shard(self, slot: int) -> ShardFile:
-        shard = self._shards.get(slot)
-        if shard is None:
-            key = shard_key(self.name, len(self.trailing), slot)
-            shard = self._shards[slot] = ShardFile(os.path.join(self.root, key),
-                                                   self.shard_shape, self.chunk, self.dtype,
-                                                   self.compressed)
-        return shard
-
-    def trajectory(self, slot: int, row: int) -> np.ndarray:
-        if 0 in self.trailing:
-            return np.zeros(self.trailing, dtype=self.dtype)
-        return self._shard(slot).trajectory(row)
-
-    def slot(self, slot: int) -> np.ndarray:
-        """All rows of a batch slot (a memory map where the shard is raw)."""
-        if 0 in self.trailing:
-            return np.zeros(self.shard_shape[:1] + self.trailing, dtype=self.dtype)
-        shard = self._shard(slot)
-        if shard.rows is not None:
-            return shard.rows
-        return np.stack([shard.trajectory(r) for r in range(self.shard_shape[0])])
-
-
-def list_arrays(path: str) -> dict[str, dict]:
-    """Every array of the store below its root: {name: zarr metadata}."""
-    out = {}
-    for directory, subdirs, files in os.walk(path):
-        subdirs[:] = [d for d in subdirs if d != "c"]  # chunk folders hold no metadata
-        if "zarr.json" in files and directory != path:
-            meta = read_json(os.path.join(directory, "zarr.json"))
-            if meta.get("node_type") == "array":
-                out[os.path.relpath(directory, path).replace(os.sep, "/")] = meta
-    return out
-
-
-def written_slots(path: str, nslots: int) -> np.ndarray:
-    """Which batch slots are complete (bool per slot)."""
-    out = np.zeros(nslots, dtype=bool)
-    for s in range(nslots):
-        shard = os.path.join(path, WRITTEN.shard_key(s))
-        try:
-            with open(shard, "rb") as f:
-                out[s] = f.read(1) == b"\x01"
-        except FileNotFoundError:
-            pass
-    return out
+def file_crc(path: str, chunk: int = 1 << 22) -> int:
+    """The CRC-32 of a file, read in blocks."""
+    crc = 0
+    with open(path, "rb", buffering=0) as f:
+        buffer = bytearray(chunk)
+        view = memoryview(buffer)
+        while True:
+            n = f.readinto(buffer)
+            if not n:
+                return crc
+            crc = zlib.crc32(view[:n], crc)

@@ -3,7 +3,9 @@ regeneration of a stored trajectory from its provenance."""
 
 from __future__ import annotations
 
+import functools
 import os
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, Optional
 
@@ -12,9 +14,10 @@ import torch
 
 from simloader import sharding
 from simloader.layout import did_you_mean
-from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, StoredArray, leaves,
-                                    list_arrays, read_json, written_slots)
+from simloader.store import integrity, order as orders
+from simloader.store.format import CHECKSUM, PROVENANCE, WRITTEN, DamagedStore, batch_key, leaves
 from simloader.store.provenance import differences, fingerprint
+from simloader.store.shards import MAX_OPEN, StoredArray
 
 
 def _nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
@@ -33,29 +36,34 @@ class StoredDataset(torch.utils.data.Dataset):
     trajectory `i`, a dict of tensors keyed as the batch was (`params` a dict of them),
     without the leading `nbatch`.
 
-    Only complete batch slots are seen, so a store still being written (or whose writer was
-    killed) is readable. Reading memory-maps the shards: a trajectory's float arrays are
-    slices of the files, copied once into the item's tensors; images are decoded per block of
-    frames. Safe in DataLoader workers (files are opened in each process).
+    Only committed batch slots are seen, so a store still being written (or whose writer was
+    killed) is readable. At open, every array's metadata is checked against the store's root
+    and every committed slot's shard files against their layout and recorded sizes (links
+    refused): a damaged store is refused with `DamagedStore`, naming each file and slot
+    (writing again with the same dataset repairs it). Reading memory-maps raw shards (a
+    trajectory's float arrays are slices of the files, copied once into the item's tensors)
+    and decodes images per block of frames; at most `shards.MAX_OPEN` shards are open per
+    process at any store size. Safe in DataLoader workers (files are opened in each process).
 
     Args:
       path: the store.
       keys: the batch keys to read (default: all but `provenance/`); `"params"` stands for
         all of `params/`.
+      verify: also read every committed shard and check its CRC-32 (as `git fsck`); damaged
+        slots are named.
     """
 
-    def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None):
+    def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None,
+                 verify: bool = False):
         self.path = os.fspath(path)
-        root = read_json(os.path.join(self.path, "zarr.json"))
-        if root is None or ATTRIBUTE not in root.get("attributes", {}):
-            raise ValueError(f"path: {self.path!r} is not a simloader store (no zarr.json "
-                             f"with a {ATTRIBUTE!r} attribute)")
-        self.info = root["attributes"][ATTRIBUTE]
-        if self.info.get("format") != FORMAT:
-            raise ValueError(f"path: store format {self.info.get('format')}, this simloader "
-                             f"reads format {FORMAT}")
-        metas = list_arrays(self.path)
-        available = [n for n in metas if not n.startswith("provenance/")]
+        if not isinstance(verify, bool):
+            raise ValueError(f"verify: expected True or False, got {verify!r}")
+        self.store = store = integrity.Store(self.path)
+        self.info = store.info
+        self.layouts = {batch_key(p, store.survey.metas[p]): layout
+                        for p, layout in store.layouts.items()
+                        if p not in (WRITTEN.name, CHECKSUM)}
+        available = [n for n in self.layouts if not n.startswith("provenance/")]
         if keys is None:
             names = available
         else:
@@ -67,25 +75,29 @@ class StoredDataset(torch.utils.data.Dataset):
                                    f"{did_you_mean(key, available)}; it has {sorted(available)}")
                 names += found
         self.keys = sorted(set(names))
-        self.nbatch = int(self.info["nbatch"])
-        slots = np.flatnonzero(written_slots(self.path, int(self.info["batches"])))
-        self.slots = slots  # complete batch slots, in order
-        self.metas = metas  # every array of the store: {name: zarr metadata}
-        self._open: Optional[tuple[int, dict[str, StoredArray]]] = None
+        self.nbatch = store.nbatch
+        self.slots = store.slots  # committed batch slots, in order
+        self.metas = {k: store.survey.metas[l.path] for k, l in self.layouts.items()}
+        damaged = store.damaged(verify=verify, progress=None)
+        if damaged:
+            raise DamagedStore(integrity.describe_damage(self.path, damaged))
 
     def __len__(self) -> int:
         return len(self.slots) * self.nbatch
 
+    @functools.cached_property
+    def _arrays(self) -> dict[str, StoredArray]:
+        return {k: StoredArray(self.path, layout) for k, layout in self.layouts.items()}
+
     def arrays(self) -> dict[str, StoredArray]:
-        """Every array of the store (a shard's file is opened at its first read), per
-        process: memory maps and file handles do not cross a fork cleanly."""
-        if self._open is None or self._open[0] != os.getpid():
-            self._open = (os.getpid(), {n: StoredArray(self.path, n, m)
-                                        for n, m in self.metas.items()})
-        return self._open[1]
+        """Every array of the store, by batch key (shards are opened at their first read,
+        in each process, and closed least recently used first)."""
+        return self._arrays
 
     def locate(self, i: int) -> tuple[int, int]:
         """(batch slot, row) of stored trajectory `i`."""
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
+            raise TypeError(f"StoredDataset: index must be an int, got {type(i).__name__}")
         if not -len(self) <= i < len(self):
             raise IndexError(f"StoredDataset: index {i} out of range for {len(self)} "
                              f"trajectories")
@@ -118,7 +130,8 @@ class StoredDataset(torch.utils.data.Dataset):
                            drop_flagged=diverged == "drop")
 
     def flagged(self) -> np.ndarray:
-        """Per stored trajectory: flagged `diverged` or `overflow` (bool)."""
+        """Per stored trajectory: flagged `diverged` or `overflow` (bool); read slot by slot
+        through the bounded table of open shards."""
         arrays = [a for n, a in self.arrays().items() if n in ("diverged", "overflow")]
         out = np.zeros(len(self), dtype=bool)
         for k, slot in enumerate(self.slots):
@@ -189,17 +202,24 @@ class Transitions(torch.utils.data.Dataset):
         self.nframes = int(metas[keys[0]]["shape"][1])
         self.first = 0 if keys == ("state",) else 1  # frame 0's predecessor is stored
         self.per = self.nframes - self.first
-        # the stored trajectories whose transitions these are
-        self.trajectories = (np.flatnonzero(~stored.flagged()) if drop_flagged else
-                             np.arange(len(stored)))
+        self.drop_flagged = drop_flagged
+        self.will_need = False  # read whole shards ahead (set by `loader` for block orders)
+
+    @functools.cached_property
+    def trajectories(self) -> np.ndarray:
+        """The stored trajectories whose transitions these are: read at the first use, not
+        when the view is made (it reads the flags of every slot)."""
+        return (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
+                np.arange(len(self.stored)))
 
     def __len__(self) -> int:
         return len(self.trajectories) * self.per
 
     def __getitem__(self, k: int | Sequence[int]) -> dict[str, torch.Tensor]:
-        """Transition `k`, or for a sequence of indices the batch of them (what `loader`'s
-        batch sampler asks for: no per-item tensors, no collation)."""
-        if isinstance(k, (int, np.integer)):
+        """Transition `k` (negative counts from the end; `IndexError` past it, which ends
+        iteration), or for a sequence of indices the batch of them (what `loader`'s batch
+        sampler asks for: no per-item tensors, no collation)."""
+        if isinstance(k, (int, np.integer)) and not isinstance(k, bool):
             return {n: v[0] for n, v in self.gather([k]).items()}
         return self.gather(k)
 
@@ -209,22 +229,44 @@ class Transitions(torch.utils.data.Dataset):
         out = self.gather(ks)
         return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
 
-    def loader(self, batch_size: int, shuffle: bool = True, drop_last: bool = False,
-               **kwargs: Any) -> torch.utils.data.DataLoader:
+    def loader(self, batch_size: int, order: str = "quasi_random", drop_last: bool = False,
+               window: Optional[int] = None, seed: Optional[int] = None,
+               shuffle: Optional[bool] = None, **kwargs: Any) -> torch.utils.data.DataLoader:
         """A DataLoader of batches of `batch_size` transitions, each read with one gather
-        per key and batch slot: a batch sampler hands the dataset all of a batch's indices
-        (`batch_size=None`), so no per-item tensors are made or collated. `kwargs` go to the
-        DataLoader (`num_workers=`, ...)."""
-        order = (torch.utils.data.RandomSampler(self) if shuffle else
-                 torch.utils.data.SequentialSampler(self))
-        return torch.utils.data.DataLoader(
-            self, batch_size=None,
-            sampler=torch.utils.data.BatchSampler(order, batch_size, drop_last), **kwargs)
+        per key and batch slot (a batch sampler hands the dataset all of a batch's indices,
+        `batch_size=None`: no per-item tensors are made or collated).
+
+        Args:
+          order: `"quasi_random"` (default: blocks of one batch slot's transitions in
+            shuffled order, `window` blocks shuffled together; an epoch over a store bigger
+            than memory reads each shard once, whole: see `simloader.store.order`),
+            `"random"` (a full permutation) or `"sequential"`.
+          window: blocks shuffled together (default: as many as the open-shard table holds).
+          seed: the orders' seed (default: drawn from torch's generator, as `shuffle=True`).
+          shuffle: the older spelling: True is `order="random"`, False `"sequential"`.
+          kwargs: to the DataLoader (`num_workers=`, ...).
+        """
+        if shuffle is not None:
+            order = "random" if shuffle else "sequential"
+        arrays = len(self.keys) + 2  # the state keys, control and initial_state
+        block = self.stored.nbatch * self.per  # one slot's transitions (where none dropped)
+        sampler = orders.BlockOrder(len(self), batch_size, order, block,
+                                    window or max(1, MAX_OPEN // (2 * arrays)), drop_last,
+                                    seed)
+        view = object.__new__(Transitions)
+        view.__dict__.update(self.__dict__)
+        view.will_need = order != "random"  # a block is read whole, a random item alone
+        return torch.utils.data.DataLoader(view, batch_size=None, sampler=sampler, **kwargs)
 
     def gather(self, ks: Sequence[int]) -> dict[str, torch.Tensor]:
         """The transitions `ks` as a dict of tensors `len(ks) x ...`: one gather per key and
         batch slot, from the memory-mapped shards."""
-        ks = np.asarray(ks, dtype=np.int64) % len(self)
+        ks = np.asarray(ks, dtype=np.int64).reshape(-1)
+        n = len(self)
+        if len(ks) and (ks.min() < -n or ks.max() >= n):
+            bad = int(ks[(ks < -n) | (ks >= n)][0])
+            raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
+        ks = ks % max(n, 1)
         trajectories, frames = np.divmod(ks, self.per)
         trajectories = self.trajectories[trajectories]
         frames += self.first
@@ -240,7 +282,7 @@ class Transitions(torch.utils.data.Dataset):
             r, f = rows[sel], frames[sel]
             gathered = {}
             for key in self.keys:
-                seq = arrays[key].slot(int(slot))
+                seq = arrays[key].slot(int(slot), self.will_need)
                 gathered["next/" + key] = seq[r, f]
                 before = seq[r, np.maximum(f - 1, 0)]
                 if key == "state" and (f == 0).any():

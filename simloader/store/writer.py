@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import sys
+import time
 from collections.abc import Iterator, Mapping
 from typing import Any, Optional
 
@@ -12,23 +14,33 @@ import numpy as np
 import torch
 
 from simloader import sharding
-from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, WRITTEN, ArraySpec, leaves,
-                                    read_json, safe_name, specs_of, write_json, write_shard,
-                                    written_slots, zstd)
+from simloader.atomic import parents, sync_directories
+from simloader.store import integrity, lock
+from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, WRITTEN, ArraySpec,
+                                    checksum_spec, inside, leaves, read_json, specs_of,
+                                    store_path, write_json, write_shard, zstd)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
 
-def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int) -> dict:
+def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int,
+                      create: bool) -> dict:
     """Creates the store's root, or checks that an existing one holds this configuration and
-    was written by as many ranks, and grows its size to `batches` slots. Every writer does
-    the same, with the same result."""
+    was written by as many ranks, and grows its size to `batches` slots. Only the lock's
+    holder (`create`) writes; the other ranks of its job check what it wrote."""
     mine = {**provenance(dataset, batches), "ranks": ranks}
     root = read_json(os.path.join(path, "zarr.json"))
     if root is not None:
-        stored = root.get("attributes", {}).get(ATTRIBUTE)
-        if stored is None or stored.get("format") != FORMAT:
+        stored = (root.get("attributes") or {}).get(ATTRIBUTE) if isinstance(root, dict) \
+            else None
+        if not isinstance(stored, dict) or stored.get("format") != FORMAT:
             raise StoreMismatch(f"path: {path!r} is not a simloader store of format {FORMAT} "
                                 f"(its root has no {ATTRIBUTE!r} attribute of that format)")
+        missing = [k for k in ("fingerprint", "versions", "batches", "describe")
+                   if k not in stored]
+        if missing:
+            raise StoreMismatch(f"path: the store at {path!r} lacks {missing} in its root's "
+                                f"{ATTRIBUTE!r} attribute ({os.path.join(path, 'zarr.json')} "
+                                f"was edited or damaged); write to a new path")
         differ = differences(stored["fingerprint"], mine["fingerprint"])
         if differ:
             raise StoreMismatch(f"path: the store at {path!r} holds another configuration; "
@@ -48,33 +60,42 @@ def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int) -> dict
                                 f"write to a new path")
         mine["batches"] = max(batches, stored["batches"])
         mine["describe"] = stored["describe"]
-    if root is None or mine["batches"] != root["attributes"][ATTRIBUTE]["batches"]:
-        write_json(os.path.join(path, "zarr.json"), {
-            "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: mine}})
+    if create and (root is None or mine["batches"] != stored["batches"]):
+        # the slots' array first: a root never names more slots than `written` holds
         _ensure_array(path, WRITTEN, mine["batches"])
+        write_json(os.path.join(path, "zarr.json"), {
+            "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: mine}},
+            durable=True)
+        sync_directories([path])
+    elif not create and (root is None or stored["batches"] < batches):
+        raise StoreMismatch(f"path: rank 0 did not create the store at {path!r} for "
+                            f"{batches} batches")
     return mine
 
 
 def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
-    """Writes the array's metadata (and its groups'), or grows it; refuses another shape or
-    dtype under the same name."""
+    """Writes the array's metadata (and its groups'), durably, or grows it; refuses another
+    shape or dtype under the same name."""
     parts = spec.name.split("/")
     for depth in range(1, len(parts)):
-        group = os.path.join(path, *parts[:depth], "zarr.json")
+        group = inside(path, "/".join(parts[:depth] + ["zarr.json"]))
         if not os.path.exists(group):
-            write_json(group, {"zarr_format": 3, "node_type": "group", "attributes": {}})
-    where = os.path.join(path, spec.name, "zarr.json")
+            write_json(group, {"zarr_format": 3, "node_type": "group", "attributes": {}},
+                       durable=True)
+    where = inside(path, spec.name + "/zarr.json")
     wanted = spec.metadata(ntrajectories)
     existing = read_json(where)
     if existing is not None:
         if {**existing, "shape": None} != {**wanted, "shape": None}:
-            raise StoreMismatch(f"path: the store's array {spec.name!r} has shape "
-                                f"{existing['shape']} and dtype {existing['data_type']}; "
-                                f"this dataset's batches give {wanted['shape']} and "
-                                f"{wanted['data_type']}")
+            raise StoreMismatch(f"path: the store's array {spec.name!r} ({where}) has shape "
+                                f"{existing.get('shape')}, dtype {existing.get('data_type')} "
+                                f"and attributes {existing.get('attributes')}; this dataset's "
+                                f"batches give {wanted['shape']}, {wanted['data_type']} and "
+                                f"{wanted['attributes']}")
         if existing["shape"][0] >= ntrajectories:
             return
-    write_json(where, wanted)
+    write_json(where, wanted, durable=True)
+    sync_directories(parents(where, path))
 
 
 def slots_of(rank: int, world: int, batches: int) -> int:
@@ -114,6 +135,7 @@ class _Writer(torch.utils.data.IterableDataset):
                 specs = {s.name: s for s in specs_of(batch, ds.config.nbatch)}
                 for spec in specs.values():
                     _ensure_array(self.path, spec, self.batches * ds.config.nbatch)
+                _ensure_array(self.path, checksum_spec(list(specs.values())), self.batches)
             _write_slot(self.path, specs, slot, batch, ds.config.nbatch,
                         (shard.rank, index, shard.num_workers))
             yield slot, ds.config.nbatch, int(batch["diverged"].sum())
@@ -121,38 +143,61 @@ class _Writer(torch.utils.data.IterableDataset):
 
 def _write_slot(path: str, specs: dict[str, ArraySpec], slot: int, batch: Mapping[str, Any],
                 nbatch: int, where: tuple[int, int, int]) -> None:
+    """Commits one batch slot: its shards (each fsync'd, then renamed), the directories that
+    name them, the shards' sizes and checksums, and last the mark that it is complete."""
     rank, index, num_workers = where
+    rows_of = {}
     for name, value in leaves(batch):
-        spec = specs[safe_name(name)]
+        spec = specs[store_path(name)]
         rows = value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else value
         if spec.trailing == () and np.ndim(rows) == 0:  # one per batch: one per trajectory
             rows = np.full(nbatch, rows, dtype=spec.dtype)
-        write_shard(path, spec, slot, rows)
+        rows_of[spec.name] = rows
     for p, value in zip(PROVENANCE, (rank, index, None, num_workers)):
-        rows = np.arange(nbatch) if p == "row" else np.full(nbatch, value)
-        write_shard(path, specs["provenance/" + p], slot, rows)
-    write_shard(path, WRITTEN, slot, np.ones(1, dtype=bool))  # last: the slot is complete
+        rows_of["provenance/" + p] = np.arange(nbatch) if p == "row" else np.full(nbatch, value)
+    checksums = checksum_spec(list(specs.values()))
+    names = dict(checksums.attributes)["arrays"]
+    recorded = np.zeros((1, len(names), 2), dtype=np.uint64)
+    directories: set[str] = set()
+    for k, name in enumerate(names):
+        size, crc, changed = write_shard(path, specs[name], slot, rows_of[name])
+        recorded[0, k] = (size, crc)
+        directories.update(changed)
+    sync_directories(directories)  # the shards are on the disk under their names
+    _, _, changed = write_shard(path, checksums, slot, recorded)
+    sync_directories(changed)
+    _, _, changed = write_shard(path, WRITTEN, slot, np.ones(1, dtype=bool))  # last
+    sync_directories(changed)
 
 
 def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = "zarr",
-          num_workers: int = 0, progress: bool = True) -> str:
+          num_workers: int = 0, progress: bool = True, replace: bool = False) -> str:
     """Streams `batches` batches of `dataset` into a store at `path` and returns the path.
 
-    `format="zarr"`: a zarr v3 group (see this module's docstring for the layout); every batch
-    key becomes an array `batches * nbatch x ...` in its own dtype. `batches` counts all
-    ranks' batches: under torchrun each rank calls `write` with the same arguments and
+    `format="zarr"`: a zarr v3 group (see `simloader.store.format` for the layout); every
+    batch key becomes an array `batches * nbatch x ...` in its own dtype. `batches` counts
+    all ranks' batches: under torchrun each rank calls `write` with the same arguments and
     writes its own slots. `num_workers > 0` simulates and writes in DataLoader workers, each
     its own slots. At most `prefetch + 1` batches per worker are in memory.
 
-    An existing store of the same configuration is resumed: slots already complete are
-    skipped (a killed writer loses the batch in flight only), and a larger `batches` appends.
-    One of another configuration or simulator version is refused, naming what differs.
+    One job writes a store at a time: the store's lock (`simloader.store.lock`) is held from
+    start to end, and a second process is refused at once, naming the holder. A killed
+    writer's lock is taken over. Every slot is committed durably (fsync'd files and
+    directories) with each shard's size and CRC-32.
+
+    An existing store of the same configuration is resumed: every committed slot is checked
+    (sizes and checksums, every byte read) and the damaged ones are written again with the
+    missing ones (a killed writer loses the batches in flight only; files it left half
+    written are removed), and a larger `batches` appends. One of another configuration or
+    simulator version is refused, naming what differs; `replace=True` removes it first.
 
     `format="minari"`: a Minari dataset (see `simloader.store.minari`), named after the last
     component of `path`, under its parent directory.
 
     Raises:
-      ValueError: bad arguments; a store of another configuration at `path`.
+      ValueError: bad arguments; a store of another configuration at `path`; a store whose
+        metadata is damaged (`DamagedStore`, naming the file).
+      StoreLocked: another job is writing the store.
       OSError: the disk is full or not writable (the store stays readable, holding the
         batches completed so far; writing again resumes).
     """
@@ -160,22 +205,40 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
         raise ValueError(f"batches: expected a positive int, got {batches!r}")
     if not isinstance(num_workers, int) or num_workers < 0:
         raise ValueError(f"num_workers: expected an int >= 0, got {num_workers!r}")
+    if not isinstance(replace, bool):
+        raise ValueError(f"replace: expected True or False, got {replace!r}")
     path = os.fspath(path)
     if format == "minari":
         from simloader.store import minari
         return minari.write(dataset, path, batches=batches, progress=progress,
-                            metadata=provenance(dataset, batches))
+                            metadata=provenance(dataset, batches), replace=replace)
     if format != "zarr":
         raise ValueError(f"format: expected 'zarr' or 'minari', got {format!r}")
     if any(o.rendered for o in dataset.config.observations):
         zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
     rank = sharding.distributed_rank() or (0, 1)
+    job = lock.job_id(rank[1])
+    held = lock.WriterLock(path, job) if rank[0] == 0 else None
     try:
-        info = _open_for_writing(path, dataset, batches, rank[1])
+        if held is not None:
+            try:
+                held.acquire()
+                if replace:
+                    _clear(path)
+                info = _open_for_writing(path, dataset, batches, rank[1], create=True)
+                integrity.remove_partial(integrity.survey(path))  # no writer runs now
+            except Exception as e:
+                _rank_zero_ready(path, job, rank, error=e)  # the other ranks stop too
+                raise
+        _rank_zero_ready(path, job, rank, error=None)
+        if held is None:
+            lock.check_joined(path, job, rank[0])
+            info = _open_for_writing(path, dataset, batches, rank[1], create=False)
         batches = info["batches"]
         total = slots_of(rank[0], rank[1], batches)
-        done = written_slots(path, batches)
-        already = int(sum(done[i * rank[1] + rank[0]] for i in range(total)))
+        mine = [i * rank[1] + rank[0] for i in range(total)]
+        done = _committed(path, mine, progress)
+        already = int(done[mine].sum())
         loader = torch.utils.data.DataLoader(
             _Writer(dataset, path, batches, rank, done), batch_size=None,
             num_workers=num_workers,
@@ -188,14 +251,82 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
                     bar.set_postfix(diverged=diverged, refresh=False)
         finally:
             bar.close()
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.barrier()  # complete when every rank's part is; rank 0 unlocks
     except OSError as e:
         raise OSError(e.errno, f"write: {e.strerror or e} while writing the store at "
                                f"{path!r}; it stays readable with the batches completed so "
                                f"far, and calling write again resumes after them",
                       e.filename) from e
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        torch.distributed.barrier()  # the store is complete when every rank's part is
+    finally:
+        if held is not None:
+            held.release()
     return path
+
+
+def _committed(path: str, mine: list[int], progress: bool) -> np.ndarray:
+    """Per slot of the store, whether it is committed and intact: this rank's committed
+    slots are checked (sizes and every checksum); a damaged one loses its mark, durably, so
+    that it is written again and no reader takes it meanwhile."""
+    store = integrity.Store(path)
+    done = np.zeros(store.batches, dtype=bool)
+    done[store.slots] = True
+    check = [s for s in mine if done[s]]
+    if not check:
+        return done
+    from tqdm import tqdm
+    with tqdm(total=len(check), unit="slot", desc=f"check {path}", disable=not progress,
+              file=sys.stderr, leave=False) as bar:
+        damaged = store.damaged(check, verify=True, progress=bar.update)
+    for slot in damaged:
+        marker = os.path.join(path, WRITTEN.shard_key(slot))
+        os.unlink(marker)
+        sync_directories([os.path.dirname(marker)])
+        done[slot] = False
+    return done
+
+
+def _clear(path: str) -> None:
+    """`replace=True`: everything in the store but its lock (which this process holds)."""
+    for entry in os.scandir(path):
+        if entry.name == lock.FILE:
+            continue
+        if entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path)
+        else:
+            os.unlink(entry.path)
+    sync_directories([path])
+
+
+def _rank_zero_ready(path: str, job: str, rank: tuple[int, int],
+                     error: Optional[BaseException]) -> None:
+    """The other ranks of a job write once rank 0 holds the lock and made the root: with a
+    process group, rank 0 says so (or that it failed) by a broadcast; without one, they wait
+    for the lock file to name their job."""
+    if rank[1] == 1:
+        return
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        backend = torch.distributed.get_backend()
+        device = (torch.device("cuda", torch.cuda.current_device()) if "nccl" in str(backend)
+                  else torch.device("cpu"))
+        flag = torch.tensor([0 if error is not None else 1], device=device)
+        torch.distributed.broadcast(flag, src=0)
+        if rank[0] != 0 and not int(flag.item()):
+            raise lock.StoreLocked(f"path: rank 0 could not open the store at {path!r} for "
+                                   f"writing (it says why); held by "
+                                   f"{lock.describe(lock.holder(path))}")
+        return
+    if rank[0] != 0:
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline:
+            info = lock.holder(path)
+            if info and info.get("job") == job and \
+                    read_json(os.path.join(path, "zarr.json")) is not None:
+                return
+            time.sleep(0.2)
+        raise lock.StoreLocked(f"path: rank {rank[0]} waited 600 s for its rank 0 to lock the "
+                               f"store at {path!r}; it is held by "
+                               f"{lock.describe(lock.holder(path))}")
 
 
 def _worker_start(dataset: Any) -> Optional[str]:

@@ -1,0 +1,76 @@
+"""The orders an epoch reads a store in, as batch samplers (lists of indices per batch).
+
+`"quasi_random"` (FFCV's answer to datasets bigger than memory): the indices are cut into
+blocks of consecutive items (a block is about one batch slot: one shard file per array), the
+blocks are shuffled, and `window` blocks at a time are read and their items shuffled
+together. Each shard file is then read once per epoch, whole and in order, so an epoch runs
+at the disk's sequential speed; batches mix `window` random places of the store. `"random"`
+is a full permutation (every batch from everywhere: one small read per item on a store the
+page cache cannot hold); `"sequential"` is the stored order.
+
+`mean_jump` measures how random an order is: the mean distance between consecutive indices
+of a batch, which is about n/3 for a uniform permutation of n and 1 for the stored order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Optional
+
+import numpy as np
+import torch
+
+ORDERS = ("quasi_random", "random", "sequential")
+
+
+class BlockOrder(torch.utils.data.Sampler):
+    """Batches of `batch_size` indices of `range(n)` in one of `ORDERS`; a new order each
+    epoch, drawn from `seed` and the epoch's number (reproducible, as a seeded sampler)."""
+
+    def __init__(self, n: int, batch_size: int, order: str = "quasi_random", block: int = 1,
+                 window: int = 8, drop_last: bool = False, seed: Optional[int] = None):
+        if order not in ORDERS:
+            raise ValueError(f"order: expected one of {ORDERS}, got {order!r}")
+        if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
+            raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
+        if not isinstance(window, int) or isinstance(window, bool) or window < 1:
+            raise ValueError(f"window: expected a positive int (blocks shuffled together), "
+                             f"got {window!r}")
+        self.n, self.batch_size, self.order = n, batch_size, order
+        self.block, self.window, self.drop_last = max(1, int(block)), window, drop_last
+        self.seed = int(torch.empty((), dtype=torch.int64).random_().item()) \
+            if seed is None else seed
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return self.n // self.batch_size if self.drop_last else -(-self.n // self.batch_size)
+
+    def indices(self, epoch: int) -> np.ndarray:
+        """Every index once, in this epoch's order."""
+        if self.order == "sequential":
+            return np.arange(self.n)
+        rng = np.random.default_rng([self.seed, epoch])
+        if self.order == "random":
+            return rng.permutation(self.n)
+        starts = rng.permutation(np.arange(0, self.n, self.block))
+        out = np.empty(self.n, dtype=np.int64)
+        filled = 0
+        for w in range(0, len(starts), self.window):
+            window = np.concatenate([np.arange(s, min(s + self.block, self.n))
+                                     for s in starts[w:w + self.window]])
+            out[filled:filled + len(window)] = rng.permutation(window)
+            filled += len(window)
+        return out
+
+    def __iter__(self) -> Iterator[list[int]]:
+        order = self.indices(self.epoch)
+        self.epoch += 1
+        stop = len(self) * self.batch_size
+        for start in range(0, min(stop, self.n), self.batch_size):
+            yield order[start:start + self.batch_size].tolist()
+
+
+def mean_jump(batches: list[list[int]]) -> float:
+    """The mean |difference| of consecutive indices within batches (n/3 for uniform)."""
+    jumps = [np.abs(np.diff(np.asarray(b))) for b in batches if len(b) > 1]
+    return float(np.concatenate(jumps).mean()) if jumps else 0.0
