@@ -82,7 +82,7 @@ def epoch(transitions, order: str, batch: int, workers: int, seconds: float,
     """(seconds, transitions read, mean jump) of one epoch in `order`, or of `seconds` of it."""
     loader = transitions.loader(batch, order=order, num_workers=workers, seed=seed,
                                 persistent_workers=False)
-    jump = orders.mean_jump(list(loader.sampler)[:200])
+    jump = orders.mean_jump(loader.sampler)
     count, start = 0, time.perf_counter()
     for item in common.progress(loader, f"{order} epoch", total=len(loader)):
         count += len(item["control"])
@@ -104,12 +104,11 @@ def main() -> None:
     p.add_argument("--random-seconds", type=float, default=120.0)
     p.add_argument("--folder", help="where the store goes (default: a temporary folder)")
     p.add_argument("--keep", action="store_true", help="keep the store")
-    p.add_argument("--quick", action="store_true")
     common.add_output_options(p)
     args = p.parse_args()
 
     model = simloader.load_model(args.model)
-    ds = simloader.SimDataset(model, backend="cpu", nbatch=args.nbatch, nstep=args.nstep,
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=args.nbatch, nstep=args.nstep,
                               control=simloader.controls.Uniform(), record=("state",),
                               nthread=common.cpu_count())
     nstate = mujoco_state_size(model)
@@ -186,9 +185,7 @@ def plot(args, speeds: dict[str, float]) -> None:
     ax.set_xlabel("MB/s from a cold page cache")
     ax.set_title("Reading a store bigger than memory")
     fig.tight_layout()
-    out = common.result_path(args, "bench_store_epoch", ".png")
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
+    common.save_figure(args, "bench_store_epoch", fig)
 
 
 if __name__ == "__main__":

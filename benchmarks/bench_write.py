@@ -9,8 +9,10 @@ rollout backend, performance.md).
 
 Reading: `StoredDataset` of the last store written, through `DataLoader(shuffle=True,
 num_workers=--read-workers)` as trajectories (`--read-batch` per batch) and as transitions
-(`StoredDataset.transitions().loader(4096)`), for `--read-seconds` each after a warm-up
-batch, in transitions per second (target: 1M with 2 workers on the 2-core machine).
+(`StoredDataset.transitions().loader(4096, order=)` in random and quasi-random order), for
+`--read-seconds` each after a warm-up batch, in transitions per second (target: 1M with 2
+workers on the 2-core machine). The store fits in the page cache here: an epoch over one
+bigger than memory is `bench_store_epoch.py`'s.
 
     python benchmarks/bench_write.py --quick
     python benchmarks/bench_write.py --save                      # the 2-core figures
@@ -133,13 +135,14 @@ def main() -> None:
                 stored, batch_size=min(args.read_batch, len(stored)), shuffle=True, **workers),
                 w.nstep, args.read_seconds)
             transitions = stored.transitions()
-            trans = read_rate(transitions.loader(min(args.transition_batch, len(transitions)),
-                                                 **workers), 1, args.read_seconds)
+            batch = min(args.transition_batch, len(transitions))
+            trans, quasi = (read_rate(transitions.loader(batch, order=order, **workers), 1,
+                                      args.read_seconds) for order in ("random", "quasi_random"))
             cost = 1 - wrote / gen
             rows.append([str(w), f"{gen / 1e6:.3f}M", f"{wrote / 1e6:.3f}M",
                          f"{cost:.1%} ({'met' if cost <= TARGET_COST else 'missed'})",
                          f"{size / 2**20 / nbatches:.1f} MiB",
-                         f"{traj / 1e6:.2f}M", f"{trans / 1e6:.2f}M"])
+                         f"{traj / 1e6:.2f}M", f"{trans / 1e6:.2f}M; {quasi / 1e6:.2f}M"])
             for name, value in (("generate", gen), ("generate + write", wrote)):
                 plot[name][0].append(str(w))
                 plot[name][1].append(value)
@@ -150,7 +153,7 @@ def main() -> None:
     headers = ["workload", "generate steps/s", "generate + write steps/s",
                f"write cost (target <= {TARGET_COST:.0%})", "store per batch",
                f"read: trajectories, transitions/s ({args.read_workers} workers)",
-               "read: transitions view, transitions/s"]
+               "read: transitions view, transitions/s (random; quasi_random order)"]
     table = common.markdown_table(headers, rows)
     recorded = " + ".join(args.record + ([f"camera {args.camera} RGB"] if args.camera else []))
     notes = (f"backend={args.backend!r}{f', impl={args.impl!r}' if args.backend == 'mjx' else ''}"
@@ -158,7 +161,7 @@ def main() -> None:
              f"{args.repeats} alternating repetitions; writes timed until os.sync() returns. "
              f"Reads: DataLoader(shuffle=True, num_workers={args.read_workers}), "
              f"{args.read_batch} trajectories per batch, or transitions().loader"
-             f"({args.transition_batch}), "
+             f"({args.transition_batch}, order='random' or 'quasi_random'), "
              f"{args.read_seconds:.0f} s each (target {TARGET_READ / 1e6:.0f}M transitions/s).")
     common.report(args, "bench_write", "Writing and reading simloader stores", [notes, table])
     if args.save:
@@ -179,9 +182,7 @@ def _bars(args, plot: dict) -> None:
     ax.set_title("simloader.write: generation kept while writing")
     ax.legend()
     fig.tight_layout()
-    path = common.result_path(args, "bench_write", ".png")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    common.save_figure(args, "bench_write", fig)
 
 
 if __name__ == "__main__":

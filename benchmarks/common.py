@@ -218,6 +218,17 @@ def report(args: argparse.Namespace, name: str, title: str, sections: Sequence[s
     print("\n\n".join(sections))
 
 
+def save_figure(args: argparse.Namespace, name: str, fig: Any) -> pathlib.Path:
+    """Saves a matplotlib figure as a PNG next to the results and closes it."""
+    import matplotlib.pyplot as plt
+    path = result_path(args, name, ".png")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    print(f"saved {path}", file=sys.stderr)
+    return path
+
+
 def save_plot(args: argparse.Namespace, name: str, series: dict[str, tuple[list, list]],
               xlabel: str, ylabel: str, title: str, log: bool = True) -> Optional[pathlib.Path]:
     """A line plot of `{label: (x, y)}` (log-log unless `log` is False), saved as a PNG next
@@ -241,9 +252,4 @@ def save_plot(args: argparse.Namespace, name: str, series: dict[str, tuple[list,
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    path = result_path(args, name, ".png")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    print(f"saved {path}", file=sys.stderr)
-    return path
+    return save_figure(args, name, fig)

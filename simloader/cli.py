@@ -15,6 +15,7 @@ import torch
 from tqdm import tqdm
 
 import simloader
+from simloader.store import StoreLocked
 from simloader import observe, sharding
 
 DEFAULT_MODEL = "cartpole"
@@ -110,9 +111,12 @@ def quickstart(args: argparse.Namespace) -> None:
 
 def write(args: argparse.Namespace) -> None:
     ds = stream_dataset(args)
-    with from_arguments():
-        path = simloader.write(ds, args.out, batches=args.batches, format=args.format,
-                               num_workers=args.num_workers)
+    try:
+        with from_arguments():
+            path = simloader.write(ds, args.out, batches=args.batches, format=args.format,
+                                   num_workers=args.num_workers, replace=args.replace)
+    except StoreLocked as e:  # another job writes it: a message, not a traceback
+        raise SystemExit(f"simloader write: {e}") from None
     print(f"simloader {simloader.__version__}: wrote {args.batches} x {args.nbatch} "
           f"trajectories of {args.nstep} steps of {args.model!r} to {path} ({args.format})")
     if args.format == "zarr":
@@ -211,6 +215,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="names to record, comma-separated (default: state,sensordata)")
     wr.add_argument("--num-workers", type=int, default=0,
                     help="DataLoader workers that simulate and write in parallel")
+    wr.add_argument("--replace", action="store_true",
+                    help="replace a store (or Minari dataset) of other settings at --out "
+                         "instead of refusing it")
     wr.set_defaults(run=write)
 
     i = sub.add_parser("info", help="print which state/control/sensor columns mean what")

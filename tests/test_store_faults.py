@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import simloader
+import simloader.cli
 from simloader.store import format as store_format, lock, order
 from simloader.store.shards import MAX_OPEN, DamagedStore
 
@@ -97,9 +98,10 @@ def test_quasi_random_order_reads_blocks_and_visits_every_index_once():
     assert sorted(flat.tolist()) == list(range(n))
     # each window's batches come from at most `window` blocks (+1 where a batch straddles two)
     assert max(len(np.unique(np.asarray(b) // block)) for b in batches) <= 8
-    quasi = order.mean_jump(batches)
-    random = order.mean_jump(list(order.BlockOrder(n, 256, "random", seed=1)))
-    sequential = order.mean_jump(list(order.BlockOrder(n, 256, "sequential")))
+    assert all(b == sorted(b) for b in batches)  # a batch is a set, read in file order
+    quasi = order.mean_jump(sampler)
+    random = order.mean_jump(order.BlockOrder(n, 256, "random", seed=1))
+    sequential = order.mean_jump(order.BlockOrder(n, 256, "sequential"))
     assert sequential == 1.0 and 50 < quasi < random and random > n / 4
     again = order.BlockOrder(n, 256, "quasi_random", block=block, window=4, seed=1)
     assert list(again)[0] == batches[0] and list(again)[0] != batches[0]  # a new order per epoch
@@ -285,3 +287,16 @@ def test_edited_metadata_is_refused_naming_the_file(tmp_path):
     os.symlink(shard(path, "state", 0), shard(path, "state", 1))
     with pytest.raises(DamagedStore, match=r"holds links.*state/c/1/0/0"):
         simloader.StoredDataset(path)
+
+
+def test_the_cli_refuses_a_locked_store_with_a_message(tmp_path, capsys):
+    path = str(tmp_path / "c.zarr")
+    held = lock.WriterLock(path, "another-job").acquire()
+    try:
+        with pytest.raises(SystemExit, match=rf"simloader write: path: the store at .* is "
+                                             rf"being written by process {os.getpid()}"):
+            simloader.cli.main(["write", "cartpole", "--out", path, "--backend", "rollout",
+                                "--nbatch", "2", "--nstep", "3", "--batches", "1"])
+    finally:
+        held.release()
+    assert lock.holder(path) is None

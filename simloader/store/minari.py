@@ -109,6 +109,7 @@ from typing import Any, Callable, Iterable, Iterator, Mapping, Optional
 import numpy as np
 
 from simloader import sharding
+from simloader.atomic import atomic_write
 
 __all__ = ["write_minari", "write", "status", "INCOMPLETE_MARK", "PROGRESS_KEYS"]
 
@@ -398,12 +399,8 @@ def _read_metadata(dataset_dir: str) -> dict:
 
 
 def _atomic_json(where: str, value: dict) -> None:
-    tmp = f"{where}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(value, f, default=list)  # Minari stores author sets as lists
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, where)
+    # Minari stores author sets as lists
+    atomic_write(where, [json.dumps(value, default=list).encode()], durable=True)
 
 
 def _put_metadata(dataset_dir: str, raw: dict) -> None:

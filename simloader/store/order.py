@@ -9,7 +9,9 @@ is a full permutation (every batch from everywhere: one small read per item on a
 page cache cannot hold); `"sequential"` is the stored order.
 
 `mean_jump` measures how random an order is: the mean distance between consecutive indices
-of a batch, which is about n/3 for a uniform permutation of n and 1 for the stored order.
+of the epoch's order, which is about n/3 for a uniform permutation of n and 1 for the stored
+order. (Each batch is handed over sorted: a batch is a set, and sorted it is read in the
+files' order.)
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ ORDERS = ("quasi_random", "random", "sequential")
 
 
 class BlockOrder(torch.utils.data.Sampler):
-    """Batches of `batch_size` indices of `range(n)` in one of `ORDERS`; a new order each
-    epoch, drawn from `seed` and the epoch's number (reproducible, as a seeded sampler)."""
+    """Batches of `batch_size` indices of `range(n)` in one of `ORDERS`, each batch's indices
+    in increasing order; a new order each epoch, drawn from `seed` and the epoch's number
+    (reproducible, as a seeded sampler)."""
 
     def __init__(self, n: int, batch_size: int, order: str = "quasi_random", block: int = 1,
                  window: int = 8, drop_last: bool = False, seed: Optional[int] = None):
@@ -67,10 +70,12 @@ class BlockOrder(torch.utils.data.Sampler):
         self.epoch += 1
         stop = len(self) * self.batch_size
         for start in range(0, min(stop, self.n), self.batch_size):
-            yield order[start:start + self.batch_size].tolist()
+            # a batch is a random set: handed over in increasing order, it is read in the
+            # files' order (and `Transitions.gather` needs no reordering)
+            yield np.sort(order[start:start + self.batch_size]).tolist()
 
 
-def mean_jump(batches: list[list[int]]) -> float:
-    """The mean |difference| of consecutive indices within batches (n/3 for uniform)."""
-    jumps = [np.abs(np.diff(np.asarray(b))) for b in batches if len(b) > 1]
-    return float(np.concatenate(jumps).mean()) if jumps else 0.0
+def mean_jump(sampler: BlockOrder, epoch: int = 0) -> float:
+    """The mean |difference| of consecutive indices of an epoch's order (n/3 for uniform)."""
+    indices = sampler.indices(epoch)
+    return float(np.abs(np.diff(indices)).mean()) if len(indices) > 1 else 0.0

@@ -179,6 +179,12 @@ class StoredDataset(torch.utils.data.Dataset):
         return _nest({n: v.detach().cpu().clone() for n, v in out.items()})
 
 
+def _take(rows: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:
+    """`out[:] = rows[at]` (rows of a 2-D view of a shard) with no temporary: the indices
+    are in range by construction, and mode "clip" skips the bounds pass that buffers `out`."""
+    np.take(rows, at, axis=0, out=out.reshape(-1, rows.shape[1]), mode="clip")
+
+
 class Transitions(torch.utils.data.Dataset):
     """The transitions of a store: item `k` is `{KEY: s_t, "control": a_t, "next/KEY": s_t+1}`
     for every state key, over the trajectories not flagged diverged (by default). With
@@ -259,14 +265,19 @@ class Transitions(torch.utils.data.Dataset):
         return torch.utils.data.DataLoader(view, batch_size=None, sampler=sampler, **kwargs)
 
     def gather(self, ks: Sequence[int]) -> dict[str, torch.Tensor]:
-        """The transitions `ks` as a dict of tensors `len(ks) x ...`: one gather per key and
-        batch slot, from the memory-mapped shards."""
+        """The transitions `ks` as a dict of tensors `len(ks) x ...`: per key and batch slot
+        one `np.take` from the memory-mapped shard straight into the batch's tensor (indices
+        in increasing order, as `loader` hands them, need no reordering afterwards)."""
         ks = np.asarray(ks, dtype=np.int64).reshape(-1)
         n = len(self)
         if len(ks) and (ks.min() < -n or ks.max() >= n):
             bad = int(ks[(ks < -n) | (ks >= n)][0])
             raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
         ks = ks % max(n, 1)
+        ascending = bool((ks[1:] >= ks[:-1]).all())
+        order = None if ascending else np.argsort(ks, kind="stable")
+        if order is not None:
+            ks = ks[order]
         trajectories, frames = np.divmod(ks, self.per)
         trajectories = self.trajectories[trajectories]
         frames += self.first
@@ -277,23 +288,27 @@ class Transitions(torch.utils.data.Dataset):
         columns = self._allocate(len(ks), arrays)
         filled = {k: v.numpy() for k, v in columns.items()}  # the same memory, for numpy
         steps = np.arange(self.every)
-        for slot in np.unique(slots):
-            sel = np.flatnonzero(slots == slot)
-            r, f = rows[sel], frames[sel]
-            gathered = {}
+        bounds = np.flatnonzero(slots[1:] != slots[:-1]) + 1
+        for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(ks)]])):
+            slot, r, f = int(slots[a]), rows[a:b], frames[a:b]
             for key in self.keys:
-                seq = arrays[key].slot(int(slot), self.will_need)
-                gathered["next/" + key] = seq[r, f]
-                before = seq[r, np.maximum(f - 1, 0)]
+                seq = arrays[key].slot(slot, self.will_need)  # nbatch x nframes x ...
+                flat = seq.reshape(seq.shape[0] * seq.shape[1], -1)
+                at = r * seq.shape[1] + f
+                _take(flat, at, filled["next/" + key][a:b])
+                _take(flat, at - (f > 0), filled[key][a:b])  # frame 0: itself, fixed below
                 if key == "state" and (f == 0).any():
-                    first = f == 0
-                    before[first] = arrays["initial_state"].slot(int(slot))[r[first]]
-                gathered[key] = before
-            control = arrays["control"].slot(int(slot))[r[:, None],
-                                                         f[:, None] * self.every + steps]
-            gathered["control"] = control[:, 0] if self.every == 1 else control
-            for name, values in gathered.items():
-                filled[name][sel] = values
+                    first = np.flatnonzero(f == 0)
+                    filled[key][a + first] = arrays["initial_state"].slot(
+                        slot, self.will_need)[r[first]]
+            control = arrays["control"].slot(slot, self.will_need)  # nbatch x nstep x ncontrol
+            flat = control.reshape(control.shape[0] * control.shape[1], -1)
+            at = (r * control.shape[1] + f * self.every)[:, None] + steps
+            _take(flat, at.reshape(-1), filled["control"][a:b])
+        if order is not None:  # back to the order asked for
+            inverse = np.empty_like(order)
+            inverse[order] = np.arange(len(order))
+            columns = {k: v[torch.from_numpy(inverse)] for k, v in columns.items()}
         return columns
 
     def _allocate(self, n: int, arrays: Mapping[str, StoredArray]) -> dict[str, torch.Tensor]:
