@@ -30,8 +30,6 @@ import shutil
 import tempfile
 import time
 
-import numpy as np
-import torch
 
 import common
 import simloader

@@ -39,7 +39,7 @@ def survey(root: str) -> Survey:
     links: list[str] = []
     partial: list[str] = []
 
-    def walk(directory: str, relative: str, array: Optional[str], depth: int) -> None:
+    def walk(directory: str, relative: str, array: Optional[str]) -> None:
         try:
             entries = list(os.scandir(directory))
         except OSError as e:
@@ -54,11 +54,11 @@ def survey(root: str) -> Survey:
                 partial.append(entry.path)
             elif entry.is_dir(follow_symlinks=False):
                 if array is not None:  # below ARRAY/c/: SLOT/0/0...
-                    walk(entry.path, rel, array, depth + 1)
+                    walk(entry.path, rel, array)
                 elif entry.name == "c" and relative in metas:
-                    walk(entry.path, "", relative, 0)
+                    walk(entry.path, "", relative)
                 else:
-                    walk(entry.path, rel, None, 0)
+                    walk(entry.path, rel, None)
             elif array is not None:
                 slot = rel.split("/")[0]
                 if slot.isdigit():
@@ -68,7 +68,7 @@ def survey(root: str) -> Survey:
                 meta = read_json(entry.path)
                 if isinstance(meta, dict) and meta.get("node_type") == "array":
                     metas[relative] = meta
-    walk(root, "", None, 0)
+    walk(root, "", None)
     return Survey(metas, sizes, links, partial)
 
 
@@ -81,21 +81,22 @@ def root_info(root: str) -> dict:
         raise ValueError(f"path: {root!r} is not a simloader store (no zarr.json with a "
                          f"{ATTRIBUTE!r} attribute)")
     info = meta["attributes"][ATTRIBUTE]
-    if not isinstance(info, dict) or info.get("format") != FORMAT:
-        raise ValueError(f"path: store format {info.get('format') if isinstance(info, dict) else info!r}, "
-                         f"this simloader reads format {FORMAT} ({file})")
-    for field in ("nbatch", "batches", "record_every"):
+    version = info.get("format") if isinstance(info, dict) else info
+    if version != FORMAT:
+        raise ValueError(f"path: store format {version!r}, this simloader reads format "
+                         f"{FORMAT} ({file})")
+    for field, least in (("nbatch", 1), ("batches", 0), ("record_every", 1)):
         value = info.get(field)
-        if not isinstance(value, int) or isinstance(value, bool) or value < (field == "batches" and 0 or 1):
+        if not isinstance(value, int) or isinstance(value, bool) or value < least:
             raise DamagedStore(f"{file}: the attribute {ATTRIBUTE}.{field} is {value!r}, "
-                               f"expected a positive int")
+                               f"expected an int >= {least}")
     return info
 
 
 class Store:
     """A store's layout and committed slots, checked against its files at open."""
 
-    def __init__(self, root: str, written_key: str = WRITTEN.name):
+    def __init__(self, root: str):
         self.root = root
         self.info = root_info(root)
         self.nbatch, self.batches = self.info["nbatch"], self.info["batches"]

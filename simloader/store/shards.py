@@ -18,6 +18,7 @@ import collections
 import dataclasses
 import mmap
 import os
+import secrets
 import stat
 import threading
 from typing import Any, Optional
@@ -30,7 +31,7 @@ from simloader.store.format import (_NO_CHUNK, _ZARR_DTYPES, DamagedStore, raw_s
 # Open shards per process: each is one map or one descriptor. Small enough to stay far below
 # the common `ulimit -n` of 256 to 1024 with DataLoader workers' pipes beside it, large enough
 # to hold every array of a window of quasi-random blocks (`order.QuasiRandom`).
-MAX_OPEN = 64
+MAX_OPEN = 128
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,15 +225,17 @@ class OpenShards:
     def __init__(self):
         self.lock = threading.Lock()
         self.pid = os.getpid()
-        self.table: collections.OrderedDict[tuple[str, int], ShardFile] = \
+        self.table: collections.OrderedDict[tuple[int, int], ShardFile] = \
             collections.OrderedDict()
 
-    def get(self, layout: ArrayLayout, root: str, slot: int, will_need: bool = False
-            ) -> ShardFile:
+    def get(self, token: int, layout: ArrayLayout, root: str, slot: int,
+            will_need: bool = False) -> ShardFile:
+        """The shard of `slot` of the array `token` names (one per `StoredArray`: a path is
+        not a key, a store may be written anew at the same path with another layout)."""
         with self.lock:
             if self.pid != os.getpid():
                 self.table, self.pid = collections.OrderedDict(), os.getpid()
-            key = (os.path.join(root, layout.path), slot)
+            key = (token, slot)
             shard = self.table.get(key)
             if shard is not None:
                 self.table.move_to_end(key)
@@ -240,7 +243,7 @@ class OpenShards:
             while len(self.table) >= MAX_OPEN:
                 self.table.popitem(last=False)[1].close()
             shard = self.table[key] = ShardFile(layout.shard_file(root, slot), layout, slot)
-        if will_need:
+        if will_need:  # once, when opened: the whole file is read ahead
             shard.will_need()
         return shard
 
@@ -258,17 +261,20 @@ class StoredArray:
         self.root, self.layout = root, layout
         self.dtype, self.trailing = layout.dtype, layout.trailing
         self.shard_shape = layout.shard_shape
+        # its shards' key in OPEN_SHARDS: random, so that copies sent to spawned workers
+        # never meet another array's key there
+        self.token = secrets.randbits(63)
 
     def trajectory(self, slot: int, row: int) -> np.ndarray:
         if self.layout.empty:
             return np.zeros(self.trailing, dtype=self.dtype)
-        return OPEN_SHARDS.get(self.layout, self.root, slot).trajectory(row)
+        return OPEN_SHARDS.get(self.token, self.layout, self.root, slot).trajectory(row)
 
     def slot(self, slot: int, will_need: bool = False) -> np.ndarray:
         """All rows of a batch slot (a view of the map where the shard is raw)."""
         if self.layout.empty:
             return np.zeros(self.shard_shape, dtype=self.dtype)
-        shard = OPEN_SHARDS.get(self.layout, self.root, slot, will_need)
+        shard = OPEN_SHARDS.get(self.token, self.layout, self.root, slot, will_need)
         if shard.rows is not None:
             return shard.rows
         return np.stack([shard.trajectory(r) for r in range(self.shard_shape[0])])

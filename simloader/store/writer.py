@@ -16,8 +16,8 @@ import torch
 from simloader import sharding
 from simloader.atomic import parents, sync_directories
 from simloader.store import integrity, lock
-from simloader.store.format import (ATTRIBUTE, FORMAT, PROVENANCE, WRITTEN, ArraySpec,
-                                    checksum_spec, inside, leaves, read_json, specs_of,
+from simloader.store.format import (ATTRIBUTE, CHECKSUM, FORMAT, PROVENANCE, WRITTEN,
+                                    ArraySpec, checksum_spec, inside, leaves, read_json, specs_of,
                                     store_path, write_json, write_shard, zstd)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
@@ -86,7 +86,11 @@ def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
     wanted = spec.metadata(ntrajectories)
     existing = read_json(where)
     if existing is not None:
-        if {**existing, "shape": None} != {**wanted, "shape": None}:
+        # attributes aside (stores written before the `key` attribute existed are extended
+        # too), but not the checksums' list of arrays
+        ignored = {"shape": None} if spec.name == CHECKSUM else {"shape": None,
+                                                                  "attributes": None}
+        if {**existing, **ignored} != {**wanted, **ignored}:
             raise StoreMismatch(f"path: the store's array {spec.name!r} ({where}) has shape "
                                 f"{existing.get('shape')}, dtype {existing.get('data_type')} "
                                 f"and attributes {existing.get('attributes')}; this dataset's "
