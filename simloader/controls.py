@@ -648,9 +648,16 @@ def _fixed_control(control: Any, nbatch: int, nstep: int, model: mujoco.MjModel,
             "control: expected None, an array [nbatch or 1] x [nstep or 1] x ncontrol, a "
             f"simloader.controls generator or a dict of them, got {type(control).__name__}")
     try:
-        arr = np.asarray(control.numpy() if hasattr(control, "numpy") and not isinstance(
-            control, np.ndarray) else control, dtype=np.float64)
+        given = np.asarray(control.numpy() if hasattr(control, "numpy") and not isinstance(
+            control, np.ndarray) else control)
+        if given.dtype.kind == "c":  # NumPy would drop the imaginary part with a warning
+            raise TypeError(f"control: expected real numbers, got a {given.dtype} array "
+                            f"(controls have no imaginary part: pass control.real if that "
+                            f"is what you mean)")
+        arr = given.astype(np.float64)
     except (TypeError, ValueError) as e:
+        if str(e).startswith("control:"):
+            raise
         raise TypeError(f"control: expected a numeric array, got {type(control).__name__} "
                         f"({e})") from e
     if arr.ndim != 3:

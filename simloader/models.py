@@ -7,6 +7,7 @@ import importlib.metadata
 import importlib.util
 import os
 import pathlib
+import warnings
 from typing import Any, Optional, Union
 
 import mujoco
@@ -83,21 +84,35 @@ def source(model: Any) -> str:
     text = os.fspath(model)
     if text.lstrip().startswith("<"):
         return "an XML string"
-    if not pathlib.Path(text).exists():
-        resolved = resolve_name(text)
-        if resolved is not None:
-            return f"{text!r}, {resolved[1]}: {resolved[0]}"
+    resolved = _named(text)
+    if resolved is not None:
+        return f"{text!r}, {resolved[1]}: {resolved[0]}"
     return str(pathlib.Path(text).resolve())
+
+
+def _named(text: str) -> Optional[tuple[pathlib.Path, str]]:
+    """The model a name stands for: one of `named_models()` ("cartpole", "gymnasium/hopper").
+    A name is the built-in model even where a file of that name is in the working directory
+    (a warning says so); a file is loaded by a path ("./cartpole", "/abs/cartpole") or a
+    suffix ("cartpole.xml"). One rule, so that a stray file never replaces a model silently."""
+    if pathlib.Path(text).suffix or text.startswith((".", "/", "~")):
+        return None  # a path
+    return resolve_name(text)
 
 
 def _path(text: str) -> pathlib.Path:
     """The file a path or model name stands for (ValueError naming the models otherwise)."""
+    resolved = _named(text)
+    if resolved is not None:
+        if pathlib.Path(text).exists():
+            warnings.warn(f"model: {text!r} is a built-in model name, and loads the built-in "
+                          f"model ({resolved[0]}), not the file {text!r} in the working "
+                          f"directory; pass './{text}' to load the file", UserWarning,
+                          stacklevel=4)
+        return resolved[0]
     path = pathlib.Path(text)
     if path.is_file():
         return path
-    resolved = resolve_name(text) if path.suffix == "" else None
-    if resolved is not None:
-        return resolved[0]
     raise ValueError(f"model: expected an MJCF/MJB path, an XML string, an MjModel, an MjSpec "
                      f"or a model name, got {text!r} (no such file or model); "
                      + _names_hint())

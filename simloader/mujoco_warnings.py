@@ -6,8 +6,12 @@ trajectories would print a line for every one that diverges, and leave a log fil
 while simloader already flags each one in `batch["diverged"]` and counts them in
 `ds.stats["diverged"]`. So while a simloader backend runs, MuJoCo's warning handler counts the
 messages; the first time any arrive, one Python warning says how many and what the first one
-was. A handler the user installed (`mujoco.set_mju_user_warning`) is left alone: it gets
-every message as before.
+was. When the last backend of the process closes (the stream ended, was broken out of and
+closed, or was written), MuJoCo's own handler is given back: the user's own `mj_step`
+warnings reach stderr and `MUJOCO_LOG.TXT` again. (While a backend runs, a warning of the
+user's own `mj_step` in the same process is counted with simloader's: MuJoCo has one handler
+per process.) A handler the user installed (`mujoco.set_mju_user_warning`) is left alone: it
+gets every message as before.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ _LOCK = threading.Lock()
 _COUNT = 0
 _FIRST = ""
 _SAID = False
-_INSTALLED = False
+_INSTALLED = False  # simloader's counter is MuJoCo's handler
+_HOLDERS = 0  # backends alive that asked for it
 
 
 def _count(message: str) -> None:
@@ -33,13 +38,25 @@ def _count(message: str) -> None:
 
 
 def install() -> None:
-    """Counts MuJoCo's warnings from now on, unless the user installed a handler."""
-    global _INSTALLED
+    """Counts MuJoCo's warnings from now until the matching `release`, unless the user
+    installed a handler."""
+    global _INSTALLED, _HOLDERS
     with _LOCK:
+        _HOLDERS += 1
         if _INSTALLED or mujoco.get_mju_user_warning() is not None:
             return
         mujoco.set_mju_user_warning(_count)
         _INSTALLED = True
+
+
+def release() -> None:
+    """The end of an `install`: the last one gives MuJoCo its own handler back."""
+    global _INSTALLED, _HOLDERS
+    with _LOCK:
+        _HOLDERS = max(0, _HOLDERS - 1)
+        if _HOLDERS == 0 and _INSTALLED:
+            mujoco.set_mju_user_warning(None)
+            _INSTALLED = False
 
 
 def count() -> int:

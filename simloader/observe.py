@@ -476,23 +476,32 @@ def check_batch_fits(config: Any, available: int, where: str, *, count: int,
     c = config
     nbytes = batch_nbytes(c.observations, c.nbatch, c.nframes, c.nstep, c.ncontrol, c.nstate,
                           itemsize)
-    check_fits(nbytes, available, where, nbatch=c.nbatch, record_every=c.record_every,
-               count=count)
+    check_fits(nbytes, available, where, nbatch=c.nbatch, nstep=c.nstep,
+               record_every=c.record_every, count=count)
 
 
-def check_fits(nbytes: int, available: int, where: str, *, nbatch: int, record_every: int,
-               count: int = 1) -> None:
+def check_fits(nbytes: int, available: int, where: str, *, nbatch: int, nstep: int,
+               record_every: int, count: int = 1) -> None:
     """Refuses a batch of `nbytes` whose `count` copies in flight need more than `available`
     bytes.
 
     Raises:
-      ValueError: with the size, what is available and what to reduce.
+      ValueError: with the size, what is available and what to reduce: `nbatch`, or `nstep`
+        where not even one trajectory fits.
     """
     if nbytes * count <= available:
         return
-    fits = max(1, nbatch * available // (nbytes * count))
     needed = f"{_gib(nbytes)}" + (f" each, {count} in flight ({_gib(nbytes * count)})"
                                   if count > 1 else "")
+    fits = nbatch * available // (nbytes * count)
+    if fits < 1:  # one trajectory is too long: fewer trajectories would not help
+        steps = nstep * available // (-(-nbytes // nbatch) * count)
+        raise ValueError(
+            f"nstep: a batch of {nbatch} trajectories of {nstep} steps needs {needed}, more "
+            f"than the {_gib(available)} of {where} available, and one trajectory alone does "
+            f"not fit; use a smaller nstep (about {steps} steps fit with nbatch=1), a larger "
+            f"record_every (now {record_every}) or fewer record fields, and continue_episodes="
+            f"True for longer episodes")
     raise ValueError(
         f"nbatch, record: a batch needs {needed}, more than the {_gib(available)} of {where} "
         f"available; use a smaller nbatch (at most {fits} fits), a larger record_every (now "

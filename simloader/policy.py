@@ -272,8 +272,11 @@ class Caller:
                 raise
             raise TypeError(f"{advice} (calling it raised {type(e).__name__}: {e})") from e
         control, extras = out if isinstance(out, tuple) and len(out) == 2 else (out, None)
+        # every step's rows are checked, not only the first's: a (1, ncontrol) or (ncontrol,)
+        # tensor at a later step would broadcast to every trajectory (host-side metadata only:
+        # no synchronisation with the device)
+        self._check(control, extras, t)
         if t == 0:
-            self._check(control, extras)
             self.extras = {PREFIX + k: torch.empty((self.nbatch, self.nstep, *v.shape[1:]),
                                                    dtype=v.dtype, device=v.device)
                            for k, v in (extras or {}).items()}
@@ -281,28 +284,46 @@ class Caller:
             self.extras[PREFIX + k][:, t] = v
         return control
 
-    def _check(self, control: Any, extras: Any) -> None:
+    def _check(self, control: Any, extras: Any, t: int) -> None:
+        at = f" at step {t}" if t else ""
         expected = (self.nbatch, self.ncontrol)
         if not isinstance(control, torch.Tensor):
             raise TypeError(f"policy: expected it to return control rows as a torch.Tensor "
-                            f"{expected} (or a pair (control, extras)), got "
+                            f"{expected} (or a pair (control, extras)){at}, got "
                             f"{type(control).__name__}")
         if tuple(control.shape) != expected:
             raise ValueError(f"policy: control rows must have shape (nbatch, ncontrol) = "
-                             f"{expected} (the control_spec layout), got {tuple(control.shape)}")
+                             f"{expected} (the control_spec layout){at}, got "
+                             f"{tuple(control.shape)}")
         if not control.is_floating_point():
-            raise TypeError(f"policy: control rows must be floating point, got {control.dtype}")
+            raise TypeError(f"policy: control rows must be floating point{at}, got "
+                            f"{control.dtype}")
         if self.device is not None and control.device != self.device:
             raise ValueError(f"policy: control rows must be on the dataset's device "
-                             f"{self.device}, got {control.device}")
+                             f"{self.device}{at}, got {control.device}")
+        if t and (extras is None) != (not self.extras):
+            raise ValueError(f"policy: it returned {'no ' if extras is None else ''}extras"
+                             f"{at}, but {'' if self.extras else 'no '}extras at step 0; "
+                             f"return the same extras at every step")
         if extras is None:
             return
         if not isinstance(extras, Mapping):
             raise TypeError(f"policy: extras (the second of the pair it returns) must be a dict "
-                            f"of tensors, got {type(extras).__name__}")
+                            f"of tensors{at}, got {type(extras).__name__}")
+        if t and {PREFIX + k for k in extras} != set(self.extras):
+            first = sorted(k[len(PREFIX):] for k in self.extras)
+            raise ValueError(f"policy: extras{at} have keys {sorted(extras)}, at step 0 "
+                             f"{first}; return the same keys at every step")
         for k, v in extras.items():
             if not isinstance(k, str) or not isinstance(v, torch.Tensor) or not v.ndim \
                     or v.shape[0] != self.nbatch:
                 raise ValueError(f"policy: extras[{k!r}] must be a tensor nbatch x ... "
-                                 f"({self.nbatch} x ...) under a str key, got "
+                                 f"({self.nbatch} x ...) under a str key{at}, got "
                                  f"{type(v).__name__} {tuple(getattr(v, 'shape', ()))}")
+            if t:
+                kept = self.extras[PREFIX + k]
+                if v.shape[1:] != kept.shape[2:] or v.dtype != kept.dtype:
+                    raise ValueError(f"policy: extras[{k!r}]{at} is {v.dtype} "
+                                     f"{tuple(v.shape)}, at step 0 {kept.dtype} "
+                                     f"{(self.nbatch, *kept.shape[2:])}; return the same "
+                                     f"shape and dtype at every step")

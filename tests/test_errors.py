@@ -69,6 +69,11 @@ CASES = [
     (dict(initial_state=simloader.initial.Perturbed(qpos_std=-1.0)), ValueError,
      "Perturbed.qpos_std: expected a finite number >= 0, got -1.0"),
     (dict(bogus=1), TypeError, "SimDataset: unexpected keyword argument(s) ['bogus']"),
+    (dict(control=np.full((4, 10, 1), 1 + 2j)), TypeError,
+     "control: expected real numbers, got a complex128 array"),
+    # not one trajectory fits: the advice is about nstep, not about nbatch
+    (dict(nstep=10**10), ValueError, "nstep: a batch of 4 trajectories of 10000000000 steps "
+                                     "needs"),
 ]
 
 

@@ -48,3 +48,17 @@ def test_gymnasium_models_by_name():
     assert not batch["diverged"].any()
     with pytest.raises(ValueError, match=r"'gymnasium/hopper'"):
         simloader.load_model("gymnasium/hoper")
+
+
+def test_a_built_in_name_is_never_shadowed_by_a_file(tmp_path, monkeypatch):
+    """One rule: a name is the built-in model (a warning names the file it did not load);
+    a file is loaded by a path or a suffix."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cartpole").write_text('<mujoco><worldbody><body><joint type="slide"/>'
+                                       '<geom size=".1"/></body></worldbody></mujoco>')
+    with pytest.warns(UserWarning, match=r"'cartpole' is a built-in model name.*pass "
+                                         r"'\./cartpole' to load the file"):
+        built_in = simloader.load_model("cartpole")
+    assert built_in.nq == 2
+    assert simloader.load_model("./cartpole").nq == 1
+    assert simloader.load_model(str(tmp_path / "cartpole")).nq == 1

@@ -202,6 +202,56 @@ def test_refusals():
         next(iter(simloader.SimDataset(model, policy=lambda obs: np.zeros((2, 1)), **base)))
 
 
+class LaterRows:
+    """Rows and extras as they should be at every step but `bad`, where `how` breaks them."""
+
+    def __init__(self, how, bad=2):
+        self.how, self.bad, self.t = how, bad, 0
+
+    def __call__(self, obs):
+        n = obs["qpos"].shape[0]
+        u, extras = torch.zeros(n, 1, dtype=torch.float64), {"effort": torch.zeros(n)}
+        if self.t == self.bad:
+            if self.how == "one row":
+                u = u[:1]
+            elif self.how == "flat":
+                u = u[:, 0]
+            elif self.how == "integer":
+                u = u.long()
+            elif self.how == "new key":
+                extras["surprise"] = torch.zeros(n)
+            elif self.how == "missing key":
+                extras = {}
+            elif self.how == "extras shape":
+                extras["effort"] = torch.zeros(n, 2)
+            elif self.how == "extras dtype":
+                extras["effort"] = torch.zeros(n, dtype=torch.float64)
+        self.t += 1
+        return u, extras
+
+
+@pytest.mark.parametrize("how, error, message", [
+    ("one row", ValueError, r"control rows must have shape .* = \(2, 1\).* at step 2, got "
+                            r"\(1, 1\)"),
+    ("flat", ValueError, r"at step 2, got \(2,\)"),
+    ("integer", TypeError, r"control rows must be floating point at step 2, got torch.int64"),
+    ("new key", ValueError, r"extras at step 2 have keys \['effort', 'surprise'\], at step 0 "
+                            r"\['effort'\]"),
+    ("missing key", ValueError, r"extras at step 2 have keys \[\], at step 0 \['effort'\]"),
+    ("extras shape", ValueError, r"extras\['effort'\] at step 2 is torch.float32 \(2, 2\), "
+                                 r"at step 0 torch.float32 \(2,\)"),
+    ("extras dtype", ValueError, r"extras\['effort'\] at step 2 is torch.float64"),
+])
+def test_every_step_of_the_policy_is_checked(how, error, message):
+    """A later step's rows would broadcast ((1, ncontrol), (ncontrol,)), be cast (integers),
+    or break the extras' buffers made at step 0: each is refused, naming the step."""
+    model, _ = cartpole_policy()
+    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=4, record=("qpos",),
+                              policy=LaterRows(how))
+    with pytest.raises(error, match="policy: " + ".*" + message):
+        next(iter(ds))
+
+
 class Bias(torch.nn.Module):
     def __init__(self):
         super().__init__()

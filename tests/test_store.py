@@ -361,3 +361,34 @@ def test_images_without_numcodecs_are_refused_before_anything_runs(tmp_path, mon
     with pytest.raises(ImportError, match=r"need numcodecs: pip install 'simloader\[zarr\]'"):
         simloader.write(ds, tmp_path / "store", batches=1, progress=False)
     assert not (tmp_path / "store").exists() and ds.stats["batches"] == 0
+
+
+def test_a_full_disk_in_a_worker_says_so_without_the_workers_traceback(tmp_path, monkeypatch):
+    """The error a DataLoader worker raises reaches `write` as the worker's whole traceback:
+    the message keeps its last line (errno, reason, file), the traceback stays the cause."""
+    path = str(tmp_path / "w.zarr")
+    real = store_format.atomic_write
+
+    def full(where, parts, durable=False):
+        if "/c/1/" in where:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
+        return real(where, parts, durable)
+
+    monkeypatch.setattr(store_format, "atomic_write", full)  # inherited by the forked worker
+    with pytest.raises(OSError) as raised:
+        simloader.write(plain(), path, batches=3, num_workers=1, progress=False)
+    said = str(raised.value)
+    assert raised.value.errno == errno.ENOSPC and "/c/1/" in raised.value.filename
+    assert said.startswith("[Errno 28] write: No space left on device while writing the store")
+    assert "Traceback" not in said and "stays readable" in said
+
+
+def test_a_store_root_without_its_fingerprint_is_refused_by_name(tmp_path):
+    path = simloader.write(plain(), tmp_path / "r.zarr", batches=1, progress=False)
+    root = os.path.join(path, "zarr.json")
+    meta = json.load(open(root))
+    del meta["attributes"]["simloader"]["fingerprint"]
+    json.dump(meta, open(root, "w"))
+    with pytest.raises(ValueError, match=r"lacks \['fingerprint'\] in its root's 'simloader' "
+                                         r"attribute .*zarr.json was edited or damaged"):
+        simloader.write(plain(), path, batches=2, progress=False)

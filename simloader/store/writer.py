@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import sys
 import time
@@ -258,14 +259,28 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.barrier()  # complete when every rank's part is; rank 0 unlocks
     except OSError as e:
-        raise OSError(e.errno, f"write: {e.strerror or e} while writing the store at "
-                               f"{path!r}; it stays readable with the batches completed so "
-                               f"far, and calling write again resumes after them",
-                      e.filename) from e
+        number, reason, filename = _os_error(e)
+        raise OSError(number, f"write: {reason} while writing the store at {path!r}; it "
+                              f"stays readable with the batches completed so far, and "
+                              f"calling write again resumes after them", filename) from e
     finally:
         if held is not None:
             held.release()
     return path
+
+
+def _os_error(e: OSError) -> tuple[Optional[int], str, Optional[str]]:
+    """(errno, reason, file) of an OSError, also of one a DataLoader worker raised: torch
+    re-raises it in this process as the same type around the worker's whole traceback, whose
+    last line is the original error (the traceback stays reachable as the cause)."""
+    if e.strerror is not None:
+        return e.errno, e.strerror, e.filename
+    said = str(e)
+    found = re.findall(r"\[Errno (\d+)\] ([^\n]*?)(?:: '([^'\n]*)')?$", said, re.MULTILINE)
+    if found:
+        number, reason, filename = found[-1]
+        return int(number), reason, filename or None
+    return e.errno, said.strip().splitlines()[-1] if said.strip() else type(e).__name__, None
 
 
 def _committed(path: str, mine: list[int], progress: bool) -> np.ndarray:

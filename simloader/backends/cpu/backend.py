@@ -48,9 +48,10 @@ class _Produced:
 class RolloutBackend(Backend):
     """`backend="rollout"`."""
 
+    counting_warnings = False  # MuJoCo's warnings counted for this backend (see __init__)
+
     def __init__(self, config, shard, stats):
         super().__init__(config, shard, stats)
-        mujoco_warnings.install()  # counted and summarised, not a line per diverged trajectory
         c = config
         self.nthread = sharding.threads_per_worker(
             shard, c.nthread, c.torch_threads,
@@ -84,6 +85,10 @@ class RolloutBackend(Backend):
         self.images = [o for o in c.observations if o.rendered]
         self.renderer = (cpu_render.RenderPool(c.model, self.images, self.nthread)
                          if self.images else None)
+        # last, so that a backend that failed to build holds nothing: counted and
+        # summarised, not a line per diverged trajectory, until `close` gives it back
+        mujoco_warnings.install()
+        self.counting_warnings = True
 
     def produce(self, index: int) -> _Produced:
         c = self.config
@@ -236,6 +241,9 @@ class RolloutBackend(Backend):
         # its buffers (warnings, expanded fields, the closed loop's bound outputs) keeps the
         # native mujoco._batch.Batch, and its threads, alive
         self.batch = self.warnings = None
+        if self.counting_warnings:  # closed twice: at exit and at the end
+            self.counting_warnings = False
+            mujoco_warnings.release()
         self.driver.close()
         self.expanded = {}
         if self.renderer is not None:
