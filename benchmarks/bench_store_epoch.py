@@ -148,9 +148,10 @@ def main() -> None:
                                           f"{quasi_s:.0f} s; mean jump {quasi_jump:.3g}",
              f"**{quasi_bw / seq_bw:.2f}x**"],
             [f"random, {args.workers} workers (cold, {random_s:.0f} s)",
-             f"{random_bw / 1e6:.0f} MB/s",
-             f"{random_n / random_s / 1e6:.3f}M transitions/s; mean jump {random_jump:.3g} "
-             f"(n = {len(transitions)})", f"{random_bw / seq_bw:.2f}x"],
+             f"{random_bw / 1e6:.3g} MB/s",
+             f"{random_n / random_s:,.0f} transitions/s ({random_n} in {random_s:.0f} s); "
+             f"mean jump {random_jump:.3g} (n = {len(transitions)})",
+             f"{random_bw / seq_bw:.3f}x"],
         ]
         table = common.markdown_table(["what", "speed", "detail", "of sequential"], rows)
         common.report(args, "bench_store_epoch", "An epoch over a store bigger than memory",

@@ -107,6 +107,16 @@ def test_quasi_random_order_reads_blocks_and_visits_every_index_once():
     assert list(again)[0] == batches[0] and list(again)[0] != batches[0]  # a new order per epoch
     with pytest.raises(ValueError, match="order: expected one of"):
         order.BlockOrder(n, 256, "shuffled")
+    # each window is announced once (to be read ahead), one window before its first batch
+    told, seen = [], []
+    ahead = order.BlockOrder(n, 256, "quasi_random", block=block, window=4, seed=1,
+                             ahead=lambda blocks, size: told.append(set(blocks.tolist())))
+    for b in ahead:
+        blocks = set((np.asarray(b) // block * block).tolist())
+        seen.append(len(told))
+        assert any(blocks <= t for t in told[:len(told)]) or len(blocks) > 1
+    assert len(told) == n // block // 4 and set().union(*told) == set(range(0, n, block))
+    assert seen[0] == 2  # the first window, and the next one ahead of it
 
 
 HOLDER = """

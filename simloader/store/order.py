@@ -16,7 +16,7 @@ files' order.)
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Optional
 
 import numpy as np
@@ -31,7 +31,8 @@ class BlockOrder(torch.utils.data.Sampler):
     (reproducible, as a seeded sampler)."""
 
     def __init__(self, n: int, batch_size: int, order: str = "quasi_random", block: int = 1,
-                 window: int = 8, drop_last: bool = False, seed: Optional[int] = None):
+                 window: int = 8, drop_last: bool = False, seed: Optional[int] = None,
+                 ahead: Optional[Callable[[np.ndarray, int], None]] = None):
         if order not in ORDERS:
             raise ValueError(f"order: expected one of {ORDERS}, got {order!r}")
         if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
@@ -44,32 +45,47 @@ class BlockOrder(torch.utils.data.Sampler):
         self.seed = int(torch.empty((), dtype=torch.int64).random_().item()) \
             if seed is None else seed
         self.epoch = 0
+        self.ahead = ahead  # ahead(first indices of a window's blocks, block): read them soon
 
     def __len__(self) -> int:
         return self.n // self.batch_size if self.drop_last else -(-self.n // self.batch_size)
 
     def indices(self, epoch: int) -> np.ndarray:
         """Every index once, in this epoch's order."""
+        return self._plan(epoch)[0]
+
+    def _plan(self, epoch: int) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+        """This epoch's order, and for "quasi_random" its windows: (position of the window's
+        first index in the order, the first indices of its blocks)."""
         if self.order == "sequential":
-            return np.arange(self.n)
+            return np.arange(self.n), []
         rng = np.random.default_rng([self.seed, epoch])
         if self.order == "random":
-            return rng.permutation(self.n)
+            return rng.permutation(self.n), []
         starts = rng.permutation(np.arange(0, self.n, self.block))
         out = np.empty(self.n, dtype=np.int64)
+        windows = []
         filled = 0
         for w in range(0, len(starts), self.window):
-            window = np.concatenate([np.arange(s, min(s + self.block, self.n))
-                                     for s in starts[w:w + self.window]])
+            blocks = starts[w:w + self.window]
+            window = np.concatenate([np.arange(s, min(s + self.block, self.n)) for s in blocks])
             out[filled:filled + len(window)] = rng.permutation(window)
+            windows.append((filled, blocks))
             filled += len(window)
-        return out
+        return out, windows
 
     def __iter__(self) -> Iterator[list[int]]:
-        order = self.indices(self.epoch)
+        order, windows = self._plan(self.epoch)
         self.epoch += 1
         stop = len(self) * self.batch_size
+        # the reads of a window overlap the work on the one before: when window k begins,
+        # window k + 1 is announced (`ahead`, in the process that samples)
+        announced = 0
         for start in range(0, min(stop, self.n), self.batch_size):
+            while self.ahead is not None and announced < len(windows) and \
+                    (announced == 0 or windows[announced - 1][0] <= start):
+                self.ahead(windows[announced][1], self.block)
+                announced += 1
             # a batch is a random set: handed over in increasing order, it is read in the
             # files' order (and `Transitions.gather` needs no reordering)
             yield np.sort(order[start:start + self.batch_size]).tolist()

@@ -16,6 +16,7 @@ from simloader.layout import did_you_mean
 from simloader.store import integrity, order as orders
 from simloader.store.format import CHECKSUM, PROVENANCE, WRITTEN, DamagedStore, batch_key, leaves
 from simloader.store.provenance import differences, fingerprint
+from simloader.store import shards
 from simloader.store.shards import MAX_OPEN, StoredArray
 
 
@@ -257,11 +258,24 @@ class Transitions(torch.utils.data.Dataset):
         block = self.stored.nbatch * self.per  # one slot's transitions (where none dropped)
         sampler = orders.BlockOrder(len(self), batch_size, order, block,
                                     window or max(1, MAX_OPEN // (2 * arrays)), drop_last,
-                                    seed)
+                                    seed, ahead=self._read_ahead)
         view = object.__new__(Transitions)
         view.__dict__.update(self.__dict__)
         view.will_need = order != "random"  # a block is read whole, a random item alone
         return torch.utils.data.DataLoader(view, batch_size=None, sampler=sampler, **kwargs)
+
+    def _read_ahead(self, blocks: np.ndarray, block: int) -> None:
+        """The shard files of the blocks of transitions starting at `blocks`, read into the
+        page cache in the background (see `order.BlockOrder`)."""
+        firsts = np.asarray(blocks, dtype=np.int64)
+        lasts = np.minimum(firsts + block, len(self)) - 1
+        rows = np.concatenate([self.trajectories[a // self.per:b // self.per + 1]
+                               for a, b in zip(firsts, lasts)])
+        slots = np.unique(self.stored.slots[rows // self.stored.nbatch])
+        arrays = self.stored.arrays()
+        names = [*self.keys, "control", "initial_state"]
+        shards.read_ahead([arrays[n].layout.shard_file(self.stored.path, int(slot))
+                           for slot in slots for n in names if not arrays[n].layout.empty])
 
     def gather(self, ks: Sequence[int]) -> dict[str, torch.Tensor]:
         """The transitions `ks` as a dict of tensors `len(ks) x ...`: per key and batch slot
