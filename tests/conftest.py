@@ -125,3 +125,34 @@ HEAVY_FIRST = ("test_mjx.py", "test_warp.py", "test_startup.py", "test_examples.
 def pytest_collection_modifyitems(items):
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a file
+
+
+# simloader.write of a cart-pole stream (64 x 400 per batch: long enough to be caught mid-way)
+_WRITER = """
+import sys, simloader
+ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
+                          seed=int(sys.argv[3]), control=simloader.controls.Uniform(), prefetch=1)
+simloader.write(ds, sys.argv[1], batches=int(sys.argv[2]), progress=False)
+"""
+
+
+@pytest.fixture
+def started_writer():
+    """start(path, batches, slot, seed=0): a process writing `batches` batches of the stream
+    of `_WRITER` to `path`, returned once batch slot `slot` is committed (or it ended)."""
+    import subprocess
+    import sys
+    import time
+
+    from simloader.store import format as store_format
+
+    def start(path, batches, slot, seed=0):
+        proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(batches),
+                                 str(seed)])
+        marker = os.path.join(path, store_format.WRITTEN.shard_key(slot))
+        deadline = time.monotonic() + 120
+        while not os.path.exists(marker) and time.monotonic() < deadline and \
+                proc.poll() is None:
+            time.sleep(0.01)
+        return proc
+    return start

@@ -8,7 +8,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -148,26 +147,14 @@ def test_workers_write_disjoint_slots_of_one_store(tmp_path):
     assert sorted({b.provenance(i)["num_workers"] for i in range(12)}) == [2]
 
 
-KILLED_WRITER = """
-import sys, simloader
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
-                          control=simloader.controls.Uniform(), prefetch=1)
-simloader.write(ds, sys.argv[1], batches=int(sys.argv[2]), progress=False)
-"""
-
-
 def cartpole():
     return simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
                                 control=simloader.controls.Uniform(), prefetch=1)
 
 
-def test_a_killed_writer_leaves_a_readable_store_that_resumes(tmp_path):
+def test_a_killed_writer_leaves_a_readable_store_that_resumes(tmp_path, started_writer):
     path, batches = str(tmp_path / "k.zarr"), 40
-    proc = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, path, str(batches)])
-    marker = os.path.join(path, store_format.WRITTEN.shard_key(2))
-    deadline = time.monotonic() + 120
-    while not os.path.exists(marker) and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.01)
+    proc = started_writer(path, batches, slot=2)  # the stream of cartpole()
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     stored = simloader.StoredDataset(path)

@@ -119,26 +119,15 @@ def test_quasi_random_order_reads_blocks_and_visits_every_index_once():
     assert seen[0] == 2  # the first window, and the next one ahead of it
 
 
-HOLDER = """
-import sys, simloader
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
-                          seed=3, control=simloader.controls.Uniform(), prefetch=1)
-simloader.write(ds, sys.argv[1], batches=int(sys.argv[2]), progress=False)
-"""
-
-
 def long_writer():
     return simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
                                 seed=3, control=simloader.controls.Uniform(), prefetch=1)
 
 
-def test_a_second_writer_is_refused_and_a_killed_writers_lock_is_taken_over(tmp_path):
+def test_a_second_writer_is_refused_and_a_killed_writers_lock_is_taken_over(
+        tmp_path, started_writer):
     path, batches = str(tmp_path / "l.zarr"), 30
-    proc = subprocess.Popen([sys.executable, "-c", HOLDER, path, str(batches)])
-    marker = os.path.join(path, store_format.WRITTEN.shard_key(1))
-    deadline = time.monotonic() + 120
-    while not os.path.exists(marker) and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.01)
+    proc = started_writer(path, batches, slot=1, seed=3)  # the stream of long_writer()
     try:
         assert proc.poll() is None, "the first writer ended before it could be raced"
         holder = lock.holder(path)
