@@ -88,6 +88,15 @@ def test_open_shards_stay_under_the_cap_and_transitions_end(big_store):
     assert torch.equal(transitions[-1]["control"], transitions[len(transitions) - 1]["control"])
     count = sum(1 for _ in iter(stored.transitions("state")))  # iteration ends
     assert count == len(transitions)
+    # a quasi-random epoch reads ahead on threads that end with their files
+    import threading
+    seen = sum(len(b["control"]) for b in transitions.loader(4096))
+    assert seen == len(transitions)
+    deadline = time.monotonic() + 10
+    while any(t.name == "simloader-read-ahead" for t in threading.enumerate()) and \
+            time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [t for t in threading.enumerate() if t.name == "simloader-read-ahead"]
 
 
 def test_quasi_random_order_reads_blocks_and_visits_every_index_once():

@@ -18,7 +18,6 @@ import collections
 import dataclasses
 import mmap
 import os
-import queue
 import secrets
 import stat
 import threading
@@ -218,41 +217,23 @@ class ShardFile:
             self.fd = None
 
 
-_LOCAL = threading.local()
-
-
-def _scratch() -> bytearray:
-    """A buffer of this thread's for reading files through (8 MiB reads: the disk's pace)."""
-    if not hasattr(_LOCAL, "buffer"):
-        _LOCAL.buffer = bytearray(8 << 20)
-    return _LOCAL.buffer
-
-
-_AHEAD: Optional[tuple[int, "queue.Queue[list[str]]"]] = None
-
-
 def read_ahead(files: list[str]) -> None:
-    """Reads `files` in order into the page cache on a background thread of this process
-    (one thread, the lists in the order given): the next window of a quasi-random epoch is
-    read from the disk while the workers gather from this one."""
-    global _AHEAD
-    if _AHEAD is None or _AHEAD[0] != os.getpid():
-        pending: queue.Queue[list[str]] = queue.Queue()
-        threading.Thread(target=_read_ahead, args=(pending,), daemon=True,
-                         name="simloader-read-ahead").start()
-        _AHEAD = (os.getpid(), pending)
-    _AHEAD[1].put(files)
+    """Reads `files` in order into the page cache on a background thread (the next window
+    of a quasi-random epoch is read from the disk while the workers gather from this one).
+    The thread ends with its files: nothing is left running once an epoch ends."""
+    threading.Thread(target=_read_through, args=(files,), daemon=True,
+                     name="simloader-read-ahead").start()
 
 
-def _read_ahead(pending: "queue.Queue[list[str]]") -> None:
-    while True:
-        for file in pending.get():
-            try:
-                with open(file, "rb", buffering=0) as f:
-                    while f.readinto(_scratch()):
-                        pass
-            except OSError:
-                pass  # a hint only: the reader names a missing or damaged file itself
+def _read_through(files: list[str]) -> None:
+    buffer = bytearray(8 << 20)  # 8 MiB reads: the disk's sequential pace
+    for file in files:
+        try:
+            with open(file, "rb", buffering=0) as f:
+                while f.readinto(buffer):
+                    pass
+        except OSError:
+            pass  # a hint only: the reader names a missing or damaged file itself
 
 
 class OpenShards:
