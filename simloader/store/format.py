@@ -110,15 +110,9 @@ class ArraySpec:
     def shard_key(self, slot: int) -> str:
         return shard_key(self.name, len(self.trailing), slot)
 
-    @property
-    def raw_bytes(self) -> Optional[int]:
-        """The size of a raw shard's file (its rows, then the chunk index); None when its
-        chunks are compressed (their sizes are recorded in the slot's checksums)."""
-        return raw_shard_bytes(self.nbatch, self.trailing, self.chunk, self.dtype) \
-            if not self.compressed else None
-
 
 def raw_shard_bytes(nbatch: int, trailing: tuple, chunk: tuple, dtype: np.dtype) -> int:
+    """The size of a raw shard's file: its rows, then the chunk index."""
     shape = (nbatch, *trailing)
     nchunks = int(np.prod([s // c for s, c in zip(shape, chunk)]))
     return int(np.prod(shape, dtype=np.int64)) * dtype.itemsize + 16 * nchunks
