@@ -62,8 +62,8 @@ def main():
     parser.add_argument("--nbatch", type=int, default=256)
     parser.add_argument("--nstep", type=int, default=200)
     parser.add_argument("--out", default="outputs/closed_loop_world_model.png",
-                        help="where to save the plot (outputs/ is git-ignored; the one in docs/ "
-                             "was made with --out docs/closed_loop_world_model.png)")
+                        help="where to save the plot (outputs/ is git-ignored; the docs' one "
+                             "was made with --out docs/_static/closed_loop_world_model.png)")
     args = parser.parse_args()
     if args.quick:
         args.batches, args.nbatch, args.nstep = 8, 32, 60

@@ -85,8 +85,8 @@ def main():
     parser.add_argument("--nstep", type=int, default=40)
     parser.add_argument("--width", type=int, default=32)
     parser.add_argument("--out", default="outputs/pixel_world_model.png",
-                        help="where to save the picture (outputs/ is git-ignored; the one in docs/ "
-                             "was made with --out docs/pixel_world_model.png)")
+                        help="where to save the picture (outputs/ is git-ignored; the docs' one "
+                             "was made with --out docs/_static/pixel_world_model.png)")
     args = parser.parse_args()
     if args.quick:
         # CPU rendering (Mesa) is the cost: 2 batches of 4 x 6 frames, 2 held-out trajectories
@@ -109,7 +109,7 @@ def main():
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.batches)
     print(f"backend {backend} on {device}: {args.batches} batches of {args.nbatch} trajectories "
           f"x {args.nstep // 2} frames of 32x32 RGB")
-    if backend == "rollout" and not args.quick:
+    if backend == "cpu" and not args.quick:
         # OpenGL on a CPU is Mesa's software rasterizer: about 36 frames/s at 32x32 on a
         # 2-core machine (as fast as a plain mujoco.Renderer there), so the default run takes
         # about 14 hours on such a machine

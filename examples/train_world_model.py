@@ -111,8 +111,8 @@ def main():
     parser.add_argument("--nstep", type=int, default=100)
     parser.add_argument("--width", type=int, default=256)
     parser.add_argument("--out", default="outputs/world_model.png",
-                        help="where to save the plot (outputs/ is git-ignored; the figure in docs/ was "
-                             "made with --out docs/world_model.png)")
+                        help="where to save the plot (outputs/ is git-ignored; the docs' one "
+                             "was made with --out docs/_static/world_model.png)")
     args = parser.parse_args()
     if args.quick:
         args.batches, args.nbatch, args.nstep, args.width = 15, 64, 60, 64

@@ -1,0 +1,133 @@
+"""The README and the docs pages, as a user meets them.
+
+Every ```python block of README.md and of docs/*.md runs as written; an endless stream gets
+a bounded variant here (2 batches), not in the pages. A block whose first line is
+`# needs a CUDA GPU` is marked `gpu` (run with `-m gpu` on a GPU machine). The CI script runs
+exactly the README's test command, the docs site builds offline with warnings as errors, and
+every relative link of the pages points to a file that exists."""
+
+import pathlib
+import re
+import subprocess
+import sys
+
+import pytest
+
+import simloader
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+PAGES = [ROOT / "README.md"] + sorted((ROOT / "docs").glob("*.md"))
+GPU_LINE = "# needs a CUDA GPU"
+
+
+def python_blocks(path):
+    """(id, code) of each ```python block of one page, named after the page, its section and
+    the block's position there (a `#` line inside a block is code, not a heading)."""
+    out, section, index, block, fence = [], "top", 0, None, None
+    for line in path.read_text().splitlines(keepends=True):
+        if block is not None:
+            if line.rstrip() == "```":
+                out.append((f"{path.stem.lower()}:{section}-{index}", "".join(block)))
+                index, block = index + 1, None
+            else:
+                block.append(line)
+        elif fence is not None:
+            fence = None if line.rstrip() == fence else fence
+        elif line.rstrip() == "```python":
+            block = []
+        elif line.startswith("```"):
+            fence = re.match(r"`+", line).group()
+        elif re.match(r"##? ", line):
+            section, index = re.sub(r"\W+", "-", line.lstrip("#").strip().lower()).strip("-"), 0
+    return out
+
+
+BLOCKS = [block for path in PAGES for block in python_blocks(path)]
+
+
+def _param(block_id, code):
+    marks = [pytest.mark.gpu] if code.lstrip().startswith(GPU_LINE) else []
+    return pytest.param(code, id=block_id, marks=marks)
+
+
+class Bounded(simloader.SimDataset):
+    """SimDataset whose endless streams end after 2 batches."""
+
+    def __init__(self, *args, num_batches=None, **kwargs):
+        super().__init__(*args, num_batches=2 if num_batches is None else num_batches, **kwargs)
+
+
+def test_the_pages_have_python_blocks():
+    assert len(python_blocks(ROOT / "README.md")) >= 2
+    assert len(BLOCKS) >= 12
+    gpu = [i for i, code in BLOCKS if code.lstrip().startswith(GPU_LINE)]
+    assert len(gpu) <= 3, f"keep the blocks that need a GPU few: {gpu}"
+
+
+@pytest.mark.parametrize("code", [_param(i, c) for i, c in BLOCKS])
+def test_block_runs_as_written(code, monkeypatch):
+    if code.lstrip().startswith(GPU_LINE):
+        torch = pytest.importorskip("torch")
+        if not torch.cuda.is_available():
+            pytest.skip("needs a CUDA GPU")
+    monkeypatch.setattr(simloader, "SimDataset", Bounded)
+    exec(compile(code, "docs", "exec"), {"__name__": "__main__"})
+
+
+def test_ci_runs_exactly_the_readmes_test_command():
+    command = next(line for line in README.splitlines()
+                   if line.startswith("python3 -m pip") and "pytest" in line)
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert ci[-1] == command
+
+
+def test_the_docs_build_offline_without_warnings(tmp_path):
+    pytest.importorskip("sphinx")
+    pytest.importorskip("myst_parser")
+    run = subprocess.run(
+        [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html",
+         "-d", str(tmp_path / "doctrees"), str(ROOT / "docs"), str(tmp_path / "html")],
+        capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-4000:]
+    assert (tmp_path / "html" / "index.html").exists()
+    assert (tmp_path / "html" / "api.html").exists()
+
+
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
+DIRECTIVE = re.compile(r"^(`{3,})\{(?:figure|image|include)\}\s+(\S+)")
+
+
+def relative_links(path):
+    """Targets of the page's Markdown links and images, and of its figure, image and include
+    directives, that are paths in this repository (not URLs, not anchors within the page);
+    code blocks and inline code are not links."""
+    targets, fence = [], None
+    for line in path.read_text().splitlines():
+        if fence is not None:
+            fence = None if line.strip() == fence else fence
+            continue
+        directive = DIRECTIVE.match(line)
+        if directive:
+            targets.append(directive.group(2))
+        if line.startswith("```"):
+            fence = re.match(r"`+", line).group()
+            continue
+        targets += LINK.findall(re.sub(r"`[^`]*`", "", line))
+    out = []
+    for target in targets:
+        target = target.split("#")[0]
+        if target and not re.match(r"[a-z][a-z0-9+.-]*:", target):
+            out.append(target)
+    return out
+
+
+@pytest.mark.parametrize("path", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
+def test_relative_links_point_to_files(path):
+    missing = [t for t in relative_links(path) if not (path.parent / t).exists()]
+    assert not missing, f"{path.relative_to(ROOT)} links to missing files: {missing}"
+
+
+def test_the_link_check_sees_links():
+    assert "docs/speed.md" in relative_links(ROOT / "README.md")
+    assert any(t.endswith(".png") for t in relative_links(ROOT / "docs" / "speed.md"))
