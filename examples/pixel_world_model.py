@@ -109,7 +109,7 @@ def main():
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.batches)
     print(f"backend {backend} on {device}: {args.batches} batches of {args.nbatch} trajectories "
           f"x {args.nstep // 2} frames of 32x32 RGB")
-    if backend == "cpu" and not args.quick:
+    if backend == "rollout" and not args.quick:
         # OpenGL on a CPU is Mesa's software rasterizer: about 36 frames/s at 32x32 on a
         # 2-core machine (as fast as a plain mujoco.Renderer there), so the default run takes
         # about 14 hours on such a machine
