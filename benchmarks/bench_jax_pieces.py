@@ -88,7 +88,7 @@ class Function(bench.RawBaseline):
 
 
 def measures(model: Any, w: common.Workload, seed: int) -> dict[str, Any]:
-    ds = simloader.SimDataset(model, backend="mjx", impl="jax", nbatch=w.nbatch, nstep=w.nstep,
+    ds = simloader.SimDataset(model, backend="mjx", nbatch=w.nbatch, nstep=w.nstep,
                               control=simloader.controls.Uniform(), seed=seed,
                               compilation_cache=False)
     backend = ds.make_backend()

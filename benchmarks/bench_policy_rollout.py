@@ -35,10 +35,10 @@ def main() -> None:
         net = baselines.mlp(model.nq + model.nv, model.nu, args.hidden, args.seed)
         policy = baselines.StatePolicy(net, model)
         sims = {
-            "open loop": bench.SimloaderMeasure(model, w, "rollout", args.seed,
+            "open loop": bench.SimloaderMeasure(model, w, "cpu", args.seed,
                                                 record=("state",), nthread=nthread),
             "simloader policy=": bench.SimloaderMeasure(
-                model, w, "rollout", args.seed, control=None, policy=policy,
+                model, w, "cpu", args.seed, control=None, policy=policy,
                 record=("state", "qpos", "qvel"), dtype=torch.float32, nthread=nthread),
         }
         raw = baselines.RawClosedLoopBatch(model, w, policy, nthread)

@@ -40,13 +40,13 @@ import simloader  # noqa: E402
 from simloader import bench  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 
-BACKENDS = ("rollout", "mjx")
-DEFAULT = {"rollout": [common.Workload("cartpole", 8192, 1000),
+BACKENDS = ("cpu", "mjx")
+DEFAULT = {"cpu": [common.Workload("cartpole", 8192, 1000),
                        common.Workload("humanoid", 4096, 200)],
            "mjx": [common.Workload("cartpole", 8192, 1000),
                    common.Workload("cartpole", 65536, 1000),
                    common.Workload("humanoid", 16384, 200)]}
-QUICK = {"rollout": [common.Workload("cartpole", 256, 100), common.Workload("humanoid", 64, 50)],
+QUICK = {"cpu": [common.Workload("cartpole", 256, 100), common.Workload("humanoid", 64, 50)],
          "mjx": [common.Workload("cartpole", 64, 20)]}
 TARGET = 0.95  # randomized / plain throughput
 
@@ -107,15 +107,15 @@ def equivalent_models(model: mujoco.MjModel, spec: list[dr.Param], nbatch: int,
 
 
 def runs_on(backend: str) -> str:
-    if backend == "rollout":
+    if backend == "cpu":
         return f"{common.cpu_count()} cores"
     import jax
     return jax.devices()[0].device_kind
 
 
 def main() -> None:
-    p = common.parser(__doc__.split("\n")[0], DEFAULT["rollout"] + DEFAULT["mjx"],
-                      QUICK["rollout"] + QUICK["mjx"], throughput=True)
+    p = common.parser(__doc__.split("\n")[0], DEFAULT["cpu"] + DEFAULT["mjx"],
+                      QUICK["cpu"] + QUICK["mjx"], throughput=True)
     p.add_argument("--backends", nargs="+", choices=BACKENDS, default=list(BACKENDS),
                    help="backends to measure (mjx is skipped where JAX is not installed)")
     p.add_argument("--raw", action="store_true",
@@ -140,7 +140,7 @@ def main() -> None:
             counts.append(f"{nbatches} for {w} on {backend}")
             measures: dict[str, Callable[[], float]] = {
                 "plain": lambda: plain(nbatches), "randomized": lambda: randomized(nbatches)}
-            if backend == "rollout" and args.raw:
+            if backend == "cpu" and args.raw:
                 # the same two workloads on raw mujoco.rollout: what per-trajectory models
                 # cost MuJoCo itself
                 raw_one, _ = bench.raw_rollout(model, w, common.cpu_count(), args.seed)

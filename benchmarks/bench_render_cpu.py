@@ -72,12 +72,12 @@ def main() -> None:
         model = common.load_model(w.name, args.model_dir)
         camera = VIEWS.get(w.name, 0)
         view = simloader.Camera(camera, height=args.size, width=args.size)
-        sim = bench.SimloaderMeasure(model, w, "rollout", args.seed, nthread=args.threads,
+        sim = bench.SimloaderMeasure(model, w, "cpu", args.seed, nthread=args.threads,
                                      record=("state", view))
         states = next(iter(sim.ds))["state"].numpy()
         raw = RawRenderers(model, camera, args.size, args.threads)
         raw(states)  # makes its renderers
-        plain = bench.SimloaderMeasure(model, w, "rollout", args.seed, nthread=args.threads,
+        plain = bench.SimloaderMeasure(model, w, "cpu", args.seed, nthread=args.threads,
                                        record=("state",))
 
         def raw_measure(n: int) -> float:

@@ -36,9 +36,9 @@ python_loop, raw_rollout = bench.python_loop, bench.raw_rollout
 
 def simloader_rollout(model: mujoco.MjModel, w: common.Workload,
                       seed: int) -> Callable[[int], float]:
-    """A measure (seconds per step) of simloader's delivered throughput, backend "rollout"."""
+    """A measure (seconds per step) of simloader's delivered throughput, backend "cpu"."""
     # all the cores, as the raw rollout: nothing trains beside this measurement
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=w.nbatch, nstep=w.nstep,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=w.nbatch, nstep=w.nstep,
                               control=simloader.controls.Uniform(), seed=seed,
                               nthread=common.cpu_count())
     return lambda nbatches: common.time_stream(ds, nbatches).steady_s / (nbatches * w.steps)

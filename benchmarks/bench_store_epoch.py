@@ -106,7 +106,7 @@ def main() -> None:
     args = p.parse_args()
 
     model = simloader.load_model(args.model)
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=args.nbatch, nstep=args.nstep,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=args.nbatch, nstep=args.nstep,
                               control=simloader.controls.Uniform(), record=("state",),
                               nthread=common.cpu_count())
     nstate = mujoco_state_size(model)

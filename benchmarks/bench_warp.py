@@ -126,7 +126,7 @@ import json, statistics, sys, time
 import simloader
 from simloader import bench, controls
 path, nbatch, nstep, n, repeats = sys.argv[1], *map(int, sys.argv[2:])
-ds = simloader.SimDataset(path, backend="mjx", impl="jax", nbatch=nbatch, nstep=nstep,
+ds = simloader.SimDataset(path, backend="mjx", nbatch=nbatch, nstep=nstep,
                           control=controls.Uniform(), num_batches=n)
 for b in ds:
     pass
@@ -181,7 +181,7 @@ _OURS_START = """
 import sys
 import torch, simloader
 name, nworld, nstep = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-ds = simloader.SimDataset(name, backend="mjx", impl="warp", nbatch=nworld, nstep=nstep,
+ds = simloader.SimDataset(name, backend="warp", nbatch=nworld, nstep=nstep,
                           control=simloader.controls.Uniform(), num_batches=1)
 batch = next(iter(ds)); torch.cuda.synchronize()
 """

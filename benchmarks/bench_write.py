@@ -5,7 +5,7 @@ without writing (a fresh iterator of the same dataset), alternately in one proce
 timed from start to the last batch in hand (first batch included in both); the write is
 timed until `os.sync()` returns, so its batches are on the disk, not only in the page cache.
 The cost is `1 - write throughput / generation throughput` (target: at most 0.15 on the
-rollout backend, performance.md).
+CPU engine, performance.md).
 
 Reading: `StoredDataset` of the last store written, through `DataLoader(shuffle=True,
 num_workers=--read-workers)` as trajectories (`--read-batch` per batch) and as transitions
@@ -16,7 +16,7 @@ bigger than memory is `bench_store_epoch.py`'s.
 
     python benchmarks/bench_write.py --quick
     python benchmarks/bench_write.py --save                      # the 2-core figures
-    python benchmarks/bench_write.py --backend mjx --impl warp --record state qvel \\
+    python benchmarks/bench_write.py --backend warp --record state qvel \\
         --camera 64x64 --workloads humanoid:8192x200 --save --tag warp   # the GPU figure
 """
 
@@ -44,7 +44,7 @@ def dataset(model, w: common.Workload, args) -> simloader.SimDataset:
         # the model's first camera (MuJoCo Warp does not render the free camera, -1)
         camera = 0 if model.ncam else -1
         record.append(simloader.Camera(camera, height=height, width=width))
-    options = {"impl": args.impl} if args.backend == "mjx" else {
+    options = {} if args.backend in ("mjx", "warp") else {
         "nthread": common.cpu_count()}  # all the cores, as the generation alone
     return simloader.SimDataset(model, backend=args.backend, nbatch=w.nbatch, nstep=w.nstep,
                                 control=simloader.controls.Uniform(), seed=args.seed,
@@ -98,8 +98,7 @@ def main() -> None:
     p.add_argument("--batches", type=int,
                    help="batches per measure (default 12, --quick 3): a corpus is many "
                         "batches, and the disk flush the last ones wait for is amortized")
-    p.add_argument("--backend", default="rollout")
-    p.add_argument("--impl", default="auto", help="backend='mjx' only")
+    p.add_argument("--backend", default="cpu", choices=("cpu", "mjx", "warp", "auto"))
     p.add_argument("--record", nargs="+", default=["state", "sensordata"])
     p.add_argument("--camera", help="HEIGHTxWIDTH: record the RGB of the model's first camera too "
                         "(the free camera if it has none)")
@@ -156,7 +155,7 @@ def main() -> None:
                "read: transitions view, transitions/s (random; quasi_random order)"]
     table = common.markdown_table(headers, rows)
     recorded = " + ".join(args.record + ([f"camera {args.camera} RGB"] if args.camera else []))
-    notes = (f"backend={args.backend!r}{f', impl={args.impl!r}' if args.backend == 'mjx' else ''}"
+    notes = (f"backend={args.backend!r}"
              f", recording {recorded}; {nbatches} batches per measure, medians of "
              f"{args.repeats} alternating repetitions; writes timed until os.sync() returns. "
              f"Reads: DataLoader(shuffle=True, num_workers={args.read_workers}), "

@@ -1,6 +1,6 @@
 """Scale-out: every engine under torchrun, one process per GPU, throughput against one GPU.
 
-For each engine (`rollout`: MuJoCo on the CPU; `jax`: MJX on JAX; `warp`: MuJoCo Warp), mode and
+For each engine (`cpu`: MuJoCo on the CPU; `mjx`: MJX on JAX; `warp`: MuJoCo Warp), mode and
 number of ranks of `--nprocs`, one `torchrun --standalone --nproc_per_node=N` job of this script
 in its child role: each rank streams its own part of one seeded stream on its own GPU
 (`cuda:LOCAL_RANK`; the CPU without one) and times `--batches` batches after a warm-up batch.
@@ -11,7 +11,7 @@ The modes:
 - `policy`: a torch MLP (2x256) on the rank's device chooses every step's controls;
 - `write`: every rank writes its slots of one store (`simloader.write`), timed until written;
 - `ddp`: the DDP world-model example (`examples/train_world_model_ddp.py`), training included
-  (engines `rollout` and `jax`: the example chooses its MJX implementation itself).
+  (engines `cpu` and `mjx`: the example chooses its MJX implementation itself).
 
 A row reports the steps/s of all ranks together (all ranks' steps over the slowest rank's
 time), per rank, and against the first `--nprocs` in the same run; and two checks of the
@@ -24,7 +24,7 @@ Targets (issue: several GPUs): 2 GPUs at least 1.95x one for Warp humanoid 8192 
 JAX cart-pole; 4 GPUs at least 3.8x. NVLink multicast stays off in NCCL (shared machines).
 
     python benchmarks/scale_out.py --nprocs 1 2 --save --results-dir $OUT        # on 2 GPUs
-    python benchmarks/scale_out.py --quick --engines rollout --nprocs 1 2         # CPU smoke run
+    python benchmarks/scale_out.py --quick --engines cpu --nprocs 1 2         # CPU smoke run
 """
 
 from __future__ import annotations
@@ -43,12 +43,11 @@ import common
 EXAMPLE = common.REPO / "examples" / "train_world_model_ddp.py"
 SAFE_ENV = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1",
             "NVSHMEM_DISABLE_NVLS": "1"}
-ENGINES = {"rollout": {"backend": "rollout"}, "jax": {"backend": "mjx", "impl": "jax"},
-           "warp": {"backend": "mjx", "impl": "warp"}}
+ENGINES = {"cpu": {"backend": "cpu"}, "mjx": {"backend": "mjx"}, "warp": {"backend": "warp"}}
 MODES = ("open", "camera", "policy", "write", "ddp")
-WORKLOADS = {"rollout": "cartpole:1024x100", "jax": "cartpole:8192x1000",
+WORKLOADS = {"cpu": "cartpole:1024x100", "mjx": "cartpole:8192x1000",
              "warp": "humanoid:8192x200"}
-QUICK = {"rollout": "cartpole:64x20", "jax": "cartpole:64x20", "warp": "cartpole:64x20"}
+QUICK = {"cpu": "cartpole:64x20", "mjx": "cartpole:64x20", "warp": "cartpole:64x20"}
 QUICK_CAMERA = "cartpole:4x5"  # a CPU without a GPU renders about 30 frames/s
 GPU_TOL = 1e-3  # a GPU batch simulated again: MuJoCo Warp's atomics may reorder sums
 REFUSED = 3  # the child's exit status when the engine refuses the combination
@@ -71,7 +70,7 @@ def _dataset(args, device):
         mlp = torch.nn.Sequential(torch.nn.Linear(nstate, 256), torch.nn.Tanh(),
                                   torch.nn.Linear(256, 256), torch.nn.Tanh(),
                                   torch.nn.Linear(256, model.nu))
-        dtype = torch.float64 if args.engine == "rollout" else torch.float32
+        dtype = torch.float64 if args.engine == "cpu" else torch.float32
         mlp = mlp.to(device=device, dtype=dtype)
         drive = {"policy": lambda obs: mlp(obs["state"])}
     return simloader.SimDataset(w.name, nbatch=w.nbatch, nstep=w.nstep, seed=args.seed,
@@ -95,7 +94,7 @@ def _again(ds, shard, index, batch) -> bool:
         _, again, _ = next(iter(ds.stream(backend, [index])))
     finally:
         backend.close()
-    if ds.config.backend == "rollout":
+    if ds.config.backend == "cpu":
         return all(torch.equal(again[k], batch[k]) for k in batch if k != "params")
     return (torch.equal(again["initial_state"], batch["initial_state"]) and
             (again["state"] - batch["state"]).abs().max().item() <= GPU_TOL)
@@ -210,7 +209,7 @@ def main() -> None:
     p.add_argument("--nprocs", type=int, nargs="+", default=[1, 2],
                    help="ranks (GPUs) of each job; the first is the reference")
     p.add_argument("--workloads", nargs="+", metavar="ENGINE=MODEL:NBATCHxNSTEP", default=[],
-                   help=f"per-rank sizes (default {WORKLOADS}; --quick {QUICK['rollout']})")
+                   help=f"per-rank sizes (default {WORKLOADS}; --quick {QUICK['cpu']})")
     p.add_argument("--batches", type=int, default=8, help="timed batches per rank")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run")

@@ -13,7 +13,7 @@ Prints a table and, with --save, writes it with a plot of memory over the batche
 `--time-limit` ends a soak early (reported as incomplete, exit status 2) so that its results
 still come back from a machine with a time limit. Exit status 1: a check failed.
 
-    python benchmarks/soak.py --backend rollout --quick
+    python benchmarks/soak.py --backend cpu --quick
     python benchmarks/soak.py --backend mjx --save --results-dir $OUT      # on the GPU machine
 """
 
@@ -87,7 +87,7 @@ def verdict(value: float) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--backend", default="rollout", choices=("rollout", "mjx"))
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "mjx"))
     parser.add_argument("--model", default="cartpole",
                         help="a model simloader loads: a built-in name or an MJCF path")
     parser.add_argument("--batches", type=int, default=100_000)

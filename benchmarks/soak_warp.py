@@ -73,7 +73,7 @@ def main() -> None:
         return
     if args.quick:
         args.minutes, args.nbatch, args.nstep = 0.2, 256, 10
-    kwargs = dict(backend="mjx", impl="warp", control=controls.Uniform())
+    kwargs = dict(backend="warp", control=controls.Uniform())
     train = simloader.SimDataset("humanoid", nbatch=args.nbatch, nstep=args.nstep, **kwargs)
     valid = simloader.SimDataset("humanoid", nbatch=args.nbatch // 4, nstep=args.nstep,
                                  seed=1, **kwargs)

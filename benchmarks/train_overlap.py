@@ -8,7 +8,7 @@ batches after a warm-up batch, and the time blocked in `next(iterator)` (plus th
 batch's device work) is the waiting time; the fraction of wall time it takes should stay under
 5% (performance.md, target 3), as simloader simulates the next batch while one is trained on.
 
-Backend rollout simulates on the CPU (trains on `--device`: the GPU when there is one, with
+Backend cpu simulates on the CPU (trains on `--device`: the GPU when there is one, with
 the cores split between simulation and torch otherwise); mjx simulates and trains on JAX's
 device. There the two share one GPU: where the training keeps the GPU busy, the times measured
 alone add up rather than overlap, and only the GPU time training leaves idle hides simulation.
@@ -16,7 +16,7 @@ So on a GPU two MLP sizes run by default, one whose steps leave the GPU mostly i
 keeps it busy (`--mlp`).
 
     python benchmarks/train_overlap.py --quick
-    python benchmarks/train_overlap.py --backends rollout mjx --save --results-dir $OUT
+    python benchmarks/train_overlap.py --backends cpu mjx --save --results-dir $OUT
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[list
     `--repeats` times; one table row per MLP size."""
     options: dict = {"dtype": torch.float32}
     torch_threads = common.cpu_count()
-    if backend == "rollout":
+    if backend == "cpu":
         options["device"] = args.device
         if args.device == "cpu":  # simulation and training share the cores
             options["nthread"] = args.sim_threads or max(1, torch_threads // 2)
@@ -135,7 +135,7 @@ def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[list
             after = ds.stats
             fractions.append(waited / total)
             # the mjx backend's simulate_s over-counts when the consumer is the slower side
-            if backend == "rollout":
+            if backend == "cpu":
                 during.append((after["simulate_s"] - before["simulate_s"])
                               / (after["batches"] - before["batches"]))
         fraction = statistics.median(fractions)
@@ -178,7 +178,7 @@ def overlap(ds: simloader.SimDataset, trainer: Trainer, nsteps: int,
 
 HEADERS = ["backend", "workload", "trains on", "MLP", "simulate s/batch (alone)",
            "train s/batch (alone)", "train / simulate", "optimizer steps per batch",
-           "simulate s/batch (while training, rollout)", "waiting (median)", "waiting (max)",
+           "simulate s/batch (while training, cpu)", "waiting (median)", "waiting (max)",
            "< 5%", "loss"]
 
 
@@ -188,13 +188,13 @@ def default_backends() -> list[str]:
         gpu = any(d.platform == "gpu" for d in jax.devices())
     except Exception:  # JAX missing or without a platform
         gpu = False
-    return ["rollout", "mjx"] if gpu else ["rollout"]
+    return ["cpu", "mjx"] if gpu else ["cpu"]
 
 
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
-    p.add_argument("--backends", nargs="+", choices=("rollout", "mjx"),
-                   help="default: rollout, and mjx when JAX sees a GPU")
+    p.add_argument("--backends", nargs="+", choices=("cpu", "mjx"),
+                   help="default: cpu, and mjx when JAX sees a GPU")
     p.add_argument("--batches", type=int, default=None,
                    help="batches trained on after the warm-up batch (default 10, --quick 5)")
     p.add_argument("--calibration-batches", type=int, default=3,
@@ -207,9 +207,9 @@ def main() -> None:
                         "1024x32768, which keeps it busy; on the CPU: 128x1024)")
     p.add_argument("--layers", type=int, default=3, help="hidden layers")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                   help="where backend rollout delivers and the MLP trains")
+                   help="where backend cpu delivers and the MLP trains")
     p.add_argument("--sim-threads", type=int,
-                   help="rollout threads when training on the CPU (default: half the cores)")
+                   help="CPU engine threads when training on the CPU (default: half the cores)")
     args = p.parse_args()
     args.batches = args.batches or (5 if args.quick else 10)
 

@@ -57,7 +57,7 @@ class Dynamics(nn.Module):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
-    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "mjx", "warp"))
     parser.add_argument("--batches", type=int, default=150)
     parser.add_argument("--nbatch", type=int, default=256)
     parser.add_argument("--nstep", type=int, default=200)
@@ -69,16 +69,16 @@ def main():
         args.batches, args.nbatch, args.nstep = 8, 32, 60
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    backend = simloader.backends.resolve(args.backend)
     policy = Feedback().to(device)
     model = Dynamics(64).to(device)
     ds = simloader.SimDataset(
-        "cartpole", backend=backend, nbatch=args.nbatch, nstep=args.nstep, device=device,
+        "cartpole", backend=args.backend, nbatch=args.nbatch, nstep=args.nstep, device=device,
         dtype=torch.float32, record=("qpos", "qvel"), policy=policy,
         policy_noise=controls.Normal(std=0.2), num_batches=args.batches, prefetch=1,
         initial_state=simloader.initial.Perturbed(qpos_std=0.2, qvel_std=0.5))
     model_opt = torch.optim.Adam(model.parameters(), lr=2e-3)
     history = {"balanced": [], "model_error": []}
+    backend = ds.config.backend
     print(f"backend {backend} on {device}: {args.batches} on-policy batches of "
           f"{args.nbatch} x {args.nstep}")
     start = time.perf_counter()

@@ -23,7 +23,7 @@ def main():
     parser.add_argument("--model", default="humanoid",
                         help="a humanoid MJCF with a body named 'head' (default: the built-in "
                              "DeepMind Control Suite humanoid)")
-    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "mjx", "warp"))
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args()
     nbatch, nstep = (4, 20) if args.quick else (512, 300)

@@ -24,7 +24,7 @@ def main():
     args = parser.parse_args()
     nbatch, chunk, nchunk = (8, 50, 4) if args.quick else (256, 200, 10)
 
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=nbatch, nstep=chunk,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=nbatch, nstep=chunk,
                               control=controls.OrnsteinUhlenbeck(std=0.5, tau=0.3),
                               initial_state=simloader.initial.Perturbed(),
                               continue_episodes=True, num_batches=nchunk, seed=0)

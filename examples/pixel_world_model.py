@@ -79,7 +79,7 @@ def rollout(net, video, control, horizon):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
-    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "mjx", "warp"))
     parser.add_argument("--batches", type=int, default=400)
     parser.add_argument("--nbatch", type=int, default=256)
     parser.add_argument("--nstep", type=int, default=40)
@@ -93,15 +93,17 @@ def main():
         args.batches, args.nbatch, args.nstep, args.width = 2, 4, 12, 8
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    backend = simloader.backends.resolve(args.backend)
     # a frame every other step (0.02 s): the camera sees motion, the renderer half the work
-    common = dict(backend=backend, device=device, record_every=2,
+    common = dict(device=device, record_every=2,
                   record=(simloader.Camera("front", height=32, width=32),),
                   control=controls.OrnsteinUhlenbeck(std=0.8, tau=0.3),
                   initial_state=simloader.initial.Perturbed(qpos_std=0.5, qvel_std=0.5))
-    train = simloader.SimDataset("cartpole", nbatch=args.nbatch, nstep=args.nstep,
-                                 num_batches=args.batches, seed=0, **common)
-    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=2 if args.quick else 8,
+    train = simloader.SimDataset("cartpole", backend=args.backend, nbatch=args.nbatch,
+                                 nstep=args.nstep, num_batches=args.batches, seed=0, **common)
+    # held out on the engine that renders the training stream ("auto" chose it for its size)
+    backend = train.config.backend
+    held_out = next(iter(simloader.SimDataset("cartpole", backend=backend,
+                                              nbatch=2 if args.quick else 8,
                                               nstep=args.nstep, seed=1, **common)))
     nu = train.model.nu
     net = FrameModel(nu, args.width).to(device)
@@ -109,13 +111,13 @@ def main():
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.batches)
     print(f"backend {backend} on {device}: {args.batches} batches of {args.nbatch} trajectories "
           f"x {args.nstep // 2} frames of 32x32 RGB")
-    if backend == "rollout" and not args.quick:
+    if backend == "cpu" and not args.quick:
         # OpenGL on a CPU is Mesa's software rasterizer: about 36 frames/s at 32x32 on a
         # 2-core machine (as fast as a plain mujoco.Renderer there), so the default run takes
         # about 14 hours on such a machine
         print(f"note: rendering on the CPU: {args.batches * args.nbatch * args.nstep // 2:,} "
               f"frames, about 36 frames/s per 2 cores with Mesa; --quick runs in seconds, a "
-              f"GPU (impl='warp') renders millions per second")
+              f"GPU (backend='warp') renders millions per second")
 
     def actions(batch):
         # the action of frame j: the mean control of its two steps

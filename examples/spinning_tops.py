@@ -51,7 +51,7 @@ def main():
     x0 = np.tile(base, (nbatch, 1))
     qvel = 1 + model.nq  # state = [time, qpos, qvel, ...]; the free joint's angular velocity
     x0[:, qvel + 5] = spins  # is in the body frame: index 5 is the spin about the top's axis
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=nbatch, nstep=nstep,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=nbatch, nstep=nstep,
                               initial_state=x0, num_batches=1)
     batch = next(iter(torch.utils.data.DataLoader(ds, batch_size=None)))
     gyro = batch["sensordata"].numpy()  # (nbatch, nstep, 3), the top's frame

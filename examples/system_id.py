@@ -40,7 +40,7 @@ def targets(pool):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--backend", default="rollout", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="cpu", choices=("auto", "cpu", "mjx", "warp"))
     args = parser.parse_args()
     nvariant, nbatch, nstep, batches = (32, 64, 40, 20) if args.quick else (512, 512, 100, 300)
 

@@ -86,15 +86,16 @@ def setup(args, device):
     Returns:
       (backend, training SimDataset, held-out batch, model, the state's physics columns).
     """
-    backend = simloader.backends.resolve(args.backend)
-    common = dict(backend=backend, device=device, dtype=torch.float32,
+    common = dict(device=device, dtype=torch.float32,
                   control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.2),
                   initial_state=simloader.initial.Perturbed(qpos_std=0.3, qvel_std=0.3))
     # under torchrun, every rank passes the same arguments and streams its own part of seed 0
-    train = simloader.SimDataset("cartpole", nbatch=args.nbatch, nstep=args.nstep,
-                                 num_batches=args.batches, seed=0, **common)
-    held_out = next(iter(simloader.SimDataset("cartpole", nbatch=64, nstep=HORIZON, seed=1,
-                                              **common)))
+    train = simloader.SimDataset("cartpole", backend=args.backend, nbatch=args.nbatch,
+                                 nstep=args.nstep, num_batches=args.batches, seed=0, **common)
+    # held out on the engine that simulates the training stream ("auto" chose it for its size)
+    backend = train.config.backend
+    held_out = next(iter(simloader.SimDataset("cartpole", backend=backend, nbatch=64,
+                                              nstep=HORIZON, seed=1, **common)))
     model = train.model
     physics = slice(1, 1 + model.nq + model.nv)  # drop time, the state's first column
     net = Dynamics(model.nq + model.nv, model.nu, args.width).to(device)
@@ -105,7 +106,7 @@ def setup(args, device):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
-    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "mjx", "warp"))
     parser.add_argument("--batches", type=int, default=300)
     parser.add_argument("--nbatch", type=int, default=1024)
     parser.add_argument("--nstep", type=int, default=100)

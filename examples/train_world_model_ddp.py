@@ -30,7 +30,7 @@ from train_world_model import evaluate, setup, transitions
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
-    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "mjx", "warp"))
     parser.add_argument("--batches", type=int, default=200, help="batches per rank")
     parser.add_argument("--nbatch", type=int, default=4096, help="trajectories per batch")
     parser.add_argument("--nstep", type=int, default=100)

@@ -43,7 +43,7 @@ def stream(args, **kwargs):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds")
-    parser.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "mjx", "warp"))
     parser.add_argument("--store", help="the corpus (default outputs/humanoid-corpus.zarr; "
                                         "--quick: a temporary folder)")
     parser.add_argument("--batches", type=int, default=40, help="batches in the corpus")

@@ -6,11 +6,11 @@ state and the sensors recorded after every step. The raw baselines depend on MuJ
 or MuJoCo Warp) alone, not on simloader's code:
 
 - a Python loop stepping one `MjData` (the single-environment reference for speed-ups);
-- `mujoco.rollout` on all cores with a persistent thread pool (what the rollout backend wraps);
-- a jitted `lax.scan` over `vmap(mjx.step)`, controls drawn in the jitted function (what the mjx
-  backend runs on `impl="jax"`);
+- `mujoco.rollout` on all cores with a persistent thread pool (what the CPU engine wraps);
+- a jitted `lax.scan` over `vmap(mjx.step)`, controls drawn in the jitted function (what
+  `backend="mjx"` runs);
 - a captured `mujoco_warp.step` graph replayed from torch, controls copied in and outputs
-  copied out every step (what the mjx backend runs on `impl="warp"`: its Warp engine).
+  copied out every step (what `backend="warp"` runs).
 
 simloader is timed as delivered: torch tensors in hand (its producer simulating the next batch
 meanwhile), after a warm-up batch, blocked on the device after each. Measures run alternately in
@@ -34,9 +34,9 @@ import torch
 from mujoco import rollout
 
 PYTHON, RAW_ROLLOUT, SIMLOADER_ROLLOUT = ("Python mj_step loop", "mujoco.rollout (raw)",
-                                          "simloader rollout")
+                                          "simloader cpu")
 RAW_MJX, SIMLOADER_MJX = "raw MJX vmap+scan", "simloader mjx"
-RAW_WARP, SIMLOADER_WARP = "raw MuJoCo Warp graph, same work", "simloader mjx (warp)"
+RAW_WARP, SIMLOADER_WARP = "raw MuJoCo Warp graph, same work", "simloader warp"
 # the raw method each simloader method is compared with
 RAW_OF = {SIMLOADER_ROLLOUT: RAW_ROLLOUT, SIMLOADER_MJX: RAW_MJX, SIMLOADER_WARP: RAW_WARP}
 
@@ -71,7 +71,7 @@ def ctrl_bounds(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cpu_count() -> int:
-    """CPU cores this process may run on (what simloader's rollout backend uses)."""
+    """CPU cores this process may run on (what simloader's CPU engine uses)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
@@ -395,7 +395,7 @@ class RawWarp(RawBaseline):
     def __init__(self, model: mujoco.MjModel, w: Workload, seed: int,
                  sizes: tuple[Optional[int], Optional[int]] = (None, None),
                  same_work: bool = True, cameras: bool = False):
-        # imported here: the package (and `simloader bench` on the rollout backend) runs
+        # imported here: the package (and `simloader bench` on the CPU engine) runs
         # without Warp installed
         import mujoco_warp as mjw
         import warp as wp
@@ -477,13 +477,13 @@ class RawWarp(RawBaseline):
         return out if self.pixels is None else {**out, "pixels": self.pixels}
 
 
-def raw_baseline(options: Any) -> type[RawMjx] | type[RawWarp]:
-    """The raw baseline of simloader's mjx backend resolved to `options` (`impl="auto"`
-    already decided): the engine simloader runs, `RawWarp` on "warp", `RawMjx` on "jax"."""
-    baselines = {"jax": RawMjx, "warp": RawWarp}
-    if options.impl not in baselines:
-        raise ValueError(f"options.impl: expected 'jax' or 'warp', got {options.impl!r}")
-    return baselines[options.impl]
+def raw_baseline(backend: str) -> type[RawMjx] | type[RawWarp]:
+    """The raw baseline of simloader's GPU engine `backend`: `RawMjx` for "mjx", `RawWarp`
+    for "warp"."""
+    baselines = {"mjx": RawMjx, "warp": RawWarp}
+    if backend not in baselines:
+        raise ValueError(f"backend: expected 'mjx' or 'warp', got {backend!r}")
+    return baselines[backend]
 
 
 # -- simloader, measured the same way ---------------------------------------------------------
@@ -606,28 +606,27 @@ def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repe
     runs_on = {PYTHON: "1 core"}
     notes = []
     for backend in backends:
-        if backend == "rollout":
+        if backend == "cpu":
             raw, batch_s = raw_rollout(model, w, cpu_count(), seed)
             # all the cores, as the raw rollout: nothing trains beside this measurement
-            sim = SimloaderMeasure(model, w, "rollout", seed, nthread=cpu_count())
+            sim = SimloaderMeasure(model, w, "cpu", seed, nthread=cpu_count())
             n = batches_for(batch_s, min_batches, min_seconds)
             measures[RAW_ROLLOUT] = lambda raw=raw, n=n: raw(n)
             measures[SIMLOADER_ROLLOUT] = lambda sim=sim, n=n: sim.measure(n)
             runs_on[RAW_ROLLOUT] = runs_on[SIMLOADER_ROLLOUT] = f"{cpu_count()} cores"
-        elif backend == "mjx":
-            sim = SimloaderMeasure(model, w, "mjx", seed)
-            o = sim.ds.config.options  # the raw baseline runs the engine simloader chose
-            Raw = raw_baseline(o)
-            raw = Raw.matching(model, w, seed, o)
-            notes.append(f"mjx: impl={o.impl} ({o.impl_reason}); raw: {Raw.engine}")
+        elif backend in ("mjx", "warp"):
+            sim = SimloaderMeasure(model, w, backend, seed)
+            Raw = raw_baseline(backend)
+            raw = Raw.matching(model, w, seed, sim.ds.config.options)
+            notes.append(f"{backend}: raw: {Raw.engine}")
             n = batches_for(raw.batch_s, min_batches, min_seconds)
             measures[Raw.row] = lambda raw=raw, n=n: raw.measure(n)
             measures[Raw.simloader_row] = lambda sim=sim, n=n: sim.measure(n)
             runs_on[Raw.row] = runs_on[Raw.simloader_row] = device_name(sim.device)
-            notes.append(f"mjx: compiled in {raw.compile_s:.1f} s (raw) and "
+            notes.append(f"{backend}: compiled in {raw.compile_s:.1f} s (raw) and "
                          f"{sim.compile_s:.1f} s (simloader, first batch after "
                          f"{sim.first_s:.1f} s)")
         else:
-            raise ValueError(f"backends: expected 'rollout' or 'mjx', got {backend!r}")
+            raise ValueError(f"backends: expected 'cpu', 'mjx' or 'warp', got {backend!r}")
     measures[PYTHON] = python_loop(model, w.nstep, python_steps, seed)
     return interleave(measures, repeats, desc=f"{w} x{repeats}"), runs_on, notes

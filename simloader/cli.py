@@ -19,6 +19,16 @@ from simloader.store import StoreLocked
 from simloader import observe, sharding
 
 DEFAULT_MODEL = "cartpole"
+# "rollout": the older spelling of "cpu", still accepted (the library warns once)
+BACKEND_CHOICES = ("auto", "cpu", "mjx", "warp", "rollout")
+
+
+def engines_here() -> list[str]:
+    """The engines that can run on this machine: the CPU engine, and the GPU engines where
+    their packages and a GPU are."""
+    from simloader.backends import auto
+    return ["cpu"] + [name for name, why in auto.candidates(False).items()
+                      if name != "cpu" and not why]
 DEFAULT_OUT = "simloader-results"
 
 
@@ -85,11 +95,30 @@ def stream_dataset(args: argparse.Namespace) -> simloader.SimDataset:
                                     nthread=sharding.available_cpus(), **record)
 
 
+# quickstart's batch when --nbatch is not given: a GPU is busy only from thousands of
+# trajectories on (benchmarks/results/auto_choice-*.md), a CPU from a few per core
+GPU_NBATCH, CPU_NBATCH = 8192, 1024
+
+
+def quickstart_nbatch(args: argparse.Namespace) -> tuple[int, str]:
+    """(trajectories per batch, why) for quickstart: as given, else sized for the engines
+    that run here."""
+    if args.nbatch is not None:
+        return args.nbatch, "as given"
+    gpu = [name for name in engines_here() if name != "cpu"]
+    if args.backend in ("mjx", "warp") or (args.backend == "auto" and gpu):
+        return GPU_NBATCH, "sized for a GPU; --nbatch to change"
+    return CPU_NBATCH, "sized for the CPU; --nbatch to change"
+
+
 def quickstart(args: argparse.Namespace) -> None:
+    args.nbatch, sized = quickstart_nbatch(args)
     ds = stream_dataset(args)
     loader = torch.utils.data.DataLoader(ds, batch_size=None)
-    print(f"simloader {simloader.__version__}: model {args.model!r}, backend "
-          f"{ds.config.backend!r}, {args.nbatch} trajectories x {args.nstep} steps per batch")
+    print(f"simloader {simloader.__version__}: model {args.model!r}, {args.nbatch} trajectories "
+          f"({sized}) x {args.nstep} steps per batch")
+    print(f"backend {ds.config.backend!r} ({ds.config.options.simulated_by()}), chosen: "
+          f"{ds.config.backend_reason}")
     steps, start, first = 0, time.perf_counter(), None
     for batch in tqdm(loader, total=args.batches, unit="batch"):
         if first is None:  # the first batch includes start-up (and compilation for MJX)
@@ -149,9 +178,8 @@ def bench(args: argparse.Namespace) -> None:
         except OSError as e:
             raise BadArgument(f"--out: expected a folder that can be created, got {args.out!r} "
                               f"({e.strerror})") from None
-    # mjx where a GPU engine runs (MuJoCo Warp on a CUDA GPU, or JAX seeing a GPU)
-    gpu = simloader.backends.resolve("auto") == "mjx"
-    backends = args.backends or (["rollout", "mjx"] if gpu else ["rollout"])
+    # every engine that runs here (the GPU engines where a GPU is)
+    backends = args.backends or engines_here()
     name = args.model if len(args.model) < 40 else "model"
     w = b.Workload(name, args.nbatch, args.nstep)
     print(f"simloader {simloader.__version__} bench: {w} on {', '.join(backends)}, median of "
@@ -174,7 +202,7 @@ def warmup(args: argparse.Namespace) -> None:
     seconds."""
     start = time.perf_counter()
     with from_arguments():
-        ds = simloader.SimDataset(args.model, backend="mjx", impl=args.impl, nbatch=args.nbatch,
+        ds = simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
                                   nstep=args.nstep, control=simloader.controls.Uniform(),
                                   num_batches=1)
     print(ds.describe().splitlines()[-1])
@@ -192,8 +220,11 @@ def main(argv: list[str] | None = None) -> None:
     add_model_argument(q)
     q.add_argument("--model", dest="model_option", metavar="MODEL",
                    help="the model, as the positional argument (kept for compatibility)")
-    q.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
-    q.add_argument("--nbatch", type=int, default=1024)
+    q.add_argument("--backend", default="auto", choices=BACKEND_CHOICES, metavar="BACKEND",
+                   help="cpu, mjx, warp or auto (default: the fastest here, said at the start)")
+    q.add_argument("--nbatch", type=positive_int, default=None,
+                   help=f"trajectories per batch (default: {GPU_NBATCH} where a GPU engine "
+                        f"runs, else {CPU_NBATCH})")
     q.add_argument("--nstep", type=int, default=200)
     q.add_argument("--batches", type=int, default=20)
     q.add_argument("--seed", type=int, default=0)
@@ -206,7 +237,8 @@ def main(argv: list[str] | None = None) -> None:
                          "is resumed or grown), or for --format minari the dataset's folder, "
                          "named by its id, e.g. datasets/cartpole-uniform-v0")
     wr.add_argument("--format", default="zarr", choices=("zarr", "minari"))
-    wr.add_argument("--backend", default="auto", choices=("auto", "rollout", "mjx"))
+    wr.add_argument("--backend", default="auto", choices=BACKEND_CHOICES, metavar="BACKEND",
+                    help="cpu, mjx, warp or auto (default)")
     wr.add_argument("--nbatch", type=positive_int, default=1024)
     wr.add_argument("--nstep", type=positive_int, default=200)
     wr.add_argument("--batches", type=positive_int, default=20)
@@ -231,8 +263,8 @@ def main(argv: list[str] | None = None) -> None:
 
     b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")
     add_model_argument(b)
-    b.add_argument("--backends", nargs="+", choices=("rollout", "mjx"),
-                   help="default: rollout, and mjx where a GPU engine runs")
+    b.add_argument("--backends", nargs="+", choices=("cpu", "mjx", "warp"),
+                   help="default: cpu, and the GPU engines that run here")
     b.add_argument("--nbatch", type=positive_int, default=1024)
     b.add_argument("--nstep", type=positive_int, default=200)
     b.add_argument("--repeats", type=positive_int, default=3,
@@ -248,9 +280,10 @@ def main(argv: list[str] | None = None) -> None:
                    help="file name of the bar chart in --out ('' for none)")
     b.set_defaults(run=bench)
 
-    w = sub.add_parser("warmup", help="compile the MJX backend for a model ahead of time")
+    w = sub.add_parser("warmup", help="compile a GPU engine for a model ahead of time")
     add_model_argument(w)
-    w.add_argument("--impl", default="auto", choices=("auto", "jax", "warp"))
+    w.add_argument("--backend", default="auto", choices=("auto", "mjx", "warp"),
+                   help="the GPU engine to compile (default: the one auto picks)")
     w.add_argument("--nbatch", type=int, default=1024,
                    help="trajectories per batch, as the training run will use them")
     w.add_argument("--nstep", type=int, default=200, help="steps per batch, as in training")

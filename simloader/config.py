@@ -29,10 +29,12 @@ class SimConfig:
       models: one MjModel per trajectory (`randomize` as a list), or None.
       randomization: per-trajectory model parameters drawn every batch, or None.
       variants: the pool of compiled structural variants sampled per trajectory, or None.
-      backend: "rollout" or "mjx" ("auto" is resolved by `backends.resolve`).
+      backend: the engine that simulates: "cpu", "mjx" or "warp" ("auto" resolved by the
+        `choose` argument of `build_config`); `backend_reason`: why ("asked", or what
+        "auto" estimated).
       options: the engine's own options, resolved by `backends.check_options` (`CpuOptions`,
-        `MjxOptions`, `WarpOptions`: the implementation `impl`, buffer sizes, caches, and
-        `simulated_by()`); None only until they are checked.
+        `MjxOptions`, `WarpOptions`: buffer sizes, caches, and `simulated_by()`); None only
+        until they are checked.
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
@@ -43,7 +45,7 @@ class SimConfig:
       num_batches: batches per rank in total, or None for endless.
       seed: root of all randomness.
       device, dtype: where and in what the tensors are delivered (None: backend native).
-      nthread: CPU threads of the rollout backend (None: the cores split among workers).
+      nthread: CPU threads of the CPU engine (None: the cores split among workers).
       prefetch: batches simulated ahead of the consumer.
       torch_threads: torch's intra-op threads in the constructing process (the consumer's).
       policy: closed loop: the callable that picks every step's controls, or None.
@@ -54,6 +56,7 @@ class SimConfig:
     model: mujoco.MjModel
     models: Optional[tuple[mujoco.MjModel, ...]]
     backend: str
+    backend_reason: str
     nbatch: int
     nstep: int
     nstate: int
@@ -243,19 +246,23 @@ def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, contro
     return plan
 
 
-def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: Any,
+def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep: Any, control: Any,
                  control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
                  prefetch: Any, record: Any, record_every: Any, policy: Any = None,
                  policy_noise: Any = None,
-                 check_sizes: Optional[Callable[[Any], None]] = None) -> SimConfig:
-    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig`, for a
-    resolved `backend` (its options are validated next, by the backend).
+                 size_check: Callable[[str], Optional[Callable[[Any], None]]] = lambda _: None
+                 ) -> SimConfig:
+    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig` (the
+    engine's options are validated next, by the engine).
 
-    `check_sizes`: the engine's refusal of a batch too large for it, from the sizes alone
-    (`backends.size_check`; the namespace holds `SimConfig`'s size fields and `prefetch`),
-    called before the (nbatch x ...) tables are built: seconds of work, and memory, for an
-    nbatch that is refused anyway."""
+    `choose`: the engine for the model and sizes (`backends.auto.choose` with the `backend`
+    argument bound): called with a namespace of the base `model`, `nbatch`, `nstep`,
+    `observations` and `policy`, returns a `Choice` (`backend`, `reason`).
+    `size_check`: the chosen engine's refusal of a batch too large for it, from the sizes
+    alone (`backends.size_check`; the namespace holds `SimConfig`'s size fields and
+    `prefetch`), called before the (nbatch x ...) tables are built: seconds of work, and
+    memory, for an nbatch that is refused anyway."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
     # 0 batches would be a dataset that silently yields nothing
@@ -284,6 +291,9 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     elif variants is not None:
         base = variants[0]
     observations, record_every = _record(base, record, record_every, nstep)
+    choice = choose(SimpleNamespace(model=base, nbatch=nbatch, nstep=nstep,
+                                    observations=observations, policy=policy))
+    check_sizes = size_check(choice.backend)
     if check_sizes is not None:
         check_sizes(SimpleNamespace(
             observations=observations, nbatch=nbatch, nstep=nstep,
@@ -294,7 +304,8 @@ def build_config(model: Any, *, backend: str, nbatch: Any, nstep: Any, control: 
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep)
     config = SimConfig(
-        model=base, models=models_, backend=backend, nbatch=nbatch, nstep=nstep,
+        model=base, models=models_, backend=choice.backend, backend_reason=choice.reason,
+        nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
         variants=variants, control=plan, initial=init, observations=observations,

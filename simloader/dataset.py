@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any, Optional
@@ -12,6 +13,7 @@ import torch
 
 from simloader import backends, layout, models, observe, resume, sharding
 from simloader import policy as simloader_policy
+from simloader.backends import auto
 from simloader.backends.base import Backend, Stats
 from simloader.batch import Batch
 from simloader.config import SimConfig, build_config
@@ -61,9 +63,13 @@ class SimDataset(torch.utils.data.IterableDataset):
       model: MJCF/MJB path, MJCF XML string, `MjModel`, `MjSpec`, or a model name
         (`simloader.named_models()`: the built-in `cartpole` and `humanoid`, Gymnasium's
         `gymnasium/hopper` and the like where gymnasium is installed).
-      backend: "rollout" (CPU, MuJoCo's native threads), "mjx" (a GPU engine: MJX on JAX or
-        MuJoCo Warp, see `impl`) or "auto" (mjx when a GPU engine can run: MuJoCo Warp on a
-        CUDA GPU, or JAX seeing a GPU; else rollout).
+      backend: the engine: "cpu" (MuJoCo's native multithreaded CPU simulation,
+        `mujoco.batch`, bit for bit `mujoco.rollout`), "mjx" (MJX on JAX: jit + vmap + scan,
+        on the GPU), "warp" (MuJoCo Warp driven from torch with CUDA graphs; no JAX) or
+        "auto" (the fastest of those that run here for this model, `nbatch` and machine,
+        from a measured rule: `simloader.backends.auto`; `describe()` says why). The older
+        spellings "rollout" and `backend="mjx", impl="jax"|"warp"|"auto"` still work and
+        warn once (FutureWarning).
       nbatch: trajectories per batch.
       nstep: steps per trajectory per batch.
       control: None (inputs as `mj_resetData` leaves them, as `mujoco.rollout`), an array
@@ -81,8 +87,9 @@ class SimDataset(torch.utils.data.IterableDataset):
       num_batches: batches in total per rank (split across DataLoader workers), None: endless.
       seed: all randomness derives from it, the worker's batch indices and the rank.
       device: torch device of the delivered tensors (None: the backend's own).
-      dtype: torch dtype of the floating tensors (None: float64 for rollout, float32 for mjx).
-      nthread: CPU threads of the rollout backend per worker (None: the cores, or half of
+      dtype: torch dtype of the floating tensors (None: float64 on the CPU engine, float32 on
+        the GPU engines).
+      nthread: CPU threads of the CPU engine per worker (None: the cores, or half of
         them when batches stay on the CPU beside a multi-threaded torch, split among workers
         and local ranks).
       prefetch: batches simulated ahead of the consumer.
@@ -104,16 +111,15 @@ class SimDataset(torch.utils.data.IterableDataset):
       policy_noise: exploration noise added to the policy's controls before MuJoCo's clamp: a
         `simloader.controls` generator or a dict `{component: generator(s)}`, drawn from
         `seed` as `control` is.
-      **backend_options: `backend="mjx"` only: `impl` ("auto", "jax" or "warp": MJX's
-        implementation; "auto" takes MuJoCo Warp for a model with contacts where Warp and a
-        GPU are present), `naconmax`/`njmax` (MuJoCo Warp's buffers; None: sized from the
-        model), `compilation_cache`, `memory_fraction` (see `backends.mjx.check_options`).
-        A Warp batch also holds `overflow` (nbatch,) bool: trajectories that lost contacts or
-        constraint rows to those buffers.
+      **backend_options: the engine's own: `naconmax`/`njmax` for "warp" (MuJoCo Warp's
+        buffers; None: sized from the model), `compilation_cache`, `memory_fraction` for
+        "mjx" (see `backends.mjx.check_options`); with "auto", those of an engine not chosen
+        are left unused. A Warp batch also holds `overflow` (nbatch,) bool: trajectories that
+        lost contacts or constraint rows to those buffers.
 
     Raises:
       TypeError, ValueError: bad arguments, naming the argument, the expectation and the value;
-        a batch that cannot fit in host memory (rollout backend), with its size.
+        a batch that cannot fit in host memory (CPU engine), with its size.
     """
 
     def __init__(self, model: Any, *, backend: str = "auto", nbatch: int, nstep: int,
@@ -126,18 +132,18 @@ class SimDataset(torch.utils.data.IterableDataset):
                  policy: Any = None, policy_noise: Any = None, **backend_options: Any):
         super().__init__()
         _check_keywords(backend_options)
-        backends.prepare(backend, backend_options)
-        resolved = backends.resolve(backend, backend_options)
+        backend, options, gpu_only = backends.spelled(backend, backend_options)
+        backends.prepare(backend, options)
         config = build_config(
-            model, backend=resolved, nbatch=nbatch, nstep=nstep,
+            model, choose=functools.partial(auto.choose, backend, gpu_only), nbatch=nbatch, nstep=nstep,
             control=control, control_spec=control_spec, initial_state=initial_state,
             randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
             seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
             record=record, record_every=record_every, policy=policy,
-            policy_noise=policy_noise, check_sizes=backends.size_check(resolved))
-        # one route for every backend option: validated by the backend, kept in the config
+            policy_noise=policy_noise, size_check=backends.size_check)
+        # one route for every engine option: validated by the engine, kept in the config
         self.config: SimConfig = dataclasses.replace(
-            config, options=backends.check_options(config, backend, backend_options))
+            config, options=backends.check_options(config, config.backend_reason, options))
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations)
         self.source = models.source(model)  # where the model came from, for describe()
@@ -160,9 +166,9 @@ class SimDataset(torch.utils.data.IterableDataset):
     @property
     def stats(self) -> dict[str, Any]:
         """Counters of the iterators run in this process (workers keep their own), and the
-        implementation that simulates (`impl`: "jax" or "warp" on MJX, "c" on rollout)."""
+        engine that simulates (`backend`: "cpu", "mjx" or "warp")."""
         out = self._stats.as_dict()
-        out["impl"] = self.config.options.impl
+        out["backend"] = self.config.backend
         return out
 
     def describe(self) -> str:
@@ -177,7 +183,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         if params:
             text += ("\nrandomized: batch[\"params\"] keys, the values each trajectory ran "
                      "with:\n" + "\n".join(f"  {k} {shape}" for k, shape in params))
-        return text + f"\nsimulated by: {c.options.simulated_by()}"
+        return text + (f"\nsimulated by: backend={c.backend!r} ({c.options.simulated_by()}; "
+                       f"chosen: {c.backend_reason})")
 
     def __len__(self) -> int:
         if self.config.num_batches is None:

@@ -145,17 +145,17 @@ class Field(Observation):
         import jax
         value = _mjx_field(data, self.key)
         if value is None:
-            return f"MJX (impl={impl!r}) has no field {self.key}"
+            return f"MJX has no field {self.key}"
         if not isinstance(value, jax.Array):
-            return (f"MJX (impl={impl!r}) holds {self.key} as a constant of the compiled "
+            return (f"MJX holds {self.key} as a constant of the compiled "
                     f"model (a size fixed at compilation), not per trajectory")
         if tuple(value.shape) != self.shape and not (
                 self.key.endswith("mat") and value.size == math.prod(self.shape)):
-            return (f"MJX (impl={impl!r}) stores {self.key} with shape {tuple(value.shape)}, "
+            return (f"MJX stores {self.key} with shape {tuple(value.shape)}, "
                     f"MuJoCo with shape {self.shape} (another layout, e.g. dense instead of "
                     f"sparse)")
         if np.dtype(value.dtype).kind != self.dtype.kind:
-            return f"MJX (impl={impl!r}) stores {self.key} as {value.dtype}, MuJoCo as {self.dtype}"
+            return f"MJX stores {self.key} as {value.dtype}, MuJoCo as {self.dtype}"
         return None
 
 
@@ -437,7 +437,7 @@ def check_mjx(observations: Sequence[Observation], data: Any, impl: str) -> None
                if (why := o.mjx_refusal(data, impl)) is not None]
     if refused:
         raise ValueError("record: backend='mjx' cannot record " + "; ".join(refused)
-                         + "; use backend='rollout' for these")
+                         + "; use backend='cpu' for these")
 
 
 def batch_nbytes(observations: Sequence[Observation], nbatch: int, nframes: int, nstep: int,

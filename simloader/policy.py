@@ -236,7 +236,7 @@ def _dtype_advice(policy: Any, obs: Mapping[str, Any]) -> Optional[str]:
            if torch.float64 in seen else "SimDataset(..., dtype=torch.float64) or policy.float()")
     return (f"policy, dtype: the policy's parameters are {', '.join(mine)} but its observations "
             f"are {', '.join(theirs)} (the dataset's dtype; dtype=None delivers float64 on "
-            f"backend='rollout', float32 on backend='mjx'); pass {fix}")
+            f"backend='cpu', float32 on backend='mjx'); pass {fix}")
 
 
 class Caller:

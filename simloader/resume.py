@@ -23,9 +23,28 @@ from simloader.config import SimConfig
 # (`encode_trajectories`)
 VERSION = 5
 
-# backend options that do not change the stream (where JAX caches, how much memory it takes,
-# why an implementation was chosen)
-_SETUP_OPTIONS = ("compilation_cache", "memory_fraction", "impl_reason")
+# backend options that do not change the stream (where JAX caches, how much memory it takes)
+_SETUP_OPTIONS = ("compilation_cache", "memory_fraction")
+# the engines' names before one vocabulary: backend "rollout", and "mjx" with an `impl` option
+_OLD_ENGINES = {("rollout", None): "cpu", ("mjx", "jax"): "mjx", ("mjx", "warp"): "warp"}
+
+
+def upgraded(saved: Any) -> Any:
+    """A fingerprint saved before the engines had one vocabulary (a state_dict or a store's
+    provenance), in today's words: `backend` "rollout" is "cpu", and "mjx" with the option
+    `impl` "jax" or "warp" is "mjx" or "warp"; the same stream, so it resumes. Others as
+    they are."""
+    if not isinstance(saved, dict):
+        return saved
+    options = saved.get("backend_options")
+    impl = options.get("impl") if isinstance(options, dict) else None
+    new = _OLD_ENGINES.get((saved.get("backend"), impl))
+    if new is None:
+        return saved
+    out = dict(saved, backend=new)
+    if isinstance(options, dict):
+        out["backend_options"] = {k: v for k, v in options.items() if k != "impl"}
+    return out
 
 
 def encode_array(array: np.ndarray) -> dict[str, Any]:
@@ -196,7 +215,8 @@ def check(config: SimConfig, state: Any) -> None:
         raise ValueError(f"state_dict: expected a simloader state of version {VERSION}, got "
                          f"{state if not isinstance(state, dict) else state.get('version')!r}")
     diff = [f"{k} is {short(here)} here but {short(there)} in the state"
-            for k, here, there in differences(fingerprint(config), state.get("config", {}))]
+            for k, here, there in differences(fingerprint(config),
+                                              upgraded(state.get("config", {})))]
     if diff:
         more = f"; and {len(diff) - 6} more" if len(diff) > 6 else ""
         raise ValueError("state_dict: the saved stream has another configuration: "

@@ -130,7 +130,7 @@ def pytest_collection_modifyitems(items):
 # simloader.write of a cart-pole stream (64 x 400 per batch: long enough to be caught mid-way)
 _WRITER = """
 import sys, simloader
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=64, nstep=400, nthread=1,
                           seed=int(sys.argv[3]), control=simloader.controls.Uniform(), prefetch=1)
 simloader.write(ds, sys.argv[1], batches=int(sys.argv[2]), progress=False)
 """

@@ -15,7 +15,7 @@ import torch
 import simloader
 from simloader import controls
 
-BACKENDS = ["rollout", "mjx"]
+BACKENDS = ["cpu", "mjx"]
 
 # a slider driven by an unlimited motor, a limited one, one limited by autolimits (ctrlrange
 # alone) and one with ctrllimited="false" and a range (not limited); sensors give what acted
@@ -41,7 +41,7 @@ def model(clampctrl="enable"):
 
 
 def first_batch(m, control, backend, **kwargs):
-    options = {"nthread": 1} if backend == "rollout" else {}
+    options = {"nthread": 1} if backend == "cpu" else {}
     ds = simloader.SimDataset(m, backend=backend, nbatch=control.shape[0],
                               nstep=control.shape[1], control=control, num_batches=1,
                               dtype=torch.float64, **options, **kwargs)
@@ -83,7 +83,7 @@ def test_control_reports_what_acted(clampctrl, backend):
     expected = applied_by_mujoco(m, u)
     assert not batch["diverged"].any()
     # MJX simulates in float32 (delivered here as float64)
-    precision = np.float64 if backend == "rollout" else np.float32
+    precision = np.float64 if backend == "cpu" else np.float32
     np.testing.assert_array_equal(batch["control"].numpy(), expected.astype(precision))
     if clampctrl == "enable":
         assert batch["control"][..., 1].abs().max() == 1.0
@@ -98,7 +98,7 @@ def test_generated_and_default_controls_report_what_acted():
         <mujoco><worldbody><body><joint name="x" type="slide"/><geom size=".1"/></body>
         </worldbody><actuator><motor joint="x" ctrlrange="1 2"/></actuator></mujoco>""")
     for control in (None, controls.Normal(mean=0.0, std=5.0, clip=False)):
-        ds = simloader.SimDataset(m, backend="rollout", nbatch=2, nstep=6, control=control,
+        ds = simloader.SimDataset(m, backend="cpu", nbatch=2, nstep=6, control=control,
                                   num_batches=1, nthread=1)
         u = next(iter(ds))["control"]
         assert u.min() >= 1.0 and u.max() <= 2.0, control
@@ -129,7 +129,7 @@ def test_bounds_follow_randomized_ctrlrange_and_model_lists():
     # a randomized ctrlrange on the rollout backend: each trajectory clamps to its own
     from simloader import randomize as dr
     ds = simloader.SimDataset(
-        m, backend="rollout", nbatch=64, nstep=2, control=np.full((1, 1, m.nu), 1e6),
+        m, backend="cpu", nbatch=64, nstep=2, control=np.full((1, 1, m.nu), 1e6),
         randomize=[dr.set("actuator_ctrlrange", dr.Uniform(0.5, 0.9), on="limited", index=1)],
         num_batches=1, nthread=1)
     batch = next(iter(ds))
@@ -145,7 +145,7 @@ def test_no_delivered_tensor_aliases_simulator_input(control):
          "none": None}[control]
 
     def stream():
-        return iter(simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=6,
+        return iter(simloader.SimDataset("cartpole", backend="cpu", nbatch=3, nstep=6,
                                          control=u, num_batches=3, nthread=1,
                                          initial_state=simloader.initial.Perturbed()))
 

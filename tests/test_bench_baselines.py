@@ -4,7 +4,6 @@ to MJX's vendored Warp through JAX."""
 
 import subprocess
 import sys
-import types
 
 import pytest
 import torch
@@ -15,30 +14,29 @@ from simloader import bench
 pytest.importorskip("mujoco.mjx")
 
 
-def resolved_options(impl, monkeypatch):
-    """The options a real `backend="mjx"` dataset resolves for `impl` (Warp's on the CPU
-    where no GPU is: resolving sizes the buffers, it simulates nothing)."""
+def resolved_backend(backend, monkeypatch):
+    """The engine a real dataset of `backend` runs (Warp's on the CPU where no GPU is:
+    resolving sizes the buffers, it simulates nothing)."""
     monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
-    ds = simloader.SimDataset("cartpole", backend="mjx", impl=impl, nbatch=2, nstep=2,
+    ds = simloader.SimDataset("cartpole", backend=backend, nbatch=2, nstep=2,
                               control=simloader.controls.Uniform())
-    return ds.config.options
+    return ds.config.backend
 
 
-@pytest.mark.parametrize("impl, expected", [("jax", "RawMjx"), ("warp", "RawWarp")])
-def test_raw_baseline_runs_the_engine_simloader_runs(monkeypatch, impl, expected):
-    if impl == "warp":
+@pytest.mark.parametrize("backend, expected", [("mjx", "RawMjx"), ("warp", "RawWarp")])
+def test_raw_baseline_runs_the_engine_simloader_runs(monkeypatch, backend, expected):
+    if backend == "warp":
         pytest.importorskip("mujoco_warp")
-    options = resolved_options(impl, monkeypatch)
-    assert options.impl == impl
-    raw = bench.raw_baseline(options)
+    assert resolved_backend(backend, monkeypatch) == backend
+    raw = bench.raw_baseline(backend)
     assert raw is getattr(bench, expected)
     # the table compares simloader's row of that engine with this baseline's row
     assert bench.RAW_OF[raw.simloader_row] == raw.row
 
 
-def test_raw_baseline_rejects_unknown_impl():
-    with pytest.raises(ValueError, match="options.impl: expected 'jax' or 'warp', got 'cpu'"):
-        bench.raw_baseline(types.SimpleNamespace(impl="cpu"))
+def test_raw_baseline_rejects_unknown_backend():
+    with pytest.raises(ValueError, match="backend: expected 'mjx' or 'warp', got 'cpu'"):
+        bench.raw_baseline("cpu")
 
 
 def test_bench_imports_without_warp():
@@ -53,10 +51,12 @@ def test_bench_imports_without_warp():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="RawWarp replays a CUDA graph")
 def test_raw_warp_does_the_same_work_with_the_dataset_sizes(monkeypatch):
     pytest.importorskip("mujoco_warp")
-    options = resolved_options("warp", monkeypatch)
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+    options = simloader.SimDataset("cartpole", backend="warp", nbatch=2, nstep=2,
+                                   control=simloader.controls.Uniform()).config.options
     model = simloader.load_model("cartpole")
     w = bench.Workload("cartpole", 2, 2)
-    raw = bench.raw_baseline(options).matching(model, w, 0, options)
+    raw = bench.raw_baseline("warp").matching(model, w, 0, options)
     assert (raw.d.naconmax, raw.d.njmax) == (options.naconmax, options.njmax)
     nstate = 1 + model.nq + model.nv + model.na
     assert raw.shapes == {"state": (2, 2, nstate), "sensordata": (2, 2, model.nsensordata),

@@ -18,7 +18,7 @@ S = mujoco.mjtState
 
 
 def cartpole(**kwargs):
-    args = dict(backend="rollout", nbatch=4, nstep=8, control=controls.Uniform(), nthread=1,
+    args = dict(backend="cpu", nbatch=4, nstep=8, control=controls.Uniform(), nthread=1,
                 initial_state=simloader.initial.Perturbed())
     args.update(kwargs)
     return simloader.SimDataset("cartpole", **args)
@@ -204,7 +204,7 @@ import json, multiprocessing, os, signal, sys, time
 from torch.utils.data import DataLoader
 import simloader
 
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=4, nstep=8, nthread=1,
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=4, nstep=8, nthread=1,
                           control=simloader.controls.Uniform())
 it = iter(DataLoader(ds, batch_size=None, num_workers=2, multiprocessing_context=sys.argv[1]))
 next(it)

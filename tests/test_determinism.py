@@ -40,7 +40,7 @@ def stream_digests(seed):
     """The digests of every tensor of every batch of a stream with all randomness in use."""
     S = mujoco.mjtState
     ds = simloader.SimDataset(
-        "cartpole", backend="rollout", nbatch=16, nstep=25, num_batches=NUM_BATCHES, seed=seed,
+        "cartpole", backend="cpu", nbatch=16, nstep=25, num_batches=NUM_BATCHES, seed=seed,
         nthread=2, control_spec=S.mjSTATE_CTRL | S.mjSTATE_XFRC_APPLIED,
         control={"ctrl": controls.OrnsteinUhlenbeck(),
                  "xfrc_applied": controls.Normal(std=0.5, on="pole")},

@@ -25,7 +25,7 @@ def _rank_main(rank: int, world: int, port: int, results) -> None:
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank,
                             world_size=world)
     try:
-        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=4, nstep=5,
+        ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=4, nstep=5,
                                   control=simloader.controls.Uniform(), num_batches=3, seed=7)
         loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2)
         controls = torch.stack([b["control"] for b in loader])
@@ -61,7 +61,7 @@ def _run_ddp_example(result_file, env):
     root = pathlib.Path(__file__).parents[1]
     return subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-         str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "rollout",
+         str(root / "examples" / "train_world_model_ddp.py"), "--quick", "--backend", "cpu",
          "--json", str(result_file)],
         capture_output=True, text=True, timeout=300, cwd=root, env=env)
 
@@ -98,7 +98,7 @@ import sys
 import torch
 import simloader
 how, nthread = sys.argv[1], int(sys.argv[2])
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=16, nstep=20, seed=0,
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=16, nstep=20, seed=0,
                           nthread=nthread, control=simloader.controls.Uniform())
 if how == "open":  # an iterator left open at exit, its producer simulating ahead
     it = iter(ds)
@@ -111,7 +111,7 @@ elif how == "loader":  # a DataLoader's iterator left open
     it = iter(torch.utils.data.DataLoader(ds, batch_size=None))
     next(it)
 elif how == "finished":
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=16, nstep=20, seed=0,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=16, nstep=20, seed=0,
                               nthread=nthread, num_batches=3)
     assert len(list(ds)) == 3
 print("done")
@@ -136,9 +136,8 @@ def test_rollout_script_exits_zero_however_the_stream_ends(how, checkout_env):
 _RANK_DEVICE_SCRIPT = """
 import json, os
 import simloader
-# backends.resolve starts JAX: it must do so with simloader's settings (no preallocation)
-backend = simloader.backends.resolve("auto")
-ds = simloader.SimDataset("cartpole", backend=backend, nbatch=4, nstep=3, num_batches=1, seed=0)
+# MJX starts JAX: it must do so with simloader's settings (no preallocation)
+ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=4, nstep=3, num_batches=1, seed=0)
 import jax
 batch = next(iter(ds))
 print(json.dumps({
@@ -171,12 +170,12 @@ def test_scale_out_script_on_cpu_ranks(checkout_env):
     rank's stream distinct and reproducible from its seed, one store written by both."""
     root = pathlib.Path(__file__).parents[1]
     out = subprocess.run([sys.executable, str(root / "benchmarks" / "scale_out.py"), "--quick",
-                          "--engines", "rollout", "--modes", "open", "write", "--nprocs", "2",
+                          "--engines", "cpu", "--modes", "open", "write", "--nprocs", "2",
                           "--batches", "2"],
                          capture_output=True, text=True, timeout=300, cwd=root,
                          env=checkout_env())
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-4000:]
-    rows = [line for line in out.stdout.splitlines() if line.startswith("| rollout")]
+    rows = [line for line in out.stdout.splitlines() if line.startswith("| cpu")]
     assert len(rows) == 2, out.stdout
     assert all("yes / yes" in row for row in rows), rows
     assert "256 stored, ranks [0, 1]" in rows[1], rows[1]

@@ -14,7 +14,7 @@ S = mujoco.mjtState
 
 
 def make(model="cartpole", **kwargs):
-    args = dict(backend="rollout", nbatch=4, nstep=10)
+    args = dict(backend="cpu", nbatch=4, nstep=10)
     args.update(kwargs)
     return simloader.SimDataset(model, **args)
 
@@ -47,7 +47,7 @@ CASES = [
     (dict(nstep=2.0), TypeError, "nstep: expected an integer, got float 2.0"),
     (dict(num_batches=-1), ValueError, "num_batches: expected None or an integer >= 1, got -1"),
     (dict(seed="x"), TypeError, "seed: expected an integer, got str 'x'"),
-    (dict(backend="gpu"), ValueError, "backend: expected one of ('auto', 'rollout', 'mjx'), got 'gpu'"),
+    (dict(backend="gpu"), ValueError, "backend: expected one of ('auto', 'cpu', 'mjx', 'warp'), got 'gpu'"),
     (dict(continue_episodes=1), TypeError, "continue_episodes: expected a bool, got int"),
     (dict(dtype="int8"), ValueError, "dtype: expected None, torch.float32 or torch.float64, got 'int8'"),
     (dict(device="tpu"), ValueError, "device: expected None, 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),

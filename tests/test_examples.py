@@ -15,7 +15,7 @@ def test_example_quick(path, tmp_path, checkout_env):
     if "--out" in path.read_text():
         args += ["--out", str(tmp_path / "plot.png")]
     if "--backend" in path.read_text():
-        args += ["--backend", "rollout"]
+        args += ["--backend", "cpu"]
     result = subprocess.run(args, capture_output=True, text=True, timeout=300, env=checkout_env(),
                             cwd=pathlib.Path(__file__).parents[1])
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-4000:]

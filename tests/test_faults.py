@@ -50,7 +50,7 @@ def controls(model):
     return u
 
 
-@pytest.fixture(scope="module", params=["rollout", "mjx"])
+@pytest.fixture(scope="module", params=["cpu", "mjx"])
 def clean(request, cartpole, cache_dir):
     ds, _, batches = stream(cartpole, request.param, controls(cartpole), cache_dir)
     assert ds.stats["diverged"] == 0 and not any(b["diverged"].any() for b in batches)
@@ -80,7 +80,7 @@ def test_fault_in_one_of_1024_trajectories_is_isolated(cartpole, cache_dir, clea
         assert torch.equal(nxt["initial_state"][others], prev["state"][others, -1])
         np.testing.assert_array_equal(nxt["initial_state"][FAULTY].cpu().numpy(),
                                       x0[FAULTY].astype(nxt["initial_state"].cpu().numpy().dtype))
-    if backend == "rollout":
+    if backend == "cpu":
         # every batch of the faulty trajectory is what mujoco.rollout gives from the same start
         state, sensordata = rollout.rollout(cartpole, mujoco.MjData(cartpole), x0[[FAULTY]],
                                             u[[FAULTY]], control_spec=SPEC)
@@ -96,7 +96,7 @@ import simloader
 S = simloader.layout.S
 u = np.zeros((8, 5, 3))
 u[:, 2, 2] = 1e30  # every trajectory diverges: MuJoCo warns about each one
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=8, nstep=5, nthread=2,
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=8, nstep=5, nthread=2,
                           control=u, control_spec=int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED),
                           num_batches=3)
 with warnings.catch_warnings(record=True) as seen:

@@ -66,7 +66,7 @@ def cases(draw):
 def test_any_input_gives_output_or_a_documented_error(case):
     model, spec, nbatch, nstep, control = case
     try:
-        ds = simloader.SimDataset(model, backend="rollout", nbatch=nbatch, nstep=nstep,
+        ds = simloader.SimDataset(model, backend="cpu", nbatch=nbatch, nstep=nstep,
                                   control=control, control_spec=spec, nthread=1)
     except (TypeError, ValueError) as e:
         assert str(e).split(":")[0] in {"nstep", "control", "control_spec", "on"}, str(e)
@@ -84,7 +84,7 @@ def test_any_input_gives_output_or_a_documented_error(case):
 def test_odd_models_run_with_every_component(name):
     model = MODELS[name]
     spec = int(S.mjSTATE_USER)
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=3, nthread=1,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=3, nthread=1,
                               control_spec=spec,
                               control=np.zeros((1, 1, mujoco.mj_stateSize(model, spec))))
     batch = next(iter(ds))

@@ -105,7 +105,7 @@ def faulty(cartpole, cache_dir):
 def faulty_rollout(cartpole, cache_dir):
     kwargs = faulty_kwargs(cartpole, cache_dir)
     del kwargs["compilation_cache"]
-    return list(simloader.SimDataset(cartpole, backend="rollout", nthread=2, **kwargs))
+    return list(simloader.SimDataset(cartpole, backend="cpu", nthread=2, **kwargs))
 
 
 def test_matches_rollout_backend_with_ctrl_and_xfrc(faulty, faulty_rollout):
@@ -346,10 +346,10 @@ IMPLICIT_XML = """
 @pytest.mark.parametrize("kwargs, error, message", [
     (dict(model=DELAYED_XML), ValueError,
      "model: MJX does not support actuator and sensor delays (nhistory=8); use "
-     "backend='rollout'"),
+     "backend='cpu'"),
     (dict(model=IMPLICIT_XML), ValueError,
      "model: MJX does not support a feature of this model: mjtIntegrator.mjINT_IMPLICIT; use "
-     "backend='rollout'"),
+     "backend='cpu'"),
     (dict(memory_fraction=2.0), ValueError,
      "memory_fraction: expected None or a number in (0, 1], got 2.0"),
     (dict(memory_fraction="half"), TypeError,
@@ -359,25 +359,31 @@ IMPLICIT_XML = """
      "JAX's setting), got bool True"),
     (dict(jit=True, donate=False), TypeError,
      "SimDataset: unexpected keyword argument(s) ['donate', 'jit'] for backend='mjx' (its "
-     "options are ['impl', 'naconmax', 'njmax', 'compilation_cache', 'memory_fraction'])"),
-    (dict(impl="cuda"), ValueError, "impl: expected one of ('auto', 'jax', 'warp'), got 'cuda'"),
-    (dict(impl=None), TypeError, "impl: expected one of ('auto', 'jax', 'warp'), got NoneType None"),
-    (dict(impl="jax", naconmax=1000), ValueError,
-     "naconmax, njmax: size MuJoCo Warp's buffers and need impl='warp', but impl resolved to "
-     "'jax' (asked)"),
-    (dict(impl="warp", naconmax=0), ValueError,
+     "options are ['compilation_cache', 'memory_fraction'])"),
+    (dict(impl="cuda"), ValueError,
+     "impl: the older spelling of backend=, expected one of ('jax', 'warp', 'auto') or none, "
+     "got 'cuda'"),
+    (dict(impl=None), ValueError,
+     "impl: the older spelling of backend=, expected one of ('jax', 'warp', 'auto') or none, "
+     "got None"),
+    (dict(naconmax=1000), TypeError,
+     "SimDataset: unexpected keyword argument(s) ['naconmax'] for backend='mjx' (its options "
+     "are ['compilation_cache', 'memory_fraction']); 'naconmax' is an option of "
+     "backend='warp'"),
+    (dict(backend="warp", naconmax=0), ValueError,
      "naconmax: expected None or a positive integer, got 0"),
 ])
-def test_bad_input_fails_at_construction(cartpole, kwargs, error, message):
-    kwargs = {"model": cartpole, **kwargs}
+def test_bad_input_fails_at_construction(cartpole, kwargs, error, message, monkeypatch):
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+    kwargs = {"model": cartpole, "backend": "mjx", **kwargs}
     with pytest.raises(error) as info:
-        simloader.SimDataset(kwargs.pop("model"), backend="mjx", nbatch=2, nstep=2, **kwargs)
+        simloader.SimDataset(kwargs.pop("model"), nbatch=2, nstep=2, **kwargs)
     assert str(info.value) == message
 
 
 def test_models_differing_in_a_compiled_in_field_are_refused(cartpole):
     spec = mujoco.MjSpec.from_file(str(simloader.builtin_path("cartpole")))
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
     with pytest.raises(ValueError) as info:
         simloader.SimDataset(cartpole, backend="mjx", nbatch=2, nstep=2,
                              randomize=[cartpole, spec.compile()])
@@ -489,13 +495,14 @@ def test_gpu_jax_leaves_memory_to_torch(gpu_dataset, checkout_env):
 
 def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_preallocation(
         checkout_env):
-    # backends.resolve("auto") asks JAX for its devices where a GPU may be, which starts JAX:
+    # backend="auto" may ask JAX for its devices where a GPU may be, which starts JAX:
     # simloader's memory setting must be in place before, or JAX takes 75% of every GPU it
     # sees; where no GPU is visible it decides without importing JAX at all
     script = textwrap.dedent("""
         import os, sys, simloader
         from simloader import backends
-        print(backends.resolve("auto"), backends._gpu_visible(), "jax" in sys.modules)
+        ds = simloader.SimDataset("cartpole", nbatch=8192, nstep=2)
+        print(ds.config.backend, backends._gpu_visible(), "jax" in sys.modules)
         if "jax" in sys.modules:
             from jax._src import xla_bridge
             print(xla_bridge.backends_are_initialized(),
@@ -507,31 +514,31 @@ def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_prealloca
     lines = [line.split() for line in out.stdout.splitlines()]
     resolved, gpu, imported = lines[0]
     if gpu == "False":
-        assert (resolved, imported) == ("rollout", "False"), out.stdout
-    else:
+        assert (resolved, imported) == ("cpu", "False"), out.stdout
+    elif imported == "True":
         assert lines[1] == ["True", "false"], out.stderr
 
 
-def test_without_warp_mjx_prints_nothing_and_impl_warp_says_what_is_missing(checkout_env):
+def test_without_warp_mjx_prints_nothing_and_backend_warp_says_what_is_missing(checkout_env):
     # MJX prints "Failed to import warp" when it is imported without warp-lang: only a user who
-    # asks for impl="warp" hears of it, inside the error
+    # asks for backend="warp" hears of it, inside the error
     script = textwrap.dedent("""
         import sys
         sys.modules["warp"] = None  # as if warp-lang were not installed
         import simloader
         ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=2, nstep=2)
-        print("impl", ds.config.options.impl)
+        print("backend", ds.config.backend)
         try:
-            simloader.SimDataset("cartpole", backend="mjx", impl="warp", nbatch=2, nstep=2)
+            simloader.SimDataset("cartpole", backend="warp", nbatch=2, nstep=2)
         except ValueError as e:
             print("error", e)
     """)
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          check=True, timeout=300, env=checkout_env())
     lines = out.stdout.splitlines()
-    assert lines[0] == "impl jax", out.stdout
+    assert lines[0] == "backend mjx", out.stdout
     assert lines[1].startswith(
-        "error impl: 'warp' cannot run here: the warp-lang package is not installed (pip "
+        "error backend: 'warp' cannot run here: the warp-lang package is not installed (pip "
         "install 'simloader[warp]')"), lines[1]
     assert len(lines) == 2 and "Failed to import" not in out.stderr
 

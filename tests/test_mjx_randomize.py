@@ -178,7 +178,7 @@ def test_one_compilation_over_batches_and_epochs(randomized):
 
 def test_params_as_the_rollout_backend_returns_them(randomized, cartpole):
     _, (batches, _), _ = randomized
-    ref = simloader.SimDataset("cartpole", backend="rollout", nbatch=8, nstep=1, num_batches=1,
+    ref = simloader.SimDataset("cartpole", backend="cpu", nbatch=8, nstep=1, num_batches=1,
                                randomize=SPEC, nthread=1)
     expected = next(iter(ref))["params"]
     for batch in batches:
@@ -255,7 +255,7 @@ def test_variants_drawn_as_on_the_rollout_backend_once_per_episode(variants, cac
     ds, batches = variants
     kwargs = variant_kwargs(cache_dir)
     del kwargs["compilation_cache"]
-    reference = next(iter(simloader.SimDataset("cartpole", backend="rollout", **kwargs)))
+    reference = next(iter(simloader.SimDataset("cartpole", backend="cpu", **kwargs)))
     first = host(batches[0]["params"]["variant"])
     np.testing.assert_array_equal(first, reference["params"]["variant"].numpy())
     assert batches[0]["params"]["variant"].dtype == reference["params"]["variant"].dtype
@@ -314,7 +314,7 @@ def allowed():
     (dr.scale("geom_size", dr.Uniform(0.5, 2.0), on="pole"),
      "randomize: geom_size[pole]: backend='mjx' cannot randomize geom_size (MuJoCo derives "
      "constants from it that the MJX backend does not recompute); it can randomize "
-     "{allowed} (backend='rollout' randomizes any floating-point field)"),
+     "{allowed} (backend='cpu' randomizes any floating-point field)"),
     (dr.scale("dof_invweight0", dr.Uniform(0.5, 2.0)),
      "randomize: dof_invweight0: backend='mjx' cannot randomize dof_invweight0 (MuJoCo derives "
      "it from other fields); it can randomize {allowed}"),
@@ -325,11 +325,11 @@ def allowed():
      "randomize: dof_frictionloss[hinge]: backend='mjx' randomizes dof_frictionloss only where "
      "the model's value is > 0 (MJX decides when the model is loaded which constraints have "
      "friction loss); give the model a positive dof_frictionloss there, or use "
-     "backend='rollout'"),
+     "backend='cpu'"),
     (dr.set("opt.viscosity", dr.Uniform(0.0, 1.0)),
      "randomize: opt.viscosity: backend='mjx' randomizes opt.viscosity only in a model with "
      "fluid forces (MJX turns them off when the model's density, viscosity and wind are all "
-     "0); give the model a nonzero value, or use backend='rollout'"),
+     "0); give the model a nonzero value, or use backend='cpu'"),
 ])
 def test_fields_mjx_cannot_randomize_are_refused_with_the_list(param, message):
     with pytest.raises(ValueError, match=re.escape(message.format(allowed=allowed()))):
@@ -339,7 +339,7 @@ def test_fields_mjx_cannot_randomize_are_refused_with_the_list(param, message):
 def euler_variant(spec, rng):
     """A variant that changes what MJX compiles in (the integrator), for every other one."""
     if rng.uniform() < 0.5:
-        spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
+        spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
     return spec
 
 

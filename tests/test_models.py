@@ -37,7 +37,7 @@ def test_gymnasium_models_by_name():
     # a built-in name stays built-in; Gymnasium's humanoid has its prefix
     assert simloader.load_model("humanoid").nu == 21
     assert simloader.load_model("gymnasium/humanoid").nu == 17
-    ds = simloader.SimDataset("gymnasium/half_cheetah", backend="rollout", nbatch=2, nstep=5,
+    ds = simloader.SimDataset("gymnasium/half_cheetah", backend="cpu", nbatch=2, nstep=5,
                               control=simloader.controls.Uniform(), num_batches=1, nthread=1)
     first = ds.describe().splitlines()[0]
     assert first.startswith(f"model: 'gymnasium/half_cheetah', gymnasium "

@@ -12,7 +12,7 @@ from simloader import randomize as dr
 
 
 def make(model="cartpole", **kwargs):
-    args = dict(backend="rollout", nbatch=2, nstep=3, nthread=1)
+    args = dict(backend="cpu", nbatch=2, nstep=3, nthread=1)
     args.update(kwargs)
     return simloader.SimDataset(model, **args)
 

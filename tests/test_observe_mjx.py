@@ -75,7 +75,7 @@ def test_jax_values_under_vmap_have_the_frame_shape():
 
 def test_a_batch_too_large_for_the_gpu_is_refused(rich_model):
     import simloader
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=1024, nstep=1000,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=1024, nstep=1000,
                               record=("state", "xpos"), record_every=2)
     # what the MJX backend calls with its device's free memory, floats as float32
     with pytest.raises(ValueError, match=r"nbatch, record: a batch needs 72.3 MiB, more than "
@@ -92,16 +92,16 @@ def test_check_mjx_refuses_by_name_with_the_reason():
     with pytest.raises(ValueError) as info:
         observe.check_mjx(observations, mjx.make_data(model, impl="jax"), "jax")
     message = str(info.value)
-    assert message.startswith("record: backend='mjx' cannot record M: MJX (impl='jax') stores M "
+    assert message.startswith("record: backend='mjx' cannot record M: MJX stores M "
                               "with shape (")
-    assert ("ncon: MJX (impl='jax') holds ncon as a constant of the compiled model (a size "
+    assert ("ncon: MJX holds ncon as a constant of the compiled model (a size "
             "fixed at compilation), not per trajectory") in message
-    assert "nefc: MJX (impl='jax') holds nefc as a constant" in message
+    assert "nefc: MJX holds nefc as a constant" in message
     assert "xmat:" not in message  # (n, 3, 3) in MJX: the same values, reshaped
-    assert "geom_xquat: MJX (impl='jax') has no field geom_xquat" in message
-    assert "qfrc_spring: MJX (impl='jax') has no field qfrc_spring" in message
+    assert "geom_xquat: MJX has no field geom_xquat" in message
+    assert "qfrc_spring: MJX has no field qfrc_spring" in message
     assert "qpos:" not in message
-    assert message.endswith("use backend='rollout' for these")
+    assert message.endswith("use backend='cpu' for these")
 
 
 def test_what_mjx_cannot_record_is_refused_at_construction(rich_model):
@@ -120,7 +120,7 @@ def test_mjx_records_what_the_rollout_backend_records(record_every, cache_dir):
                   record_every=record_every)
     mjx_batches = list(simloader.SimDataset("cartpole", backend="mjx",
                                             compilation_cache=cache_dir, **kwargs))
-    c_batches = list(simloader.SimDataset("cartpole", backend="rollout", **kwargs))
+    c_batches = list(simloader.SimDataset("cartpole", backend="cpu", **kwargs))
     for got, want in zip(mjx_batches, c_batches, strict=True):
         assert set(got) == set(want)
         for key in kwargs["record"]:

@@ -72,7 +72,7 @@ def cartpole_policy():
 @pytest.mark.parametrize("every", [1, 3])
 def test_cpu_equals_a_plain_mj_step_loop_bit_for_bit(every):
     model, policy = cartpole_policy()
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=6, nstep=12, record=RECORD,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=6, nstep=12, record=RECORD,
                               record_every=every, policy=policy, nthread=2,
                               initial_state=simloader.initial.Perturbed(qvel_std=1.0))
     batch = next(iter(ds))
@@ -97,7 +97,7 @@ def test_cpu_continuing_variants_randomized_and_noisy():
     policy's row plus the noise, clamped."""
     model, policy = cartpole_policy()
     spec = [dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="pole")]
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=5, nstep=8, record=RECORD,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=5, nstep=8, record=RECORD,
                               policy=policy, policy_noise=controls.Normal(std=0.3),
                               continue_episodes=True, randomize=spec, nthread=2, seed=4)
     it = iter(ds)
@@ -128,13 +128,13 @@ def test_cpu_continuing_variants_randomized_and_noisy():
                           np.concatenate([first["qpos"][:, -1], first["qvel"][:, -1]], 1))
     # the same seed and weights give the same stream
     again = next(iter(simloader.SimDataset(
-        model, backend="rollout", nbatch=5, nstep=8, record=RECORD, policy=policy,
+        model, backend="cpu", nbatch=5, nstep=8, record=RECORD, policy=policy,
         policy_noise=controls.Normal(std=0.3), continue_episodes=True, randomize=spec,
         nthread=2, seed=4)))
     assert torch.equal(again["control"], first["control"])
 
 
-@pytest.mark.parametrize("impl", ["jax", "warp"])
+@pytest.mark.parametrize("impl", ["mjx", "warp"])
 def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
     pytest.importorskip("mujoco.mjx")
     if impl == "warp":
@@ -146,12 +146,12 @@ def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
     kwargs = dict(nbatch=4, nstep=10, record=("qpos", "qvel"), policy=policy, seed=2,
                   dtype=torch.float32, initial_state=simloader.initial.Perturbed(),
                   record_every=every)
-    cpu = next(iter(simloader.SimDataset(model, backend="rollout", **kwargs)))
+    cpu = next(iter(simloader.SimDataset(model, backend="cpu", **kwargs)))
     if torch.cuda.is_available():  # the policy lives where the simulation runs
         kwargs["policy"] = copy.deepcopy(policy).cuda()
-    if impl == "jax":
+    if impl == "mjx":
         kwargs["compilation_cache"] = cache_dir
-    ds = simloader.SimDataset(model, backend="mjx", impl=impl, **kwargs)
+    ds = simloader.SimDataset(model, backend=impl, **kwargs)
     it = iter(DataLoader(ds, batch_size=None))
     gpu, gpu2 = next(it), next(it)
     assert torch.equal(gpu["initial_state"].cpu(), cpu["initial_state"])
@@ -172,7 +172,7 @@ def test_mjx_follows_the_cpu_closed_loop(impl, cache_dir, monkeypatch):
 def test_weights_version_follows_training():
     model, policy = cartpole_policy()
     opt = torch.optim.SGD(policy.parameters(), lr=1e-3)
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=3, policy=policy,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=3, policy=policy,
                               record=("qpos", "qvel"), nthread=1, prefetch=1)
     versions = [int(next(iter(ds))["policy/version"])]
     for _ in range(3):
@@ -187,7 +187,7 @@ def test_weights_version_follows_training():
 
 def test_refusals():
     model, policy = cartpole_policy()
-    base = dict(backend="rollout", nbatch=2, nstep=3, record=("qpos", "qvel"))
+    base = dict(backend="cpu", nbatch=2, nstep=3, record=("qpos", "qvel"))
     with pytest.raises(ValueError, match="control, policy"):
         simloader.SimDataset(model, policy=policy, control=controls.Uniform(), **base)
     with pytest.raises(ValueError, match="policy_noise: .*needs policy="):
@@ -246,7 +246,7 @@ def test_every_step_of_the_policy_is_checked(how, error, message):
     """A later step's rows would broadcast ((1, ncontrol), (ncontrol,)), be cast (integers),
     or break the extras' buffers made at step 0: each is refused, naming the step."""
     model, _ = cartpole_policy()
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=4, record=("qpos",),
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=4, record=("qpos",),
                               policy=LaterRows(how))
     with pytest.raises(error, match="policy: " + ".*" + message):
         next(iter(ds))
@@ -283,7 +283,7 @@ if sys.argv[1] != "copied":
     if sys.argv[1] == "counted":  # a shared version counter the workers read
         policy.register_buffer("version", torch.zeros((), dtype=torch.int64))
     policy.share_memory()
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3, policy=policy,
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=3, policy=policy,
                           record=("qpos",), nthread=1, num_batches=40, prefetch=1)
 seen = []
 try:
@@ -315,7 +315,7 @@ def test_spawned_workers_share_the_weights():
     pickler), so updates reach the workers without share_memory()."""
     policy = Bias()
     policy.register_buffer("version", torch.zeros((), dtype=torch.int64))
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3, policy=policy,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=3, policy=policy,
                               record=("qpos",), nthread=1, num_batches=40, prefetch=1)
     seen = []
     for i, batch in enumerate(DataLoader(ds, batch_size=None, num_workers=2,
@@ -345,7 +345,7 @@ def batches_while_training(policy, update, step, num_batches):
     trainer = threading.Thread(target=train)
     trainer.start()
     try:
-        ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=20,
+        ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=20,
                                   policy=policy, record=("qpos",), nthread=1,
                                   num_batches=num_batches)
         return list(ds)
@@ -385,7 +385,7 @@ def test_a_batch_runs_one_version_of_the_weights():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-@pytest.mark.parametrize("impl", ["jax", "warp"])
+@pytest.mark.parametrize("impl", ["mjx", "warp"])
 def test_mjx_closed_loop_never_waits_on_the_host(impl, cache_dir):
     """Dispatching a closed-loop batch makes no host synchronisation: torch's sync debug
     mode raises on any synchronising torch call, JAX's transfer guard on any device-to-host
@@ -396,9 +396,9 @@ def test_mjx_closed_loop_never_waits_on_the_host(impl, cache_dir):
         pytest.importorskip("warp")
     model, policy = cartpole_policy()
     policy.float().cuda()
-    ds = simloader.SimDataset(model, backend="mjx", impl=impl, nbatch=64, nstep=20,
+    ds = simloader.SimDataset(model, backend=impl, nbatch=64, nstep=20,
                               policy=policy, record=("qpos", "qvel"),
-                              **({"compilation_cache": cache_dir} if impl == "jax" else {}))
+                              **({"compilation_cache": cache_dir} if impl == "mjx" else {}))
     next(iter(ds))  # compiles
     backend = ds.make_backend(sharding.current_shard(0))
     backend.produce(0)  # the first batch of an iterator sets its buffers up
@@ -448,11 +448,11 @@ def _warp_and_cpu(monkeypatch, model, nbatches, **kwargs):
     configuration: both draw initial states, parameters and noise on the host from the same
     seeds, so they differ only by float32 against float64 arithmetic."""
     monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")  # on a GPU: the GPU, CUDA graphs
-    cpu = list(simloader.SimDataset(model, backend="rollout", num_batches=nbatches, nthread=2,
+    cpu = list(simloader.SimDataset(model, backend="cpu", num_batches=nbatches, nthread=2,
                                     **kwargs))
     if torch.cuda.is_available():
         kwargs["policy"] = kwargs["policy"].cuda()
-    warp = list(simloader.SimDataset(model, backend="mjx", impl="warp", num_batches=nbatches,
+    warp = list(simloader.SimDataset(model, backend="warp", num_batches=nbatches,
                                      **kwargs))
     return warp, cpu
 
@@ -503,7 +503,7 @@ def test_warp_closed_loop_noise_is_drawn_on_the_device_per_batch(monkeypatch):
     def still(obs):
         return torch.zeros(obs["state"].shape[0], 1, device=obs["state"].device)
 
-    kwargs = dict(backend="mjx", impl="warp", nbatch=64, nstep=20, policy=still,
+    kwargs = dict(backend="warp", nbatch=64, nstep=20, policy=still,
                   policy_noise=controls.Normal(std=0.3), num_batches=2, seed=9)
     first, second = list(simloader.SimDataset("cartpole", **kwargs))
     again = next(iter(simloader.SimDataset("cartpole", **kwargs)))
@@ -545,20 +545,6 @@ def test_warp_closed_loop_follows_the_cpu_on_contacts_every_input_and_a_fault(
     assert (batch["qfrc_constraint"][0, :, :6].abs().sum() > 0).item()  # the ball is on the floor
 
 
-def test_auto_takes_the_warp_engine_for_a_policy(monkeypatch, cache_dir):
-    """impl="auto" runs a contact-free model on MJX-JAX open loop, but a policy in the loop
-    on the Warp engine (one graph replay per step instead of a jitted MJX call)."""
-    pytest.importorskip("mujoco_warp")
-    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
-    model, policy = cartpole_policy()
-    kwargs = dict(backend="mjx", nbatch=2, nstep=2)
-    assert simloader.SimDataset(model, compilation_cache=cache_dir,
-                                **kwargs).config.options.impl == "jax"
-    ds = simloader.SimDataset(model, policy=policy, record=("qpos", "qvel"), **kwargs)
-    assert ds.config.options.impl == "warp"
-    assert "a policy in the loop runs fastest on MuJoCo Warp's CUDA graph" in ds.describe()
-
-
 def test_warp_closed_loop_renders_what_the_open_loop_renders(monkeypatch):
     """A policy that sees a camera: the Warp engine renders after every step, restarts
     included; replaying the controls it chose open loop gives the same images and states."""
@@ -574,7 +560,7 @@ def test_warp_closed_loop_renders_what_the_open_loop_renders(monkeypatch):
             return u, {"depth": obs["camera/front/depth"].mean(dim=(1, 2))}
 
     camera = simloader.Camera("front", height=16, width=24, depth=True, segmentation=True)
-    kwargs = dict(backend="mjx", impl="warp", nbatch=3, nstep=6, seed=3, dtype=torch.float32,
+    kwargs = dict(backend="warp", nbatch=3, nstep=6, seed=3, dtype=torch.float32,
                   record=("qpos", "qvel", camera), num_batches=1,
                   initial_state=simloader.initial.Perturbed(qvel_std=1.0))
     (a,) = list(simloader.SimDataset("cartpole", policy=Looks(), **kwargs))
@@ -626,7 +612,7 @@ def test_updating_keeps_half_updates_out_of_batches(counter):
 def test_an_update_left_open_is_reported(monkeypatch):
     monkeypatch.setattr(simloader.policy, "UPDATE_WAIT_S", 0.2)
     policy = TwoHalves()
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=3,
                               policy=policy, record=("qpos",), nthread=1, num_batches=1)
     with simloader.policy.updating(policy):
         with pytest.raises(RuntimeError, match="inside an update"):

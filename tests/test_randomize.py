@@ -31,7 +31,7 @@ def pole_variant(spec, rng):
 
 
 def make(nbatch=64, nstep=20, randomize=SPEC, **kwargs):
-    return simloader.SimDataset("cartpole", backend="rollout", nbatch=nbatch, nstep=nstep,
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=nbatch, nstep=nstep,
                                 control=controls.Uniform(), randomize=randomize, nthread=2,
                                 **kwargs)
 

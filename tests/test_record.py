@@ -90,7 +90,7 @@ def test_record_equals_mj_step_loop(xml, every):
                                              "site_xpos", "ncon")
     nbatch, nstep = 4, 60
     control = _control(model, nbatch, nstep)
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=nbatch, nstep=nstep,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=nbatch, nstep=nstep,
                               control=control, record=("state",) + names, record_every=every,
                               num_batches=1, nthread=2)
     batch = next(iter(ds))
@@ -104,7 +104,7 @@ def test_record_equals_mj_step_loop(xml, every):
     if xml is PILE_XML:
         assert np.abs(expected["cfrc_ext"]).max() > 0  # contact forces are really recorded
     # frame j is the state after step (j + 1) * every: every-th rows of the every-step rollout
-    full = next(iter(simloader.SimDataset(model, backend="rollout", nbatch=nbatch, nstep=nstep,
+    full = next(iter(simloader.SimDataset(model, backend="cpu", nbatch=nbatch, nstep=nstep,
                                           control=control, num_batches=1)))
     assert torch.equal(batch["state"], full["state"][:, every - 1::every])
     assert torch.equal(batch["control"], full["control"])  # every step's applied row
@@ -119,7 +119,7 @@ def test_record_continuing_chunks_concatenate(every):
     names = ("qpos", "xpos", "cfrc_ext", "actuator_force", "sensor:tip_acc")
     expected = _oracle(model, np.concatenate([chunk] * nchunk, axis=1), nstep * nchunk, every,
                        names)
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=nbatch, nstep=nstep,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=nbatch, nstep=nstep,
                               control=chunk, record=names, record_every=every,
                               continue_episodes=True, num_batches=nchunk)
     batches = list(ds)
@@ -129,7 +129,7 @@ def test_record_continuing_chunks_concatenate(every):
 
 
 def test_default_record_keeps_the_batch_of_today(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=5, num_batches=1)
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=5, num_batches=1)
     batch = next(iter(ds))
     assert isinstance(batch, Batch)
     assert list(batch) == ["state", "sensordata", "control", "initial_state", "diverged"]
@@ -137,7 +137,7 @@ def test_default_record_keeps_the_batch_of_today(rich_model):
 
 
 def test_dtypes_integer_fields_stay_integer(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=4, num_batches=1,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=4, num_batches=1,
                               record=("qpos", "ncon", "eq_active", "sensor:ball"),
                               dtype=torch.float32)
     batch = next(iter(ds))
@@ -153,7 +153,7 @@ def _shares(view, base):
 
 
 def test_named_views_share_memory(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=3, nstep=6, num_batches=1,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=3, nstep=6, num_batches=1,
                               record=("state", "sensordata", "xpos", "actuator_force"),
                               control=simloader.controls.Uniform())
     batch = next(iter(ds))
@@ -188,7 +188,7 @@ def test_named_views_share_memory(rich_model):
 
 
 def test_sensor_views_share_the_recorded_sensordata(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=3, num_batches=1,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=3, num_batches=1,
                               record=("sensordata", "sensor:ball", "sensor:shoulder"))
     batch = next(iter(ds))
     assert _shares(batch["sensor:ball"], batch["sensordata"])
@@ -196,7 +196,7 @@ def test_sensor_views_share_the_recorded_sensordata(rich_model):
 
 
 def test_batch_type_and_views_survive_the_dataloader(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=3, num_batches=2,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=3, num_batches=2,
                               record=("state", "xpos"))
     # workers first: forking after this process iterated hangs (also on main; see the report)
     for workers in (1, 0):
@@ -212,7 +212,7 @@ def test_batch_type_and_views_survive_the_dataloader(rich_model):
 
 def test_tensordict_without_copies(rich_model):
     tensordict = pytest.importorskip("tensordict")
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=3, num_batches=1,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=3, num_batches=1,
                               record=("state", "xpos", "sensor:ball", "ncon"))
     batch = next(iter(ds))
     td = tensordict.TensorDict(batch, batch_size=[2])
@@ -221,7 +221,7 @@ def test_tensordict_without_copies(rich_model):
 
 def test_record_errors(rich_model):
     def make(**kw):
-        args = dict(backend="rollout", nbatch=2, nstep=10)
+        args = dict(backend="cpu", nbatch=2, nstep=10)
         args.update(kw)
         return simloader.SimDataset(rich_model, **args)
 
@@ -260,7 +260,7 @@ def test_a_batch_too_large_for_memory_is_refused(rich_model):
                                          r"flight .*, more than the .* of host memory available; "
                                          r"use a smaller nbatch \(at most \d+ fits\), a larger "
                                          r"record_every \(now 1\)"):
-        simloader.SimDataset(rich_model, backend="rollout", nbatch=10**6, nstep=10**5)
+        simloader.SimDataset(rich_model, backend="cpu", nbatch=10**6, nstep=10**5)
 
 
 def test_batch_nbytes_counts_shared_sources_once(rich_model):
@@ -271,9 +271,9 @@ def test_batch_nbytes_counts_shared_sources_once(rich_model):
 
 
 def test_resume_refuses_another_record(rich_model):
-    a = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=4, record=("qpos",))
-    b = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=4, record=("xpos",))
-    c = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=4, record=("qpos",),
+    a = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=4, record=("qpos",))
+    b = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=4, record=("xpos",))
+    c = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=4, record=("qpos",),
                              record_every=2)
     with pytest.raises(ValueError, match=r"record is \['xpos'\] here but \['qpos'\]"):
         b.load_state_dict(a.state_dict())
@@ -282,7 +282,7 @@ def test_resume_refuses_another_record(rich_model):
 
 
 def test_describe_lists_recorded_keys(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=4,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=4,
                               record=("state", "xpos"), record_every=2)
     text = ds.describe()
     assert "recorded keys (nbatch, nframes=2, ...), every 2 step(s):" in text
@@ -299,7 +299,7 @@ def test_every_kth_frame_of_the_full_record(rich_model, case):
           "models": dict(randomize=[rich_model] * 3, control=simloader.controls.Uniform()),
           "randomized": dict(randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2), on="ball")],
                              control=simloader.controls.Uniform())}[case]
-    common = dict(backend="rollout", nbatch=3, nstep=10, record=("qpos", "xpos", "ncon"),
+    common = dict(backend="cpu", nbatch=3, nstep=10, record=("qpos", "xpos", "ncon"),
                   num_batches=2, continue_episodes=True, **kw)
     every = list(simloader.SimDataset(rich_model, record_every=5, **common))
     full = list(simloader.SimDataset(rich_model, **common))

@@ -84,7 +84,7 @@ CARTPOLE_CAMS = (simloader.Camera("front", depth=True, segmentation=True),
 
 def test_images_equal_a_plain_renderer():
     model = simloader.load_model("cartpole")
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=3, nstep=9, record_every=3,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=3, nstep=9, record_every=3,
                               record=("state", *CARTPOLE_CAMS), control=controls.Uniform(),
                               initial_state=simloader.initial.Perturbed(qpos_std=0.5),
                               nthread=2)
@@ -105,7 +105,7 @@ def test_humanoid_tracking_cameras_continuing():
     model = simloader.load_model("humanoid")
     cams = (simloader.Camera("back", 32, 32), simloader.Camera("egocentric", 24, 24,
                                                                segmentation=True))
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=10, record_every=5,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=10, record_every=5,
                               record=("state", *cams), control=controls.Uniform(),
                               continue_episodes=True, nthread=2)
     it = iter(ds)
@@ -117,7 +117,7 @@ def test_randomized_colours_and_model_lists_render_per_trajectory():
     model = simloader.load_model("cartpole")
     cam = (simloader.Camera("front", 32, 32),)
     spec = [dr.set("geom_rgba", dr.Uniform(0.0, 1.0), on="cart", index=[0, 1, 2])]
-    batch = next(iter(simloader.SimDataset(model, backend="rollout", nbatch=3, nstep=2,
+    batch = next(iter(simloader.SimDataset(model, backend="cpu", nbatch=3, nstep=2,
                                            randomize=spec, record=("state", *cam), nthread=2)))
     rgba = batch["params"]["geom_rgba[cart]"].numpy()
     models = []
@@ -128,7 +128,7 @@ def test_randomized_colours_and_model_lists_render_per_trajectory():
     check_images(batch, models, cam)
     assert not np.array_equal(batch["camera/front/rgb"][0], batch["camera/front/rgb"][1])
     # a model list: trajectory i on models[i]
-    batch = next(iter(simloader.SimDataset(model, backend="rollout", nbatch=3, nstep=2,
+    batch = next(iter(simloader.SimDataset(model, backend="cpu", nbatch=3, nstep=2,
                                            randomize=models, record=("state", *cam))))
     check_images(batch, models, cam)
 
@@ -136,7 +136,7 @@ def test_randomized_colours_and_model_lists_render_per_trajectory():
 def test_in_spawned_workers():
     model = simloader.load_model("cartpole")
     cam = (simloader.Camera("front", 16, 16),)
-    ds = simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=2, num_batches=2,
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=2, num_batches=2,
                               record=("state", *cam), control=controls.Uniform(), nthread=1)
     batches = list(DataLoader(ds, batch_size=None, num_workers=2,
                               multiprocessing_context="spawn"))
@@ -148,15 +148,15 @@ def test_in_spawned_workers():
 def test_refusals():
     model = simloader.load_model("cartpole")
     with pytest.raises(ValueError, match=r"offscreen framebuffer 480x640.*offwidth=\"1000\""):
-        simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=2,
+        simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=2,
                              record=(simloader.Camera("front", height=100, width=1000),))
     with pytest.raises(ValueError, match="policy, record"):
-        simloader.SimDataset(model, backend="rollout", nbatch=2, nstep=2,
+        simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=2,
                              record=("qpos", simloader.Camera("front")),
                              policy=lambda obs: torch.zeros(2, 1))
     # 1e6 trajectories x 100 frames of 64x64 RGB: 1.1 TiB, refused with the numbers
     with pytest.raises(ValueError, match=r"nbatch, record: a batch needs .* GiB"):
-        simloader.SimDataset(model, backend="rollout", nbatch=10**6, nstep=100,
+        simloader.SimDataset(model, backend="cpu", nbatch=10**6, nstep=100,
                              record=(simloader.Camera("front"),))
 
 
@@ -170,7 +170,7 @@ import simloader
 from torch.utils.data import DataLoader
 
 def main(how, first):
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=4, seed=7,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=4, seed=7,
                               record=("state", simloader.Camera("front", height=16, width=16)),
                               num_batches=2, nthread=1)
     if first == "render-first":

@@ -17,7 +17,7 @@ StatefulDataLoader = pytest.importorskip("torchdata.stateful_dataloader").Statef
 
 
 def make(num_batches, continue_episodes=False, seed=0):
-    return simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=4,
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=3, nstep=4,
                                 control=controls.Uniform(), nthread=1, seed=seed,
                                 initial_state=simloader.initial.Perturbed(),
                                 continue_episodes=continue_episodes, num_batches=num_batches)
@@ -155,7 +155,7 @@ CHANGES = {  # one change of what the stream is made of, and the name the refusa
 
 
 def configured(**changes):
-    return simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=4, nthread=1,
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=3, nstep=4, nthread=1,
                                 continue_episodes=True, num_batches=5, **{**BASE, **changes})
 
 
@@ -186,19 +186,19 @@ def test_fingerprint_covers_stream_changing_backend_options_only():
     from simloader import resume
 
     @dataclasses.dataclass(frozen=True)
-    class Options:  # as a backend resolves its options (the MJX backend's MjxOptions)
-        impl: str
-        impl_reason: str = "asked"
+    class Options:  # as an engine resolves its options (MJX's and Warp's together)
+        njmax: int
         compilation_cache: str = "/a"
         memory_fraction: float = None
 
     config = configured().config
     state = {"version": resume.VERSION,
-             "config": resume.fingerprint(dataclasses.replace(config, options=Options("jax")))}
-    # where JAX caches, how much memory it takes and why an impl was chosen: same stream
-    resume.check(dataclasses.replace(config, options=Options("jax", "auto", "/b", 0.5)), state)
-    with pytest.raises(ValueError, match=r"backend_options.impl is 'warp' here but 'jax'"):
-        resume.check(dataclasses.replace(config, options=Options("warp")), state)
+             "config": resume.fingerprint(dataclasses.replace(config, options=Options(8)))}
+    # where JAX caches and how much memory it takes, or why an engine was chosen: same stream
+    resume.check(dataclasses.replace(config, options=Options(8, "/b", 0.5),
+                                     backend_reason="auto: ..."), state)
+    with pytest.raises(ValueError, match=r"backend_options.njmax is 9 here but 8"):
+        resume.check(dataclasses.replace(config, options=Options(9)), state)
 
 
 def test_fingerprint_is_the_same_in_fresh_processes(fresh_python):
@@ -217,7 +217,7 @@ def test_fingerprint_is_the_same_in_fresh_processes(fresh_python):
                          ids=["params", "variants"])
 def test_resume_continues_each_trajectory_on_its_randomized_model(randomize):
     def make_randomized():
-        return simloader.SimDataset("cartpole", backend="rollout", nbatch=4, nstep=10,
+        return simloader.SimDataset("cartpole", backend="cpu", nbatch=4, nstep=10,
                                     control=controls.Uniform(), randomize=randomize,
                                     continue_episodes=True, num_batches=5, nthread=1)
 

@@ -56,7 +56,7 @@ def first_batch(ds):
 def test_each_control_spec_component_bitwise(rich_model, name):
     spec = SPECS[name]
     u = random_controls(rich_model, spec, NBATCH, NSTEP)
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=NBATCH, nstep=NSTEP,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=NBATCH, nstep=NSTEP,
                               control=u, control_spec=int(spec), initial_state="raised",
                               nthread=2)
     batch = first_batch(ds)
@@ -79,7 +79,7 @@ def test_each_control_spec_component_bitwise(rich_model, name):
 def test_generated_controls_bitwise_at_any_thread_count(rich_model, nthread):
     control = {"ctrl": controls.Uniform(), "xfrc_applied": controls.Normal(std=5.0, on="ball")}
     spec = int(S.mjSTATE_CTRL | S.mjSTATE_XFRC_APPLIED)
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=7, nstep=25,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=7, nstep=25,
                               control=control, control_spec=spec, nthread=nthread,
                               initial_state=simloader.initial.Perturbed(), seed=3)
     batch = first_batch(ds)
@@ -102,7 +102,7 @@ def test_model_list_bitwise(rich_model):
         spec.body("target").pos = [0.5, 0.5, 1.0 + 0.05 * i]  # mocap defaults differ too
         models.append(spec.compile())
     u = random_controls(models[0], S.mjSTATE_CTRL, NBATCH, NSTEP)
-    ds = simloader.SimDataset(models[0], backend="rollout", nbatch=NBATCH, nstep=NSTEP,
+    ds = simloader.SimDataset(models[0], backend="cpu", nbatch=NBATCH, nstep=NSTEP,
                               control=u, randomize=models, nthread=2)
     batch = first_batch(ds)
     state, sensordata = reference(models, batch["initial_state"].numpy(), u, S.mjSTATE_CTRL)
@@ -112,7 +112,7 @@ def test_model_list_bitwise(rich_model):
 
 
 def test_control_none_leaves_inputs_as_mujoco_rollout(rich_model):
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=2, nstep=NSTEP,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=NSTEP,
                               control_spec=int(S.mjSTATE_CTRL | S.mjSTATE_MOCAP_POS), nthread=1)
     batch = first_batch(ds)
     state, _ = reference(rich_model, batch["initial_state"].numpy(), None, S.mjSTATE_CTRL,
@@ -127,7 +127,7 @@ def test_continuation_concatenates_to_one_long_rollout(rich_model):
     nchunk, nstep = 4, 30  # the ball lands during the second chunk
     spec = int(S.mjSTATE_CTRL | S.mjSTATE_XFRC_APPLIED)
     control = {"ctrl": controls.Uniform(), "xfrc_applied": controls.Normal(std=3.0, on="ball")}
-    ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=5, nstep=nstep,
+    ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=5, nstep=nstep,
                               control=control, control_spec=spec, continue_episodes=True,
                               num_batches=nchunk, initial_state=simloader.initial.Perturbed(),
                               nthread=2)
@@ -156,7 +156,7 @@ def test_without_warmstart_continuation_would_differ(rich_model):
 
 def test_fresh_batches_differ_and_repeat_with_seed(rich_model):
     def stream(seed):
-        ds = simloader.SimDataset(rich_model, backend="rollout", nbatch=3, nstep=5,
+        ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=3, nstep=5,
                                   control=controls.Uniform(), num_batches=3, seed=seed,
                                   initial_state=simloader.initial.Perturbed(), nthread=1)
         return [b["state"].numpy().copy() for b in ds]

@@ -22,9 +22,9 @@ print(sorted({{m.split(".")[0] for m in sys.modules}} & {{"jax", "jaxlib", "warp
 
 def test_each_engine_imports_only_what_it_uses(fresh_python):
     rollout, jax_dataset = fresh_python(
-        IMPORTS.format(backend="rollout", extra=", nthread=1"),
+        IMPORTS.format(backend="cpu", extra=", nthread=1"),
         [([], {})]) + fresh_python(
-        IMPORTS.format(backend="mjx", extra=", impl='jax', compilation_cache=False"), [([], {})])
+        IMPORTS.format(backend="mjx", extra=", compilation_cache=False"), [([], {})])
     assert rollout.split("\n")[-2] == "[]"  # no JAX, no Warp for MuJoCo on CPU threads
     # MJX on JAX without Warp (MJX's optional Warp support stays unimported)
     assert jax_dataset.split("\n")[-2] == "['jax', 'jaxlib']"
@@ -43,7 +43,7 @@ jax.monitoring.register_event_duration_secs_listener(
     lambda event, duration, **kw: traced.append(1)
     if event == "/jax/core/compile/jaxpr_trace_duration" and kw.get("fun_name") == "simulate"
     else None)
-ds = simloader.SimDataset(model, backend="mjx", impl="jax", nbatch=8, nstep=10, seed=1,
+ds = simloader.SimDataset(model, backend="mjx", nbatch=8, nstep=10, seed=1,
                           control=simloader.controls.Uniform(low=low, high=1.0),
                           compilation_cache=sys.argv[1])
 batch = next(iter(ds))
@@ -70,7 +70,7 @@ def test_a_second_process_loads_the_program_and_a_changed_one_traces_again(fresh
 
 
 def _dataset(cache, **kwargs):
-    args = dict(backend="mjx", impl="jax", nbatch=4, nstep=5, seed=0, num_batches=1,
+    args = dict(backend="mjx", nbatch=4, nstep=5, seed=0, num_batches=1,
                 control=controls.Uniform(), compilation_cache=cache)
     args.update(kwargs)
     return simloader.SimDataset(args.pop("model", "cartpole"), **args)

@@ -35,7 +35,7 @@ class Gain(torch.nn.Module):
 def rich(**kwargs):
     """Every key kind: mjSTATE rows, sensors, an int field, camera rgb/depth/segmentation
     (images big enough to be compressed), randomization params."""
-    base = dict(backend="rollout", nbatch=3, nstep=6, nthread=1, seed=5, record_every=2,
+    base = dict(backend="cpu", nbatch=3, nstep=6, nthread=1, seed=5, record_every=2,
                 control=simloader.controls.Uniform(),
                 randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="pole")],
                 record=("state", "sensordata", "qpos", "ncon",
@@ -96,7 +96,7 @@ def test_round_trip_every_key_kind_through_zarr_and_stored_dataset(tmp_path):
 
 def test_policy_extras_and_version_are_kept_per_trajectory(tmp_path):
     policy = Gain()
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=5, nthread=1,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=5, nthread=1,
                               policy=policy, record=("qpos",))
     path = simloader.write(ds, tmp_path / "p.zarr", batches=2, progress=False)
     group = zarr.open_group(path, mode="r")
@@ -121,7 +121,7 @@ def test_regenerates_stored_trajectories_bit_for_bit(tmp_path):
 
 def test_continued_episodes_regenerate_from_their_workers_stream(tmp_path):
     """Continued episodes depend on the worker's earlier batches: regeneration replays them."""
-    make = lambda: simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=4,
+    make = lambda: simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=4,
                                         nthread=1, continue_episodes=True,
                                         control=simloader.controls.Uniform())
     path = simloader.write(make(), tmp_path / "c.zarr", batches=4, num_workers=2,
@@ -148,7 +148,7 @@ def test_workers_write_disjoint_slots_of_one_store(tmp_path):
 
 
 def cartpole():
-    return simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=64, nstep=400, nthread=1,
                                 control=simloader.controls.Uniform(), prefetch=1)
 
 
@@ -260,7 +260,7 @@ def test_transitions_pair_each_state_with_its_control_and_successor(tmp_path):
 TWO_RANKS = """
 import os, sys, torch, simloader
 torch.distributed.init_process_group("gloo")
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=5, nthread=1,
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=5, nthread=1,
                           control=simloader.controls.Uniform())
 simloader.write(ds, sys.argv[1], batches=5, progress=False)
 torch.distributed.destroy_process_group()
@@ -279,7 +279,7 @@ def test_two_ranks_write_one_store_under_torchrun(tmp_path):
     where = [stored.provenance(i) for i in range(0, 10, 2)]
     # slot s = batch * world + rank: ranks alternate, each rank's batches in order
     assert [(w["rank"], w["batch"]) for w in where] == [(0, 0), (1, 0), (0, 1), (1, 1), (0, 2)]
-    make = simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=5, nthread=1,
+    make = simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=5, nthread=1,
                                 control=simloader.controls.Uniform())
     for i in (2, 3, 9):  # rank 1's trajectories are its own stream, rank 0's too
         assert all(torch.equal(stored[i][k], stored.regenerate(make, i)[k]) for k in stored[i])
@@ -289,7 +289,7 @@ def test_a_key_without_values_round_trips(tmp_path):
     """A model without sensors records `sensordata` of width 0: kept, with no shard files."""
     xml = """<mujoco><worldbody><body><freejoint/><geom size="0.1"/></body></worldbody>
              </mujoco>"""
-    ds = simloader.SimDataset(xml, backend="rollout", nbatch=2, nstep=3, nthread=1)
+    ds = simloader.SimDataset(xml, backend="cpu", nbatch=2, nstep=3, nthread=1)
     path = simloader.write(ds, tmp_path / "z.zarr", batches=1, progress=False)
     assert zarr.open_group(path, mode="r")["sensordata"].shape == (2, 3, 0)
     item = simloader.StoredDataset(path)[1]
@@ -299,7 +299,7 @@ def test_a_key_without_values_round_trips(tmp_path):
 def test_cli_writes_a_store_and_refuses_another_configuration(tmp_path, capsys):
     from simloader import cli
     out = str(tmp_path / "cli.zarr")
-    common = ["write", "cartpole", "--out", out, "--backend", "rollout", "--nbatch", "4",
+    common = ["write", "cartpole", "--out", out, "--backend", "cpu", "--nbatch", "4",
               "--batches", "2", "--record", "qpos,qvel"]
     cli.main(common + ["--nstep", "5"])
     assert "wrote 2 x 4 trajectories of 5 steps" in capsys.readouterr().out
@@ -314,7 +314,7 @@ def test_cli_writes_a_store_and_refuses_another_configuration(tmp_path, capsys):
 def test_transitions_leave_out_diverged_trajectories_unless_kept(tmp_path):
     control = np.zeros((3, 6, 1))
     control[1, 2] = np.inf  # trajectory 1 of every batch diverges
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=3, nstep=6, nthread=1,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=3, nstep=6, nthread=1,
                               control=control)
     path = simloader.write(ds, tmp_path / "d.zarr", batches=2, progress=False)
     stored = simloader.StoredDataset(path)

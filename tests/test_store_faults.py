@@ -24,7 +24,7 @@ NSLOTS = 1500
 
 
 def tiny(**kwargs):
-    base = dict(backend="rollout", nbatch=2, nstep=3, nthread=1, seed=3, record=("state",),
+    base = dict(backend="cpu", nbatch=2, nstep=3, nthread=1, seed=3, record=("state",),
                 control=simloader.controls.Uniform())
     base.update(kwargs)
     return simloader.SimDataset("cartpole", **base)
@@ -130,7 +130,7 @@ def test_quasi_random_order_reads_blocks_and_visits_every_index_once():
 
 
 def long_writer():
-    return simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=400, nthread=1,
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=64, nstep=400, nthread=1,
                                 seed=3, control=simloader.controls.Uniform(), prefetch=1)
 
 
@@ -192,7 +192,7 @@ def test_names_from_the_model_and_the_policy_cannot_leave_the_store(tmp_path):
     store = tmp_path / "inside" / "deep" / "n.zarr"
     dr = simloader.randomize
     ds = simloader.SimDataset(
-        ESCAPING, backend="rollout", nbatch=2, nstep=3, nthread=1, policy=Extras(),
+        ESCAPING, backend="cpu", nbatch=2, nstep=3, nthread=1, policy=Extras(),
         record=("state", "qpos", "sensor:../../../../escaped", "sensor:/abs/path"),
         randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0), on="../../../../body")])
     simloader.write(ds, store, batches=2, progress=False)
@@ -304,7 +304,7 @@ def test_the_cli_refuses_a_locked_store_with_a_message(tmp_path, capsys):
     try:
         with pytest.raises(SystemExit, match=rf"simloader write: path: the store at .* is "
                                              rf"being written by process {os.getpid()}"):
-            simloader.cli.main(["write", "cartpole", "--out", path, "--backend", "rollout",
+            simloader.cli.main(["write", "cartpole", "--out", path, "--backend", "cpu",
                                 "--nbatch", "2", "--nstep", "3", "--batches", "1"])
     finally:
         held.release()

@@ -22,11 +22,11 @@ REGENERATE_TOL = 1e-3
 def humanoid(impl, camera=False):
     record = ("state", "qvel") + ((simloader.Camera("back", height=32, width=32),) if camera
                                   else ())
-    return simloader.SimDataset("humanoid", backend="mjx", impl=impl, nbatch=64, nstep=20,
+    return simloader.SimDataset("humanoid", backend=impl, nbatch=64, nstep=20,
                                 control=simloader.controls.Uniform(), record=record, seed=3)
 
 
-@pytest.mark.parametrize("impl", ["warp", "jax"])
+@pytest.mark.parametrize("impl", ["warp", "mjx"])
 def test_gpu_store_reads_back_and_regenerates_within_tolerance(impl, tmp_path):
     pytest.importorskip("numcodecs")
     if impl == "warp":

@@ -17,7 +17,7 @@ NBATCH, NSTEP, NUM_BATCHES = 3, 5, 2
 
 
 def _simulate():
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=NBATCH, nstep=NSTEP,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=NBATCH, nstep=NSTEP,
                               num_batches=NUM_BATCHES, control=simloader.controls.Uniform(),
                               nthread=1)
     return ds, [{k: v.numpy() for k, v in b.items()} for b in ds]
@@ -114,7 +114,7 @@ def test_simloader_write_format_minari(tmp_path, monkeypatch):
     a genuinely diverged trajectory terminated, the store's provenance in the metadata."""
     control = np.zeros((NBATCH, NSTEP, 1))
     control[2, 1] = np.inf  # trajectory 2 of every batch diverges
-    ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=NBATCH, nstep=NSTEP,
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=NBATCH, nstep=NSTEP,
                               control=control, nthread=1)
     out = simloader.write(ds, tmp_path / "cartpole-still-v0", batches=2, format="minari",
                           progress=False)
@@ -129,7 +129,7 @@ def test_simloader_write_format_minari(tmp_path, monkeypatch):
     first = next(iter(ds.stream(ds.make_backend(), [0])))[1]
     np.testing.assert_array_equal(episodes[1].observations[1:], first["state"][1].numpy())
     with pytest.raises(ValueError, match="format: 'minari' stores the recorded 'state'"):
-        simloader.write(simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=3,
+        simloader.write(simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=3,
                                              record=("qpos",)),
                         tmp_path / "qpos-v0", batches=1, format="minari", progress=False)
 
@@ -151,7 +151,7 @@ KILL_NBATCH, KILL_NSTEP, KILL_BATCHES = 2, 20, 60
 KILLED_MINARI_WRITER = """
 import sys
 import simloader
-ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=int(sys.argv[2]),
+ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=int(sys.argv[2]),
                           nstep=int(sys.argv[3]), control=simloader.controls.Uniform(),
                           nthread=1, seed=7)
 simloader.write(ds, sys.argv[1], batches=int(sys.argv[4]), format="minari", progress=False)
@@ -159,7 +159,7 @@ simloader.write(ds, sys.argv[1], batches=int(sys.argv[4]), format="minari", prog
 
 
 def _killable(nstep=KILL_NSTEP):
-    return simloader.SimDataset("cartpole", backend="rollout", nbatch=KILL_NBATCH, nstep=nstep,
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=KILL_NBATCH, nstep=nstep,
                                 control=simloader.controls.Uniform(), nthread=1, seed=7)
 
 

@@ -16,7 +16,7 @@ S = mujoco.mjtState
 
 
 def cartpole(**kwargs):
-    args = dict(backend="rollout", nbatch=2, nstep=3, control=controls.Uniform(), nthread=1,
+    args = dict(backend="cpu", nbatch=2, nstep=3, control=controls.Uniform(), nthread=1,
                 num_batches=2)
     args.update(kwargs)
     return simloader.SimDataset("cartpole", **args)
@@ -32,7 +32,7 @@ def test_auto_backend_without_a_gpu_does_not_start_jax(fresh_python):
     out, = fresh_python(script, [([], {})])
     backend, jax_imported, gpu = out.split()
     if gpu == "False":  # this machine: decided without JAX, hence no "Failed to import warp"
-        assert (backend, jax_imported) == ("rollout", "False")
+        assert (backend, jax_imported) == ("cpu", "False")
 
 
 @pytest.mark.parametrize("workers", [0, 2])
@@ -105,7 +105,7 @@ def test_the_default_thread_split_needs_no_warning(monkeypatch):
                                            trains_on_cpu=False) == 2
         assert sharding.threads_per_worker(shard, None, torch_threads=1) == 2
         assert sharding.threads_per_worker(shard, 1, torch_threads=2) == 1
-        simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=2)
+        simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=2)
 
 
 def test_an_nthread_beyond_the_cores_is_said_at_the_users_line(monkeypatch):
@@ -113,5 +113,5 @@ def test_an_nthread_beyond_the_cores_is_said_at_the_users_line(monkeypatch):
     monkeypatch.setattr(sharding, "available_cpus", lambda: 2)
     with pytest.warns(RuntimeWarning, match="nthread=3 asks for more simulation threads than "
                                             "the 2 cores") as seen:
-        simloader.SimDataset("cartpole", backend="rollout", nbatch=2, nstep=2, nthread=3)
+        simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=2, nthread=3)
     assert seen[0].filename == __file__

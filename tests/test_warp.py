@@ -1,4 +1,4 @@
-"""MJX on MuJoCo Warp (`impl="warp"`): float32 parity with MuJoCo C for every control_spec
+"""The Warp engine (`backend="warp"`): float32 parity with MuJoCo C for every control_spec
 component, overflow flags, buffer sizing, continuation, resume, randomization and its refusals.
 
 Without a GPU these run MuJoCo Warp's CPU kernels for real (`SIMLOADER_WARP_ON_CPU=1`, set for
@@ -50,7 +50,7 @@ def rich():
 
 
 def dataset(model, cache_dir, **kwargs):
-    kwargs = {"backend": "mjx", "impl": "warp", **kwargs}
+    kwargs = {"backend": "warp", **kwargs}
     return simloader.SimDataset(model, **kwargs)
 
 
@@ -71,8 +71,8 @@ def test_contact_free_trajectories_match_mujoco_c(cache_dir):
     np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
     np.testing.assert_allclose(batch["sensordata"].cpu().numpy(), sensordata,
                                atol=CONTACT_FREE_TOL)
-    assert ds.stats["impl"] == "warp"
-    assert "impl='warp'" in ds.describe()
+    assert ds.stats["backend"] == "warp"
+    assert "backend='warp'" in ds.describe()
 
 
 def test_every_control_spec_component_matches_mujoco_c_over_one_contact_step(rich, cache_dir):
@@ -191,23 +191,22 @@ def test_what_warp_cannot_randomize_is_refused_by_name(cache_dir):
     with pytest.raises(ValueError) as info:
         dataset(simloader.load_model("cartpole"), cache_dir, nbatch=2, nstep=2,
                 randomize=[spec])
-    assert ("impl='warp' cannot randomize dof_length (MuJoCo Warp shares it across all "
+    assert ("backend='warp' cannot randomize dof_length (MuJoCo Warp shares it across all "
             "trajectories of a batch)") in str(info.value)
     assert "dof_damping" in str(info.value)  # the list of what it can randomize
 
 
-def test_auto_takes_jax_where_warp_cannot_run_and_says_why(rich, cache_dir, monkeypatch):
+def test_auto_takes_the_cpu_where_warp_cannot_run_and_says_why(rich, cache_dir, monkeypatch):
     monkeypatch.delenv("SIMLOADER_WARP_ON_CPU")
     if HAS_GPU:
-        pytest.skip("on a GPU, auto takes Warp for a model with contacts (test_gpu_*)")
-    ds = simloader.SimDataset(rich, backend="mjx", nbatch=2, nstep=2,
-                              compilation_cache=cache_dir)
-    assert ds.config.options.impl == "jax"
-    assert "chosen: auto: MuJoCo Warp needs a CUDA GPU, and torch sees none here" \
-        in ds.describe()
-    with pytest.raises(ValueError, match="impl: 'warp' cannot run here: MuJoCo Warp needs a "
+        pytest.skip("on a GPU, auto may take Warp for a model with contacts (test_gpu_*)")
+    ds = simloader.SimDataset(rich, backend="auto", nbatch=2, nstep=2)
+    assert ds.config.backend == "cpu"
+    assert "chosen: auto: the only engine that runs here (warp: MuJoCo Warp needs a CUDA " \
+           "GPU, and torch sees none here" in ds.describe()
+    with pytest.raises(ValueError, match="backend: 'warp' cannot run here: MuJoCo Warp needs a "
                                          "CUDA GPU, and torch sees none here"):
-        simloader.SimDataset(rich, backend="mjx", impl="warp", nbatch=2, nstep=2)
+        simloader.SimDataset(rich, backend="warp", nbatch=2, nstep=2)
 
 
 # --- on the GPU machine ------------------------------------------------------------------------
@@ -221,10 +220,11 @@ def humanoid():
 @pytest.mark.skipif(not HAS_GPU, reason="needs a CUDA GPU")
 def test_gpu_humanoid_one_step_matches_mujoco_c_and_auto_takes_warp(cache_dir):
     model = humanoid()
-    ds = simloader.SimDataset(model, backend="mjx", nbatch=64, nstep=1,
-                              control=controls.Uniform(), compilation_cache=cache_dir,
-                              num_batches=1)
-    assert ds.config.options.impl == "warp", ds.describe()
+    # auto takes Warp for a large batch of a model with contacts (auto_choice results)
+    assert simloader.SimDataset(model, backend="auto", nbatch=8192, nstep=1).config.backend \
+        == "warp"
+    ds = simloader.SimDataset(model, backend="warp", nbatch=64, nstep=1,
+                              control=controls.Uniform(), num_batches=1)
     batch = next(iter(ds))
     assert batch["state"].is_cuda
     state, sensordata = c_rollout(model, batch)
@@ -236,7 +236,7 @@ def test_gpu_humanoid_one_step_matches_mujoco_c_and_auto_takes_warp(cache_dir):
 @pytest.mark.skipif(not HAS_GPU, reason="needs a CUDA GPU")
 def test_gpu_humanoid_batch_flags_overflow_and_keeps_the_rest(cache_dir):
     model = humanoid()
-    ds = simloader.SimDataset(model, backend="mjx", impl="warp", nbatch=256, nstep=100,
+    ds = simloader.SimDataset(model, backend="warp", nbatch=256, nstep=100,
                               control=controls.Uniform(), naconmax=256, num_batches=1)
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
@@ -247,9 +247,9 @@ def test_gpu_humanoid_batch_flags_overflow_and_keeps_the_rest(cache_dir):
 
 def test_warmup_command_compiles_ahead_of_time(capsys):
     from simloader import cli
-    cli.main(["warmup", "cartpole", "--impl", "warp", "--nbatch", "4", "--nstep", "5"])
+    cli.main(["warmup", "cartpole", "--backend", "warp", "--nbatch", "4", "--nstep", "5"])
     out = capsys.readouterr().out
-    assert "impl='warp'" in out and "warm: compiled in" in out
+    assert "backend='warp'" in out and "warm: compiled in" in out
 
 
 def test_spawned_dataloader_worker_streams_the_same_batches(cache_dir):
@@ -266,7 +266,7 @@ def test_spawned_dataloader_worker_streams_the_same_batches(cache_dir):
 
 def test_a_model_list_runs_each_trajectory_on_its_model(cache_dir):
     models = []
-    for damping in (0.0, 2.0, 8.0):
+    for damping in (0.0, 1.0, 4.0):  # explicit Euler: stable below ~6 (the pole is light)
         m = simloader.load_model("cartpole")
         m.dof_damping[:] = damping
         models.append(m)
@@ -315,7 +315,7 @@ def test_variants_differing_in_derived_constants_run_on_their_own_models(cache_d
 
 def test_variants_differing_in_what_warp_shares_are_refused_by_name(cache_dir):
     with pytest.raises(ValueError, match=r"randomize: variant\[1\]: dof_length differs from "
-                                         r"randomize: variant\[0\], but with impl='warp' it "
+                                         r"randomize: variant\[0\], but with backend='warp' it "
                                          r"cannot differ per trajectory \(MuJoCo Warp shares "
                                          r"it across all trajectories of a batch\)"):
         dataset("cartpole", cache_dir, nbatch=4, nstep=30,
@@ -328,7 +328,7 @@ def test_recorded_fields_every_kth_step_match_the_rollout_backend(rich, cache_di
     kwargs = dict(nbatch=4, nstep=2, control=control, initial_state="raised", num_batches=1,
                   record=("qpos", "xpos", "sensor:ball", "time"), record_every=2)
     got = next(iter(dataset(rich, cache_dir, **kwargs)))
-    want = next(iter(simloader.SimDataset(rich, backend="rollout", **kwargs)))
+    want = next(iter(simloader.SimDataset(rich, backend="cpu", **kwargs)))
     for key in kwargs["record"]:
         assert got[key].shape == want[key].shape == (4, 1, *want[key].shape[2:]), key
         np.testing.assert_allclose(got[key].cpu().numpy(), want[key].numpy(),
@@ -350,17 +350,17 @@ def test_a_bad_input_does_not_reach_later_steps(cache_dir):
 
 def test_a_warp_dataset_never_imports_jax(fresh_python):
     """The Warp engine is MuJoCo Warp driven from torch: constructing, iterating and
-    describing a Warp dataset (impl asked, and chosen by "auto") starts no JAX."""
+    describing a Warp dataset (with a policy or open loop) starts no JAX."""
     script = """
 import sys
 import simloader
 from simloader import controls
-for impl in ("warp", "auto"):
-    drive = ({"policy": lambda o: o["state"][:, :1] * 0} if impl == "auto"
+for closed in (False, True):
+    drive = ({"policy": lambda o: o["state"][:, :1] * 0} if closed
              else {"control": controls.Uniform()})
-    ds = simloader.SimDataset("cartpole", backend="mjx", impl=impl, nbatch=2, nstep=3,
+    ds = simloader.SimDataset("cartpole", backend="warp", nbatch=2, nstep=3,
                               num_batches=1, **drive)
-    assert ds.config.options.impl == "warp", ds.describe()
+    assert ds.config.backend == "warp", ds.describe()
     batch = next(iter(ds))
     assert batch["state"].shape == (2, 3, 5)
 print(sorted(m for m in sys.modules if m == "jax" or m.startswith(("jax.", "jaxlib"))))
@@ -374,19 +374,19 @@ def test_the_warp_engine_equals_mjx_jax_within_the_named_tolerances(rich, cache_
     contact-free cart-pole steps within CONTACT_FREE_TOL, one contact step of the rich model
     (every input) within ONE_STEP_TOL (absolute; relative 3e-5)."""
     control = np.random.default_rng(1).uniform(-1, 1, (3, 60, 1))
-    kwargs = dict(backend="mjx", nbatch=3, nstep=60, control=control, num_batches=1,
+    kwargs = dict(nbatch=3, nstep=60, control=control, num_batches=1,
                   initial_state=simloader.initial.Perturbed(), seed=4)
-    warp = next(iter(simloader.SimDataset("cartpole", impl="warp", **kwargs)))
-    jax_ = next(iter(simloader.SimDataset("cartpole", impl="jax", compilation_cache=cache_dir,
+    warp = next(iter(simloader.SimDataset("cartpole", backend="warp", **kwargs)))
+    jax_ = next(iter(simloader.SimDataset("cartpole", backend="mjx", compilation_cache=cache_dir,
                                           **kwargs)))
     assert torch.equal(warp["initial_state"].cpu(), jax_["initial_state"].cpu())
     np.testing.assert_allclose(warp["state"].cpu().numpy(), jax_["state"].cpu().numpy(),
                                atol=CONTACT_FREE_TOL)
     u = np.random.default_rng(2).uniform(-1, 1, (2, 1, mujoco.mj_stateSize(rich, EVERY_INPUT)))
-    kwargs = dict(backend="mjx", nbatch=2, nstep=1, control=u, control_spec=EVERY_INPUT,
+    kwargs = dict(nbatch=2, nstep=1, control=u, control_spec=EVERY_INPUT,
                   initial_state="raised", num_batches=1)
-    warp = next(iter(simloader.SimDataset(rich, impl="warp", **kwargs)))
-    jax_ = next(iter(simloader.SimDataset(rich, impl="jax", compilation_cache=cache_dir,
+    warp = next(iter(simloader.SimDataset(rich, backend="warp", **kwargs)))
+    jax_ = next(iter(simloader.SimDataset(rich, backend="mjx", compilation_cache=cache_dir,
                                           **kwargs)))
     # (and float32's relative precision on the arm's velocities, about 50 rad/s here)
     np.testing.assert_allclose(warp["state"].cpu().numpy(), jax_["state"].cpu().numpy(),

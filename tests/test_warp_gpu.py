@@ -35,7 +35,7 @@ ONE_STEP_OUTLIERS = 1 / 16
 
 def warp_dataset(model="humanoid", nbatch=256, nstep=20, **kwargs):
     kwargs.setdefault("control", None if "policy" in kwargs else controls.Uniform())
-    return simloader.SimDataset(model, backend="mjx", impl="warp", nbatch=nbatch, nstep=nstep,
+    return simloader.SimDataset(model, backend="warp", nbatch=nbatch, nstep=nstep,
                                 **kwargs)
 
 
@@ -123,7 +123,7 @@ def test_a_busy_default_stream_does_not_reach_a_batchs_inputs():
     model = simloader.load_model("humanoid")
     kwargs = dict(nbatch=64, nstep=1, num_batches=6, control=controls.Uniform(),
                   initial_state=simloader.initial.Perturbed(qvel_std=0.5))
-    drawn = simloader.SimDataset(model, backend="rollout", **kwargs)
+    drawn = simloader.SimDataset(model, backend="cpu", **kwargs)
     a = torch.randn(4096, 4096, device="cuda")
 
     def busy():  # about a hundred milliseconds of matmuls, queued, not waited for
@@ -154,7 +154,7 @@ def test_train_and_validation_datasets_read_alternately_over_epochs():
 
 def test_a_jax_dataset_and_a_warp_dataset_alternately():
     pytest.importorskip("mujoco.mjx")
-    jax_ds = simloader.SimDataset("cartpole", backend="mjx", impl="jax", nbatch=256, nstep=20,
+    jax_ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=256, nstep=20,
                                   control=controls.Uniform(), num_batches=10)
     warp_ds = warp_dataset(num_batches=10)
     model, opt = trainer(warp_ds.config.nstate)
@@ -165,7 +165,7 @@ def test_a_jax_dataset_and_a_warp_dataset_alternately():
 
 
 def test_a_cpu_dataset_and_a_warp_dataset_alternately():
-    cpu_ds = simloader.SimDataset("cartpole", backend="rollout", nbatch=64, nstep=20,
+    cpu_ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=64, nstep=20,
                                   control=controls.Uniform(), num_batches=8, nthread=2)
     warp_ds = warp_dataset(num_batches=8)
     model, opt = trainer(warp_ds.config.nstate)

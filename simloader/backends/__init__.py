@@ -1,65 +1,93 @@
 """The simulation engines behind `SimDataset`, and how one is chosen.
 
-`backend="rollout"` is MuJoCo on CPU threads (`cpu/`). `backend="mjx"` is a GPU engine
-picked by `impl`: `"jax"` (MJX on JAX, `mjx/`) or `"warp"` (MuJoCo Warp driven from torch,
-`warp/`). The dataset talks to engines only through this registry: resolve "auto", validate an
-engine's options, create one for a shard. Engine modules are imported when first needed, so
-that a CPU-only user never imports JAX, and a Warp dataset never imports JAX either.
+`backend="cpu"` is MuJoCo on CPU threads (`cpu/`), `backend="mjx"` MJX on JAX (`mjx/`),
+`backend="warp"` MuJoCo Warp driven from torch, without JAX (`warp/`), and `backend="auto"`
+the fastest of those that can run here for the model, the sizes and the machine (`auto.py`).
+The dataset talks to engines only through this registry: name the engine, validate its
+options, create one for a shard. Engine packages are imported when first needed, so that a
+CPU-only user never imports JAX, and a Warp dataset never imports JAX either.
+
+The older spellings (`backend="rollout"`; `backend="mjx", impl="jax"|"warp"|"auto"`) keep
+working and warn once with the new one (`spelled`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import glob
 import importlib
 import importlib.util
+import warnings
 from collections.abc import Callable
 from typing import Any, Optional
 
-import mujoco
-import numpy as np
-
-from simloader import observe, sharding
+from simloader import sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig
 
-BACKENDS = ("auto", "rollout", "mjx")
-IMPLS = ("auto", "jax", "warp")
-# Each engine's package by its `impl` (the CPU backend's is "c"), imported when first needed.
-# Every package offers the same two entry points: `check_options(config, options, reason)`
-# returns its resolved options (with `impl`), `create(config, shard, stats)` its backend. The
-# registry decides which engine runs; it never branches on an engine's name to call it.
-ENGINES = {"c": "simloader.backends.cpu", "jax": "simloader.backends.mjx",
+# each engine's package, imported when first needed; every package offers the same entry
+# points: `check_options(config, options, reason)` returns its resolved options,
+# `create(config, shard, stats)` its backend
+ENGINES = {"cpu": "simloader.backends.cpu", "mjx": "simloader.backends.mjx",
            "warp": "simloader.backends.warp"}
-# backend="mjx" options beyond `impl`, by engine, known here without importing the engines
-# (for SimDataset's did-you-mean): MuJoCo Warp's buffers, JAX's caches and memory
-ENGINE_OPTIONS = {"warp": ("naconmax", "njmax"), "jax": ("compilation_cache", "memory_fraction")}
+BACKENDS = ("auto",) + tuple(ENGINES)
+# each engine's own keyword options, known here without importing the engines (for
+# SimDataset's did-you-mean and for refusing another engine's option by name)
+ENGINE_OPTIONS = {"cpu": (), "mjx": ("compilation_cache", "memory_fraction"),
+                  "warp": ("naconmax", "njmax")}
+# `impl` is the older spelling of the engine (see `spelled`)
 OPTIONS = ("impl",) + tuple(name for names in ENGINE_OPTIONS.values() for name in names)
+# the older spellings: backend="rollout", and backend="mjx" with impl=
+_OLD_IMPLS = {"jax": "mjx", "warp": "warp", "auto": "auto"}
+_warned: set[str] = set()
 
 
-def engine(impl: str) -> Any:
-    """The package of the engine `impl` (a key of `ENGINES`), imported now."""
-    return importlib.import_module(ENGINES[impl])
+def engine(name: str) -> Any:
+    """The package of the engine `name` (a key of `ENGINES`), imported now."""
+    return importlib.import_module(ENGINES[name])
 
 
-def _mjx_installed() -> bool:
-    return importlib.util.find_spec("mujoco.mjx") is not None
+def _warn_once(old: str, new: str) -> None:
+    if old not in _warned:
+        _warned.add(old)
+        # stacklevel: the user's line (SimDataset.__init__, here)
+        warnings.warn(f"{old} is the older spelling of {new}; it still works for now and will "
+                      f"be removed", FutureWarning, stacklevel=4)
 
 
-def prepare(backend: Any, options: dict[str, Any]) -> None:
-    """Process-wide settings that must precede JAX's start, applied before the configuration
-    is validated (`backend="auto"` may ask JAX for its devices): JAX's GPU memory. With
-    `backend="mjx"` JAX's own checks set it first (`mjx.check_options`); nothing for a dataset
-    that asks for the Warp engine."""
-    if options.get("impl") == "warp":
-        return
-    if backend == "auto" and _mjx_installed() and _gpu_visible():
-        from simloader.backends.mjx import runtime
-        runtime.configure_memory(options.get("memory_fraction"))
+def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any], bool]:
+    """The `backend` argument in today's vocabulary: (backend, options without `impl`,
+    whether only GPU engines may be chosen). The older spellings warn once per process
+    (FutureWarning) naming the new one.
+
+    Raises:
+      TypeError, ValueError: `backend` not one of `BACKENDS`; `impl` not one of "jax",
+        "warp", "auto", or given with a backend other than "mjx".
+    """
+    if not isinstance(backend, str):
+        raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__} "
+                        f"{backend!r}")
+    if backend == "rollout":
+        _warn_once("backend='rollout'", "backend='cpu'")
+        backend = "cpu"
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+    if "impl" not in options:
+        return backend, options, False
+    options = dict(options)
+    impl = options.pop("impl")
+    if not isinstance(impl, str) or impl not in _OLD_IMPLS:
+        raise ValueError(f"impl: the older spelling of backend=, expected one of "
+                         f"{tuple(_OLD_IMPLS)} or none, got {impl!r}")
+    if backend not in ("mjx", "auto"):
+        raise ValueError(f"impl: {impl!r} is the older way to name a GPU engine and means "
+                         f"nothing with backend={backend!r}; drop it")
+    new = _OLD_IMPLS[impl]
+    _warn_once(f"backend={backend!r}, impl={impl!r}", f"backend={new!r}")
+    return new, options, impl == "auto"
 
 
 def _gpu_visible() -> bool:
-    """Whether this machine may have a GPU for JAX, decided without starting JAX: an NVIDIA
+    """Whether this machine may have a GPU, decided without starting JAX or CUDA: an NVIDIA
     device node, or torch seeing CUDA."""
     if glob.glob("/dev/nvidia[0-9]*"):
         return True
@@ -67,119 +95,49 @@ def _gpu_visible() -> bool:
     return torch.cuda.is_available()
 
 
-def resolve(backend: Any, options: Optional[dict[str, Any]] = None) -> str:
-    """"auto" is "mjx" when a GPU engine can run (MuJoCo Warp and a CUDA GPU, or MJX installed
-    and JAX seeing a GPU), else "rollout"; JAX starts only to ask for its GPUs where MuJoCo
-    Warp cannot run and a GPU may be.
-
-    Raises:
-      TypeError, ValueError: not one of `BACKENDS`.
-    """
-    if not isinstance(backend, str):
-        raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__}")
-    if backend not in BACKENDS:
-        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
-    if backend != "auto":
-        return backend
-    from simloader.backends.warp import runtime as warp_runtime
-    import torch
-    if warp_runtime.missing() is None and torch.cuda.is_available():
-        return "mjx"  # a GPU engine runs; which one, `choose` decides (without JAX if Warp)
-    if (options or {}).get("impl") == "warp":
-        return "rollout"
-    if not (_mjx_installed() and _gpu_visible()):
-        return "rollout"
-    prepare(backend, {})  # JAX starts here: without preallocation unless told otherwise
-    try:
-        import jax
-        return "mjx" if any(d.platform == "gpu" for d in jax.devices()) else "rollout"
-    except Exception:  # JAX without a usable platform
-        return "rollout"
+def mjx_installed() -> bool:
+    return importlib.util.find_spec("mujoco.mjx") is not None
 
 
-@dataclasses.dataclass(frozen=True)
-class Choice:
-    """The GPU engine a dataset runs, and why (shown by `describe()` and in `stats`)."""
-
-    impl: str
-    reason: str
-
-
-def choose(asked: Any, config: SimConfig) -> Choice:
-    """Resolves `impl`: "jax" and "warp" as asked; "auto" the faster one available.
-
-    Measured on an H200 (benchmarks/results): MuJoCo Warp is 2.5x MJX-JAX on the humanoid
-    (contacts, a constraint solver with many rows), while on a contact-free model JAX's fused
-    XLA step is faster (cart-pole 8192: 36.7M vs 29.0M steps/s). So "auto" takes Warp, where
-    it can run, for a model with contacts, for cameras (only MuJoCo Warp renders) and for a
-    policy in the loop (one CUDA graph replay per step against a jitted step per call), and
-    JAX otherwise. Decided without starting JAX.
-
-    Raises:
-      TypeError: `impl` is not a string.
-      ValueError: `impl` is unknown.
-    """
-    if not isinstance(asked, str):
-        raise TypeError(f"impl: expected one of {IMPLS}, got {type(asked).__name__} {asked!r}")
-    if asked not in IMPLS:
-        raise ValueError(f"impl: expected one of {IMPLS}, got {asked!r}")
-    if asked != "auto":
-        return Choice(asked, "asked")
-    from simloader.backends.warp import runtime as warp_runtime
-    missing = warp_runtime.missing()
-    if missing:
-        return Choice("jax", f"auto: {missing}")
-    if any(isinstance(o, observe.CameraImage) for o in config.observations):
-        return Choice("warp", "auto: cameras render only on MuJoCo Warp")
-    if config.policy is not None:
-        return Choice("warp", "auto: a policy in the loop runs fastest on MuJoCo Warp's CUDA "
-                              "graph per step")
-    if has_contacts(config.model):
-        return Choice("warp", "auto: the model has contacts, where MuJoCo Warp is faster")
-    return Choice("jax", "auto: the model has no contacts, where MJX-JAX is faster")
-
-
-def has_contacts(model: mujoco.MjModel) -> bool:
-    """Whether any two geoms may collide (explicit pairs, or contype/conaffinity filtering of
-    geoms on different bodies), unless contacts are disabled."""
-    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT:
-        return False
-    if model.npair:
-        return True
-    body = model.geom_bodyid
-    contype, conaffinity = model.geom_contype, model.geom_conaffinity
-    mask = ((contype[:, None] & conaffinity[None, :]) | (conaffinity[:, None] & contype[None, :]))
-    mask = (mask != 0) & (body[:, None] != body[None, :])
-    return bool(np.triu(mask, 1).any())
+def prepare(backend: str, options: dict[str, Any]) -> None:
+    """Process-wide settings that must precede JAX's start, applied before anything may ask
+    JAX for its devices: JAX's GPU memory, for a dataset that may run MJX."""
+    if backend in ("auto", "mjx") and mjx_installed() and _gpu_visible():
+        from simloader.backends.mjx import runtime
+        runtime.configure_memory(options.get("memory_fraction"))
 
 
 def size_check(backend: str) -> Optional[Callable[[Any], None]]:
-    """The resolved `backend`'s refusal of a batch too large for it, from its sizes alone
+    """The engine's refusal of a batch too large for it, from its sizes alone
     (`config.build_config` calls it before building tables): the CPU engine's check of host
-    memory. None for `"mjx"`: its engines check their device's memory once they have the
+    memory. None for the GPU engines: they check their device's memory once they have the
     device (`check_options`, `create`)."""
-    return engine("c").check_sizes if backend == "rollout" else None
+    return engine("cpu").check_sizes if backend == "cpu" else None
 
 
-def check_options(config: SimConfig, asked: str, options: dict[str, Any]) -> Any:
-    """Validates engine-specific keyword options at construction (`asked`: the `backend`
-    argument before "auto" was resolved); returns them resolved by the chosen engine, for
-    `SimConfig.options`."""
-    if config.backend == "mjx":
-        unknown = sorted(set(options) - set(OPTIONS))
-        if unknown:
+def check_options(config: SimConfig, reason: str, options: dict[str, Any]) -> Any:
+    """Validates engine-specific keyword options at construction; returns them resolved by
+    the engine `config.backend` (chosen for `reason`), for `SimConfig.options`.
+
+    Raises:
+      TypeError: an option of another engine, or none at all, naming this engine's options.
+    """
+    mine = ENGINE_OPTIONS[config.backend]
+    unknown = sorted(set(options) - set(mine))
+    if unknown:
+        # with backend="auto" an option of an engine that was not chosen is left unused
+        # (the user may not know which engine runs); asked by name, it is a mistake
+        asked = "auto" not in reason
+        if asked or any(name not in OPTIONS for name in unknown):
+            owners = [f"{n!r} is an option of backend={e!r}" for n in unknown
+                      for e, names in ENGINE_OPTIONS.items() if n in names]
             raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
-                            f"backend='mjx' (its options are {list(OPTIONS)})")
-        choice = choose(options.get("impl", "auto"), config)
-        return engine(choice.impl).check_options(config, options, choice.reason)
-    if "impl" in options and asked == "auto":
-        raise ValueError(
-            f"impl: {options['impl']!r} chooses the GPU engine, but backend='auto' resolved to "
-            f"'rollout' here (no GPU visible, or the engine's packages missing); pass "
-            f"backend='mjx' to run it anyway")
-    return engine("c").check_options(config, options, "backend='rollout'")
+                            f"backend={config.backend!r} (its options are {list(mine)})"
+                            + "".join(f"; {o}" for o in owners))
+        options = {k: v for k, v in options.items() if k in mine}
+    return engine(config.backend).check_options(config, options, reason)
 
 
 def create(config: SimConfig, shard: sharding.Shard, stats: Stats) -> Backend:
-    """The engine of `config` (its resolved options say which) for one shard."""
-    return engine(config.options.impl).create(config, shard, stats)
+    """The engine of `config` for one shard."""
+    return engine(config.backend).create(config, shard, stats)

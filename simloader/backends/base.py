@@ -37,19 +37,19 @@ class Stats:
       batches: batches delivered.
       steps: simulated steps delivered (trajectories x steps).
       diverged: trajectories flagged as diverged.
-      simulate_s: seconds spent simulating (CPU backend: in MuJoCo; MJX: until results ready).
-      compile_s: seconds spent making the batch function ready to run (MJX backend): tracing,
+      simulate_s: seconds spent simulating (CPU engine: in MuJoCo; GPU engines: until results ready).
+      compile_s: seconds spent making the batch function ready to run (MJX): tracing,
         lowering and compiling, or loading what earlier processes stored.
-      compiles: compilations (MJX backend): one per configuration, never per batch.
-      traces: times the batch function was traced in Python (MJX backend): 0 when a stored
+      compiles: compilations (MJX): one per configuration, never per batch.
+      traces: times the batch function was traced in Python (MJX): 0 when a stored
         program was loaded (`stored_program.py`).
       trace_s: of `compile_s`, seconds spent tracing and lowering.
       programs_loaded: batch functions loaded from the program store instead of traced.
       overflow: trajectories that lost contacts or constraint rows to MuJoCo Warp's buffer
-        sizes (impl="warp"; flagged in the batch's `overflow`).
+        sizes (backend="warp"; flagged in the batch's `overflow`).
       solver_limit: trajectories whose constraint solver stopped at its iteration limit in a
-        batch (impl="warp"; MuJoCo C stops there too, silently).
-      graph_captures: CUDA graphs the Warp engine captured (impl="warp", on a GPU): one per
+        batch (backend="warp"; MuJoCo C stops there too, silently).
+      graph_captures: CUDA graphs the Warp engine captured (backend="warp", on a GPU): one per
         dataset and device, at its first batch, never again.
     """
 
@@ -86,15 +86,6 @@ class Stats:
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "lock"}
         out["steps_per_s"] = self.steps / self.simulate_s if self.simulate_s else 0.0
         return out
-
-
-class GpuEngineChoice:
-    """What the options of a `backend="mjx"` engine say of themselves (a mixin of their
-    dataclass: its `impl`, `impl_reason` and `describe()`)."""
-
-    def simulated_by(self) -> str:
-        return (f"backend='mjx', impl={self.impl!r} ({self.describe()}; chosen: "
-                f"{self.impl_reason})")
 
 
 class Backend(abc.ABC):

@@ -39,7 +39,7 @@ def differences(stored: dict, mine: dict) -> list[str]:
     """What differs between a store's fingerprint and a dataset's, each setting named (down
     to the field of a nested one), as the resume check names them."""
     return [f"{k}: stored {resume.short(there)}, given {resume.short(here)}"
-            for k, here, there in resume.differences(mine, stored)]
+            for k, here, there in resume.differences(mine, resume.upgraded(stored))]
 
 
 def provenance(dataset: Any, batches: int) -> dict:

@@ -353,7 +353,7 @@ def _worker_start(dataset: Any) -> Optional[str]:
     not survive a fork) or runs on a GPU (CUDA's does not either), then spawn."""
     c = dataset.config
     renders = any(o.rendered for o in c.observations)
-    gpu = c.backend != "rollout" or (c.device is not None and torch.device(c.device).type != "cpu")
+    gpu = c.backend != "cpu" or (c.device is not None and torch.device(c.device).type != "cpu")
     return "spawn" if renders or gpu else None
 
 

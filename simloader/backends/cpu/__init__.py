@@ -1,4 +1,4 @@
-"""The CPU backend (`backend="rollout"`): MuJoCo's native batched simulation
+"""The CPU backend (`backend="cpu"`): MuJoCo's native batched simulation
 (`mujoco.batch.Batch`) on a thread pool, bit for bit `mujoco.rollout`.
 
   options.py   its checks at construction (cameras, OpenGL, host memory)

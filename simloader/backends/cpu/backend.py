@@ -46,7 +46,7 @@ class _Produced:
 
 
 class RolloutBackend(Backend):
-    """`backend="rollout"`."""
+    """`backend="cpu"`."""
 
     counting_warnings = False  # MuJoCo's warnings counted for this backend (see __init__)
 

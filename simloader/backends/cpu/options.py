@@ -4,7 +4,7 @@ needs (an OpenGL platform for cameras), refused by name."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import Any
 
 from simloader import observe
 from simloader.backends.cpu import render
@@ -12,17 +12,15 @@ from simloader.backends.cpu import render
 
 @dataclasses.dataclass(frozen=True)
 class CpuOptions:
-    """The CPU backend's resolved options: none of its own (fields would enter the resume
-    fingerprint; `impl` is a constant)."""
-
-    impl: ClassVar[str] = "c"
+    """The CPU engine's resolved options: none of its own (fields would enter the resume
+    fingerprint)."""
 
     def simulated_by(self) -> str:
-        return "backend='rollout' (mujoco.batch on CPU threads)"
+        return "mujoco.batch on CPU threads"
 
 
 def check_options(config: Any, options: dict[str, Any], reason: str = "") -> CpuOptions:
-    """Validates a `backend="rollout"` configuration (it takes no options of its own;
+    """Validates a `backend="cpu"` configuration (it takes no options of its own;
     `reason`, why this engine was chosen, is the registry's common argument).
 
     Raises:
@@ -32,13 +30,13 @@ def check_options(config: Any, options: dict[str, Any], reason: str = "") -> Cpu
     """
     if options:
         raise TypeError(f"SimDataset: unexpected keyword argument(s) {sorted(options)} for "
-                        f"backend='rollout'")
+                        f"backend='cpu'")
     images = [o for o in config.observations if o.rendered]
     if not images:
         return CpuOptions()
     if config.policy is not None:
-        raise ValueError("policy, record: on backend='rollout' a policy cannot see cameras yet "
-                         "(they are rendered after the batch); use backend='mjx' (MuJoCo Warp "
+        raise ValueError("policy, record: on backend='cpu' a policy cannot see cameras yet "
+                         "(they are rendered after the batch); use backend='warp' (MuJoCo Warp "
                          "renders every step), or record no Camera")
     render.check(config.model, images)
     render.gl_platform()  # fails here, naming what to install, if no GL works

@@ -1,4 +1,4 @@
-"""Cameras on the rollout backend: a pool of `mujoco.Renderer`s, one set per thread.
+"""Cameras on the CPU engine: a pool of `mujoco.Renderer`s, one set per thread.
 
 The simulation records, per frame, the `mjSTATE_INTEGRATION` rows of the trajectories (the
 physics state and every input a scene shows: mocap poses, equality activations); the pool then

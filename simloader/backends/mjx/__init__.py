@@ -1,4 +1,4 @@
-"""MJX on JAX (`backend="mjx"`, `impl="jax"`): MuJoCo in XLA, on the GPU or the CPU.
+"""MJX on JAX (`backend="mjx"`): MuJoCo in XLA, on the GPU or the CPU.
 
   runtime.py         importing MJX quietly, JAX's memory and caches, the device, the fork guard
   impls.py           the implementation interface MJX-JAX fills

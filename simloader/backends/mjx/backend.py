@@ -31,7 +31,7 @@ import torch
 
 from simloader import handoff, layout, observe, resume, sharding
 from simloader import randomize as dr
-from simloader.backends.base import Backend, GpuEngineChoice, Stats
+from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import drivers, runtime
 from simloader.backends.mjx.impls import Implementation
@@ -39,17 +39,14 @@ from simloader.backends.mjx.program import BatchArgs, Placed, Program
 from simloader.config import SimConfig
 
 @dataclasses.dataclass(frozen=True)
-class MjxOptions(GpuEngineChoice):
-    """The MJX backend's options, validated and resolved at construction.
+class MjxOptions:
+    """MJX's options, validated and resolved at construction.
 
     Attributes:
-      impl: "jax" or "warp" (`impl="auto"` resolved), and `impl_reason`: why.
       compilation_cache: JAX's persistent compilation cache directory, or False.
       memory_fraction: GPU memory JAX preallocates, or None.
     """
 
-    impl: str
-    impl_reason: str
     compilation_cache: Any
     memory_fraction: Optional[float]
     # what the checks put on the device, for the constructing process's first program to
@@ -62,13 +59,13 @@ class MjxOptions(GpuEngineChoice):
     def implementation(self) -> Implementation:
         return Implementation()
 
-    def describe(self) -> str:
-        return self.implementation().describe()
+    def simulated_by(self) -> str:
+        return "MJX on JAX"
 
 
 def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> MjxOptions:
-    """Validates the options of MJX on JAX (`impl="jax"`, chosen by the registry for
-    `reason`) and the model(s), in the constructing process.
+    """Validates the options of MJX on JAX (`backend="mjx"`, chosen for `reason`) and the
+    model(s), in the constructing process.
 
     Args:
       config: the validated dataset configuration.
@@ -77,7 +74,7 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
           JAX's configured one, else `~/.cache/simloader/jax`; False: leave JAX's setting.
         memory_fraction: fraction of GPU memory JAX preallocates; None (default): none, JAX
           allocates as it goes (effective only if JAX has not started yet).
-      reason: why MJX on JAX simulates (asked, or what `impl="auto"` saw).
+      reason: why MJX simulates (asked, or what `backend="auto"` estimated).
 
     Returns:
       The options, defaults resolved.
@@ -88,10 +85,6 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
         differ in what MJX compiles in, a parameter MJX cannot randomize (`randomize.py`),
         cameras (MJX-JAX does not render).
     """
-    given = [name for name in ("naconmax", "njmax") if options.get(name) is not None]
-    if given:
-        raise ValueError(f"naconmax, njmax: size MuJoCo Warp's buffers and need "
-                         f"impl='warp', but impl resolved to 'jax' ({reason})")
     if config.dtype == torch.float64 and not jax.config.jax_enable_x64:
         # stacklevel: the user's line (SimDataset, the registry, here)
         warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
@@ -106,15 +99,15 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     placed = Placed.put(config, impl, device)
     observe.check_mjx(config.observations, placed.data0, impl.name)
     if images:
-        raise ValueError(f"record: impl='jax' cannot render {[o.key for o in images]}: MJX "
-                         f"renders only on MuJoCo Warp; use impl='warp' (or 'auto') on a CUDA "
-                         f"GPU, or backend='rollout'")
+        raise ValueError(f"record: backend='mjx' cannot render {[o.key for o in images]}: "
+                         f"MJX does not render; use backend='warp' on a CUDA GPU, or "
+                         f"backend='cpu'")
     # the batches in flight (prefetched, being simulated, being consumed), float32 outputs
     observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
                              f"memory", count=config.prefetch + 2, itemsize=4)
     if config.randomization is not None:
         mjx_randomize.check(config.model, placed.model, config.randomization, impl)
-    return MjxOptions("jax", reason, cache, fraction, placed)
+    return MjxOptions(cache, fraction, placed)
 
 
 # programs by configuration and device; each epoch's iterator reuses its dataset's program,
@@ -134,7 +127,7 @@ class _Produced:
 
 
 class MjxBackend(Backend):
-    """`backend="mjx"`.
+    """`backend="mjx"`: MJX on JAX.
 
     Args:
       config, shard, stats: as every backend.
@@ -219,7 +212,7 @@ class MjxBackend(Backend):
         batch.update({k: handoff.to_target(v, c.device, None)
                       for k, v in (produced.extras or {}).items()})
         if "params" in outputs:
-            # variant indices as the rollout backend gives them (JAX has no int64 without x64)
+            # variant indices as the CPU engine gives them (JAX has no int64 without x64)
             batch["params"] = {key: self._tensor(outputs["params"][key],
                                                  torch.int64 if key == "variant" else c.dtype)
                                for key in self.program.param_keys}

@@ -49,12 +49,12 @@ def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> t
             if mujoco.mj_stateSize(model, int(bit)):
                 raise ValueError(f"{name}: MJX does not support {what} ({size}="
                                  f"{mujoco.mj_stateSize(model, int(bit))}); use "
-                                 f"backend='rollout'")
+                                 f"backend='cpu'")
         try:
             puts.append(impl.put_model(model, host))
         except NotImplementedError as e:
             raise ValueError(f"{name}: MJX does not support a feature of this model: {e}; use "
-                             f"backend='rollout'") from None
+                             f"backend='cpu'") from None
     if len(puts) == 1:
         return puts[0], None
     if models[0].nhfield == 0 and hasattr(puts[0]._impl, "geom_rbound_hfield"):
@@ -82,7 +82,7 @@ def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> t
             if why:
                 other = next(i for i, leaf in enumerate(column) if not np.array_equal(column[0], leaf))
                 raise ValueError(f"{names[other]}: {field} differs from {names[0]}, but with "
-                                 f"impl={impl.name!r} it cannot differ per trajectory ({why})")
+                                 f"backend='mjx' it cannot differ per trajectory ({why})")
         batched.append(column[0] if same else jnp.stack(column))
         axes.append(None if same else 0)
     return jax.device_put(treedef.unflatten(batched), device), treedef.unflatten(axes)

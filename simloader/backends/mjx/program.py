@@ -207,7 +207,7 @@ def batch_function(pieces: Pieces) -> Callable:
         column to (`controls.applied_bounds`), per model of the pool.
       seeds: (2, 2) uint32, this batch's CONTROL and RANDOMIZE seeds.
       variant: with variants, (nbatch,) int32 each trajectory's variant (drawn on the host as
-        the rollout backend draws it); None otherwise.
+        the CPU engine draws it); None otherwise.
       carry, restart: with `continue_episodes`, what the previous batch left ({"state":
         (nbatch, nstate) after its last step, "qacc_warmstart": (nbatch, nv), "params": the
         randomized values and variants}) and the (nbatch,) bool rows to restart from `x0`
@@ -229,7 +229,7 @@ def batch_function(pieces: Pieces) -> Callable:
         elif not given:
             control = jnp.broadcast_to(control[:, None, :], shape)
         # the control rows as MuJoCo applies them (clamped where it clamps); a bad (non-finite
-        # or absurd) control flags its trajectory diverged, as on the rollout backend
+        # or absurd) control flags its trajectory diverged, as on the CPU engine
         control, bad = controls.as_applied(control, low[:, None], high[:, None], jnp)
         # (nframes, record_every, nbatch, ncontrol): the rows of each frame's steps
         xs = (jnp.swapaxes(control, 0, 1).reshape(nframes, every, *control.shape[::2])
@@ -321,7 +321,7 @@ class Program:
         self.randomizer = (None if c.randomization is None else mjx_randomize.Randomizer(
             c.model, c.randomization, pool_axes, self.model))
         model_axes = pool_axes if self.randomizer is None else self.randomizer.axes
-        # `params` keys in the order of the spec, as the rollout backend gives them (JAX
+        # `params` keys in the order of the spec, as the CPU engine gives them (JAX
         # returns dicts sorted)
         self.param_keys = (("variant",) if c.variants is not None else
                            () if c.randomization is None else

@@ -9,7 +9,7 @@ function (`setconst.py`). Values change, shapes do not: nothing recompiles.
 MJX compiles some facts about a model into the simulation when the model is put on the device
 (which dofs have friction loss, whether fluid forces exist, geometry bounds, ...), and has no
 `mj_setConst`; so only `FIELDS` can be randomized here, and the rest is refused at construction
-with that list (`backend="rollout"` randomizes any floating-point field).
+with that list (`backend="cpu"` randomizes any floating-point field).
 """
 
 from __future__ import annotations
@@ -74,31 +74,31 @@ def check(model: mujoco.MjModel, mx: mjx.Model, plan: dr.RandomizationPlan,
         why = impl.cannot_randomize(field) or (
             None if impl.recomputes_constants or field not in mjx_setconst.INPUTS else
             "MuJoCo derives constants from it (mj_setConst) that simloader recomputes only "
-            "with impl='jax'")
+            "with backend='mjx'")
         if field in FIELDS and why:
             allowed = [f for f in FIELDS if not impl.cannot_randomize(f) and (
                 impl.recomputes_constants or f not in mjx_setconst.INPUTS)]
             raise ValueError(
-                f"randomize: {key}: impl={impl.name!r} cannot randomize {field} ({why}); it "
-                f"can randomize {', '.join(allowed)} (impl='jax' randomizes {len(FIELDS)} "
-                f"fields, backend='rollout' any floating-point field)")
+                f"randomize: {key}: backend='mjx' cannot randomize {field} ({why}); it "
+                f"can randomize {', '.join(allowed)} (MJX randomizes {len(FIELDS)} "
+                f"fields, backend='cpu' any floating-point field)")
         if field not in FIELDS:
             raise ValueError(
                 f"randomize: {key}: backend='mjx' cannot randomize {field} ({_why(field, mx)}); "
-                f"it can randomize {', '.join(FIELDS)} (backend='rollout' randomizes any "
+                f"it can randomize {', '.join(FIELDS)} (backend='cpu' randomizes any "
                 f"floating-point field)")
         if field in _FRICTIONLOSS and np.any(r.base <= 0):
             raise ValueError(
                 f"randomize: {key}: backend='mjx' randomizes {field} only where the model's "
                 f"value is > 0 (MJX decides when the model is loaded which constraints have "
                 f"friction loss); give the model a positive {field} there, or use "
-                f"backend='rollout'")
+                f"backend='cpu'")
         if field in _FLUID and not (model.opt.density > 0 or model.opt.viscosity > 0
                                     or np.any(model.opt.wind)):
             raise ValueError(
                 f"randomize: {key}: backend='mjx' randomizes {field} only in a model with fluid "
                 f"forces (MJX turns them off when the model's density, viscosity and wind are "
-                f"all 0); give the model a nonzero value, or use backend='rollout'")
+                f"all 0); give the model a nonzero value, or use backend='cpu'")
 
 
 def _why(field: str, mx: mjx.Model) -> str:

@@ -1,4 +1,4 @@
-"""The Warp engine (`backend="mjx", impl="warp"`): MuJoCo Warp (the `mujoco-warp` package)
+"""The Warp engine (`backend="warp"`): MuJoCo Warp (the `mujoco-warp` package)
 driven from torch, without JAX.
 
   runtime.py   can it run, on which device, importing Warp quietly, the lock on

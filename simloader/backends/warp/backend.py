@@ -1,4 +1,4 @@
-"""The Warp engine (`backend="mjx", impl="warp"`): MuJoCo Warp driven from torch, no JAX.
+"""The Warp engine (`backend="warp"`): MuJoCo Warp driven from torch, no JAX.
 
 Each batch is drawn on the host exactly as the CPU backend draws it (initial states,
 randomized parameters, variants and controls from the same seeds, with NumPy), moved to the
@@ -72,7 +72,7 @@ class _Tables:
 
 
 class WarpBackend(Backend):
-    """`backend="mjx", impl="warp"`.
+    """`backend="warp"`.
 
     Raises:
       RuntimeError: in a forked DataLoader worker on a GPU (CUDA cannot start after fork).
@@ -84,7 +84,7 @@ class WarpBackend(Backend):
         self.options = options
         self.device = runtime.sim_device(config.device)
         if self.device.type == "cuda":
-            refuse_forked_worker("impl='warp'", "CUDA cannot start in a forked child of a "
+            refuse_forked_worker("backend='warp'", "CUDA cannot start in a forked child of a "
                                  "process that started it")
         engines = _ENGINES.setdefault(config, {})
         self.engine: Engine = engines.get(self.device)

@@ -28,7 +28,7 @@ def refusal(images: Sequence[observe.CameraImage]) -> Optional[str]:
     """Why MuJoCo Warp cannot render these camera images, or None."""
     if any(o.camera_id < 0 for o in images):
         return ("MuJoCo Warp renders the model's cameras, not the free camera (-1); add a "
-                "<camera> to the model, or use backend='rollout'")
+                "<camera> to the model, or use backend='cpu'")
     sizes: dict[int, set] = {}
     for o in images:
         sizes.setdefault(o.camera_id, set()).add((o.camera.height, o.camera.width))

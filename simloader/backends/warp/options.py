@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from simloader import layout, observe
-from simloader.backends.base import GpuEngineChoice
 from simloader.backends.warp import cameras, runtime
 from simloader.config import SimConfig
 
@@ -47,23 +46,20 @@ SETCONST_OUTPUTS = ("body_subtreemass", "body_invweight0", "dof_invweight0", "te
 
 
 @dataclasses.dataclass(frozen=True)
-class WarpOptions(GpuEngineChoice):
+class WarpOptions:
     """The Warp engine's options, resolved at construction.
 
     Attributes:
-      impl: "warp"; `impl_reason`: why (asked, or what `impl="auto"` saw).
       naconmax, njmax: MuJoCo Warp's contact pool (whole batch) and constraint rows (per
         trajectory).
       per_world: the model arrays that differ per trajectory (`opt.` for options), sorted.
     """
 
-    impl: str
-    impl_reason: str
     naconmax: int
     njmax: int
     per_world: tuple[str, ...]
 
-    def describe(self) -> str:
+    def simulated_by(self) -> str:
         return f"MuJoCo Warp, naconmax={self.naconmax}, njmax={self.njmax}"
 
 
@@ -74,9 +70,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
       config: the validated dataset configuration.
       options: keyword options of `SimDataset` beyond its own: `naconmax` and `njmax`, MuJoCo
         Warp's contact pool of the whole batch and constraint rows per trajectory (None: sized
-        from the model); JAX's options are refused with `impl="warp"` (JAX does not run here),
-        left unused with `impl="auto"`.
-      reason: why the Warp engine simulates (asked, or what `impl="auto"` saw).
+        from the model) (JAX's options are refused by the registry: JAX does not run here).
+      reason: why the Warp engine simulates (asked, or what `backend="auto"` estimated).
 
     Raises:
       TypeError: `naconmax` or `njmax` not None or an integer.
@@ -86,18 +81,13 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
     """
     naconmax = _positive("naconmax", options.get("naconmax"))
     njmax = _positive("njmax", options.get("njmax"))
-    for name in ("compilation_cache", "memory_fraction"):
-        # asked for Warp by name, a value other than the default is an error rather than
-        # silently ignored (with impl="auto" the user may not know which engine runs)
-        if options.get(name) not in (None, False) and options.get("impl") == "warp":
-            raise ValueError(f"{name}: configures JAX, which impl='warp' does not use; drop "
-                             f"it (it matters only for impl='jax')")
     why = runtime.missing()
     if why:
-        raise ValueError(f"impl: 'warp' cannot run here: {why}; use impl='jax' (or 'auto')")
+        raise ValueError(f"backend: 'warp' cannot run here: {why}; use backend='cpu', 'mjx' "
+                         f"or 'auto'")
     if config.dtype == torch.float64:
         # stacklevel: the user's line (SimDataset, the registry, here)
-        warnings.warn("dtype=torch.float64 with impl='warp': MuJoCo Warp simulates in "
+        warnings.warn("dtype=torch.float64 with backend='warp': MuJoCo Warp simulates in "
                       "float32, so the tensors are float32 values up-cast to float64",
                       UserWarning, stacklevel=4)
     models = config.pool
@@ -112,7 +102,7 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
     why = cameras.refusal(images)
     if why:
-        raise ValueError(f"record: impl='warp' cannot render {[o.key for o in images]}: {why}")
+        raise ValueError(f"record: backend='warp' cannot render {[o.key for o in images]}: {why}")
     # the batches in flight (prefetched, being simulated, being consumed), float32 outputs,
     # and the engine's own buffers of one batch
     device = runtime.sim_device(config.device)
@@ -122,7 +112,7 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
                              itemsize=4)
     x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
     naconmax, njmax = buffer_sizes(config.model, config.nbatch, x0, naconmax, njmax)
-    return WarpOptions("warp", reason, naconmax, njmax, tuple(sorted(per_world)))
+    return WarpOptions(naconmax, njmax, tuple(sorted(per_world)))
 
 
 def _positive(name: str, value: Any) -> Optional[int]:
@@ -143,7 +133,7 @@ def _put(name: str, model: mujoco.MjModel) -> Any:
     for bit, what, size in _UNSIMULATED:
         if mujoco.mj_stateSize(model, int(bit)):
             raise ValueError(f"{name}: the Warp engine does not simulate {what} ({size}="
-                             f"{mujoco.mj_stateSize(model, int(bit))}); use backend='rollout'")
+                             f"{mujoco.mj_stateSize(model, int(bit))}); use backend='cpu'")
     try:
         # Warp's current device is the process's: scoped under the engines' lock, or another
         # thread's engine would launch its kernels on the CPU meanwhile
@@ -151,7 +141,7 @@ def _put(name: str, model: mujoco.MjModel) -> Any:
             return mjw.put_model(model)
     except NotImplementedError as e:
         raise ValueError(f"{name}: MuJoCo Warp does not support a feature of this model: {e}; "
-                         f"use impl='jax' or backend='rollout'") from None
+                         f"use backend='mjx' or backend='cpu'") from None
 
 
 def arrays(warp_model: Any) -> dict[str, Any]:
@@ -192,7 +182,7 @@ def _differing(puts: list, names: list[str]) -> list[str]:
                 continue
             if not batchable(field) or value.shape[1:] != first[field].shape[1:]:
                 raise ValueError(
-                    f"{name}: {field} differs from {names[0]}, but with impl='warp' it cannot "
+                    f"{name}: {field} differs from {names[0]}, but with backend='warp' it cannot "
                     f"differ per trajectory (MuJoCo Warp shares it across all trajectories of "
                     f"a batch)")
             out.append(field)
@@ -215,9 +205,9 @@ def _randomized(config: SimConfig, put: Any) -> set[str]:
         elif _per_world_size(held[field]) != size:
             why = f"MuJoCo Warp stores it in another layout ({held[field].shape})"
         if why:
-            raise ValueError(f"randomize: {r.param.key}: impl='warp' cannot randomize "
+            raise ValueError(f"randomize: {r.param.key}: backend='warp' cannot randomize "
                              f"{r.field} ({why}); it can randomize {', '.join(can)} "
-                             f"(backend='rollout' any floating-point field)")
+                             f"(backend='cpu' any floating-point field)")
         out.add(field)
     if config.randomization.setconst:
         out |= {f for f in SETCONST_OUTPUTS if f in held and batchable(f)}
@@ -243,7 +233,7 @@ def _check_records(config: SimConfig) -> None:
         missing = sorted(set(o.fields()) - held)
         if missing:
             raise ValueError(f"record: {o.key!r}: MuJoCo Warp has no field {missing[0]} "
-                             f"(impl='warp'); use impl='jax' or backend='rollout'")
+                             f"(backend='warp'); use backend='mjx' or backend='cpu'")
 
 
 def buffer_sizes(model: mujoco.MjModel, nbatch: int, x0: np.ndarray,

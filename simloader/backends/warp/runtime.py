@@ -18,7 +18,7 @@ import torch
 # MuJoCo Warp on the CPU (Warp's LLVM backend) is slow and not offered to users; the test suite
 # sets this to run the Warp engine for real on machines without a GPU
 WARP_ON_CPU = "SIMLOADER_WARP_ON_CPU"
-# what to install for impl="warp"
+# what to install for backend="warp"
 INSTALL = "pip install 'simloader[warp]'"
 
 # Held whenever simloader scopes a Warp device or stream: an engine's build (allocations, the
