@@ -27,7 +27,9 @@ from common import markdown_table
 
 import simloader
 from simloader import bench, sharding
+from simloader import backends
 from simloader.backends import auto
+from simloader.backends.contract import Job
 
 SIZES = (64, 1024, 8192)
 
@@ -66,7 +68,7 @@ def main() -> None:
                    help="default: every engine that runs here (MJX on the CPU included)")
     common.add_output_options(p)
     args = p.parse_args()
-    can = auto.candidates(False)
+    can = auto.candidates()
     engines = args.engines or ["cpu", "warp", "mjx"]
     engines = [e for e in engines if not can.get(e) or (e == "mjx" and "JAX has no GPU"
                                                         in can["mjx"])]
@@ -91,7 +93,9 @@ def main() -> None:
             print(f"{name} nbatch={nbatch} {engine}: {measured.get(engine, 0) / 1e6:.3f}M "
                   f"steps/s ({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
         fastest = max(measured, key=measured.get)
-        estimates = {e: auto.estimate(e, step_s, nbatch, contacts, cores) for e in measured}
+        job = Job(step_s=step_s, nbatch=nbatch, contacts=contacts, cores=cores, policy=False,
+                  cameras=name.endswith("+camera"))
+        estimates = {e: backends.engine(e).estimate(job) for e in measured}
         ratio = measured.get(chosen, 0) / measured[fastest]
         records.append({"model": name, "nbatch": nbatch, "nstep": nstep, "contacts": contacts,
                         "step_s": step_s, "measured": measured, "estimates": estimates,

@@ -24,11 +24,14 @@ BACKEND_CHOICES = ("auto", "cpu", "mjx", "warp", "rollout")
 
 
 def engines_here() -> list[str]:
-    """The engines that can run on this machine: the CPU engine, and the GPU engines where
-    their packages and a GPU are."""
+    """The engines `bench` times by default: the CPU engine, and the GPU engines where their
+    packages and a GPU are (MJX on JAX's CPU only when asked: `--backends mjx`)."""
+    from simloader import backends
     from simloader.backends import auto
-    return ["cpu"] + [name for name, why in auto.candidates(False).items()
-                      if name != "cpu" and not why]
+    if not backends.gpu_visible():
+        return ["cpu"]
+    can = auto.candidates()
+    return ["cpu"] + [name for name in ("mjx", "warp") if not can.get(name)]
 DEFAULT_OUT = "simloader-results"
 
 

@@ -292,7 +292,8 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
         base = variants[0]
     observations, record_every = _record(base, record, record_every, nstep)
     choice = choose(SimpleNamespace(model=base, nbatch=nbatch, nstep=nstep,
-                                    observations=observations, policy=policy))
+                                    num_batches=num_batches, observations=observations,
+                                    policy=policy))
     check_sizes = size_check(choice.backend)
     if check_sizes is not None:
         check_sizes(SimpleNamespace(

@@ -25,8 +25,8 @@ def _check_keywords(options: dict[str, Any]) -> None:
     `**backend_options`), with a did-you-mean; other unknown ones the backend refuses, listing
     its options."""
     names = [n for n, p in inspect.signature(SimDataset.__init__).parameters.items()
-             if p.kind == inspect.Parameter.KEYWORD_ONLY] + list(backends.OPTIONS)
-    unknown = sorted(k for k in options if k not in backends.OPTIONS)
+             if p.kind == inspect.Parameter.KEYWORD_ONLY] + list(backends.all_options())
+    unknown = sorted(k for k in options if k not in backends.all_options())
     hints = {k: layout.did_you_mean(k, names) for k in unknown}
     if any(hints.values()):
         said = "; ".join(f"{k!r}{h or ' (no close match)'}" for k, h in hints.items())

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import simloader
-from simloader import resume
+from simloader import backends, resume
 from simloader.backends import auto
+from simloader.backends.contract import Job
 
 
 def test_cpu_is_the_engine_of_mujoco_on_cpu_threads():
@@ -68,26 +69,38 @@ def test_an_option_of_another_engine_is_refused_by_name():
         simloader.SimDataset("cartpole", backend="cpu", naconmax=10, nbatch=2, nstep=2)
 
 
-def test_auto_without_a_gpu_is_the_cpu_and_says_why(monkeypatch):
+def test_auto_without_a_gpu_weighs_the_cpu_engine_against_mjx_on_jax_cpu(monkeypatch):
     monkeypatch.delenv("SIMLOADER_WARP_ON_CPU", raising=False)
     import torch
     if torch.cuda.is_available():
         pytest.skip("a GPU is here")
+    pytest.importorskip("mujoco.mjx")
+    # contacts: MuJoCo's own threads (MJX on the CPU was 7x slower on the 2-core machine)
     ds = simloader.SimDataset("humanoid", nbatch=8192, nstep=2)
     assert ds.config.backend == "cpu"
-    assert "chosen: auto: the only engine that runs here" in ds.describe()
+    said = ds.config.backend_reason
+    assert "estimated steps/s for nbatch=8192" in said and "mjx ~" in said
+    assert "warp ~" not in said  # MuJoCo Warp needs a CUDA GPU: not a candidate
+    # a tiny batch stays on the CPU engine (XLA's fixed cost per step); a large batch of the
+    # tiny contact-free cart-pole goes to MJX on JAX's CPU, measured 1.1-1.2x faster
+    assert auto.choose("auto", False, probe("cartpole", 2)).backend == "cpu"
+    assert auto.choose("auto", False, probe("cartpole", 4096)).backend == "mjx"
 
 
 def everything_runs(monkeypatch):
     """`auto` as on a GPU machine with both GPU engines (the rule alone is tested: no engine
     is built here)."""
-    monkeypatch.setattr(auto, "candidates", lambda gpu_only: {
-        "cpu": "GPU engines only" if gpu_only else "", "mjx": "", "warp": ""})
-    monkeypatch.setattr(auto, "_jax_sees_gpu", lambda: True)
+    for name in ("mjx", "warp"):
+        cls = type(backends.engine(name))
+        monkeypatch.setattr(cls, "missing", lambda self: None)
+        monkeypatch.setattr(cls, "confirm", lambda self: None)
+    # MJX estimates as on a GPU (JAX's CUDA plugin there)
+    monkeypatch.setattr(type(backends.engine("mjx")), "_gpu", staticmethod(lambda: True))
 
 
 def probe(name, nbatch, **kwargs):
-    return types.SimpleNamespace(model=simloader.load_model(name), nbatch=nbatch,
+    return types.SimpleNamespace(model=simloader.load_model(name), nbatch=nbatch, nstep=100,
+                                 num_batches=kwargs.get("num_batches"),
                                  observations=kwargs.get("observations", ()),
                                  policy=kwargs.get("policy"))
 
@@ -115,10 +128,22 @@ def test_auto_rule_never_takes_mjx_for_cameras_or_a_policy(monkeypatch):
         assert choice.backend == "warp", choice.reason
 
 
+def test_a_short_stream_counts_the_engines_start_up(monkeypatch):
+    everything_runs(monkeypatch)
+    monkeypatch.setattr(auto.sharding, "available_cpus", lambda: 16)
+    # 8192 cart-poles x 100 steps: endless on MJX; two batches finish sooner on the CPU than
+    # a first MJX compilation (4 s) would
+    assert auto.choose("auto", False, probe("cartpole", 8192)).backend == "mjx"
+    short = auto.choose("auto", False, probe("cartpole", 8192, num_batches=2))
+    assert short.backend == "cpu" and "with a first run's start-up" in short.reason
+
+
 def test_auto_estimates_grow_with_the_batch_on_the_gpu_only():
-    step_s = 20e-6
-    cpu = [auto.estimate("cpu", step_s, n, True, 16) for n in (64, 1024, 8192)]
-    warp = [auto.estimate("warp", step_s, n, True, 16) for n in (64, 1024, 8192)]
+    def rates(name):
+        return [backends.engine(name).estimate(Job(step_s=20e-6, nbatch=n, contacts=True,
+                                                   cores=16, policy=False, cameras=False))
+                for n in (64, 1024, 8192)]
+    cpu, warp = rates("cpu"), rates("warp")
     assert cpu[0] == cpu[1] == cpu[2]  # 16 cores busy from 16 trajectories on
     assert warp[0] < warp[1] < warp[2]
 

@@ -501,8 +501,8 @@ def test_resolving_auto_backend_starts_jax_only_with_a_gpu_and_without_prealloca
     script = textwrap.dedent("""
         import os, sys, simloader
         from simloader import backends
-        ds = simloader.SimDataset("cartpole", nbatch=8192, nstep=2)
-        print(ds.config.backend, backends._gpu_visible(), "jax" in sys.modules)
+        ds = simloader.SimDataset("cartpole", nbatch=2, nstep=2)
+        print(ds.config.backend, backends.gpu_visible(), "jax" in sys.modules)
         if "jax" in sys.modules:
             from jax._src import xla_bridge
             print(xla_bridge.backends_are_initialized(),

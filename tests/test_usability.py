@@ -27,7 +27,7 @@ def test_auto_backend_without_a_gpu_does_not_start_jax(fresh_python):
         import sys, simloader
         ds = simloader.SimDataset("cartpole", nbatch=2, nstep=2, num_batches=1)
         next(iter(ds))
-        print(ds.config.backend, "jax" in sys.modules, simloader.backends._gpu_visible())
+        print(ds.config.backend, "jax" in sys.modules, simloader.backends.gpu_visible())
     """)
     out, = fresh_python(script, [([], {})])
     backend, jax_imported, gpu = out.split()

@@ -15,35 +15,72 @@ from __future__ import annotations
 
 import glob
 import importlib
-import importlib.util
 import warnings
 from collections.abc import Callable
-from typing import Any, Optional
+from typing import Any
 
 from simloader import sharding
 from simloader.backends.base import Backend, Stats
+from simloader.backends.contract import Engine
 from simloader.config import SimConfig
 
-# each engine's package, imported when first needed; every package offers the same entry
-# points: `check_options(config, options, reason)` returns its resolved options,
-# `create(config, shard, stats)` its backend
-ENGINES = {"cpu": "simloader.backends.cpu", "mjx": "simloader.backends.mjx",
-           "warp": "simloader.backends.warp"}
-BACKENDS = ("auto",) + tuple(ENGINES)
-# each engine's own keyword options, known here without importing the engines (for
-# SimDataset's did-you-mean and for refusing another engine's option by name)
-ENGINE_OPTIONS = {"cpu": (), "mjx": ("compilation_cache", "memory_fraction"),
-                  "warp": ("naconmax", "njmax")}
-# `impl` is the older spelling of the engine (see `spelled`)
-OPTIONS = ("impl",) + tuple(name for names in ENGINE_OPTIONS.values() for name in names)
+# each engine's light entry module (its `ENGINE`, an `Engine` of `contract.py`), imported when
+# first needed; engines from outside simloader join with `register_engine`
+ENGINES: dict[str, Any] = {"cpu": "simloader.backends.cpu.entry",
+                           "mjx": "simloader.backends.mjx.entry",
+                           "warp": "simloader.backends.warp.entry"}
 # the older spellings: backend="rollout", and backend="mjx" with impl=
 _OLD_IMPLS = {"jax": "mjx", "warp": "warp", "auto": "auto"}
 _warned: set[str] = set()
 
 
-def engine(name: str) -> Any:
-    """The package of the engine `name` (a key of `ENGINES`), imported now."""
-    return importlib.import_module(ENGINES[name])
+def engine(name: str) -> Engine:
+    """The registered engine `name` (a key of `ENGINES`), its entry module imported now."""
+    entry = ENGINES[name]
+    if isinstance(entry, str):
+        entry = ENGINES[name] = importlib.import_module(entry).ENGINE
+    return entry
+
+
+def register_engine(new: Engine) -> None:
+    """Adds an engine from outside simloader: `SimDataset(backend=new.name)` then runs it,
+    and `backend="auto"` weighs its `estimate` against the others'.
+
+    Raises:
+      TypeError: `new` does not offer the `Engine` protocol (`backends.contract`).
+      ValueError: its name is taken or not a plain word.
+    """
+    if not isinstance(new, Engine):
+        raise TypeError(f"engine: expected an object with the Engine protocol's attributes "
+                        f"(simloader.backends.contract.Engine), got {type(new).__name__}")
+    if not isinstance(new.name, str) or not new.name.isidentifier() or new.name in (
+            "auto", "rollout") or new.name in ENGINES:
+        raise ValueError(f"engine: name {new.name!r} is taken or not a plain word (taken: "
+                         f"{backends()})")
+    ENGINES[new.name] = new
+
+
+def unregister_engine(name: str) -> None:
+    """Removes an engine `register_engine` added (the built-in ones stay)."""
+    if name in ("cpu", "mjx", "warp"):
+        raise ValueError(f"engine: {name!r} is built in")
+    ENGINES.pop(name, None)
+
+
+def backends() -> tuple[str, ...]:
+    """Every word `backend=` takes: "auto" and the registered engines."""
+    return ("auto",) + tuple(ENGINES)
+
+
+def engine_options() -> dict[str, tuple[str, ...]]:
+    """Each engine's own keyword options, by engine."""
+    return {name: tuple(engine(name).options) for name in ENGINES}
+
+
+def all_options() -> tuple[str, ...]:
+    """Every engine's keyword options, and `impl` (the older spelling of the engine)."""
+    return ("impl",) + tuple(dict.fromkeys(n for names in engine_options().values()
+                                           for n in names))
 
 
 def _warn_once(old: str, new: str) -> None:
@@ -60,17 +97,17 @@ def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any],
     (FutureWarning) naming the new one.
 
     Raises:
-      TypeError, ValueError: `backend` not one of `BACKENDS`; `impl` not one of "jax",
+      TypeError, ValueError: `backend` not one of `backends()`; `impl` not one of "jax",
         "warp", "auto", or given with a backend other than "mjx".
     """
     if not isinstance(backend, str):
-        raise TypeError(f"backend: expected one of {BACKENDS}, got {type(backend).__name__} "
+        raise TypeError(f"backend: expected one of {backends()}, got {type(backend).__name__} "
                         f"{backend!r}")
     if backend == "rollout":
         _warn_once("backend='rollout'", "backend='cpu'")
         backend = "cpu"
-    if backend not in BACKENDS:
-        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+    if backend not in backends():
+        raise ValueError(f"backend: expected one of {backends()}, got {backend!r}")
     if "impl" not in options:
         return backend, options, False
     options = dict(options)
@@ -86,7 +123,7 @@ def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any],
     return new, options, impl == "auto"
 
 
-def _gpu_visible() -> bool:
+def gpu_visible() -> bool:
     """Whether this machine may have a GPU, decided without starting JAX or CUDA: an NVIDIA
     device node, or torch seeing CUDA."""
     if glob.glob("/dev/nvidia[0-9]*"):
@@ -95,24 +132,18 @@ def _gpu_visible() -> bool:
     return torch.cuda.is_available()
 
 
-def mjx_installed() -> bool:
-    return importlib.util.find_spec("mujoco.mjx") is not None
-
-
 def prepare(backend: str, options: dict[str, Any]) -> None:
-    """Process-wide settings that must precede JAX's start, applied before anything may ask
-    JAX for its devices: JAX's GPU memory, for a dataset that may run MJX."""
-    if backend in ("auto", "mjx") and mjx_installed() and _gpu_visible():
-        from simloader.backends.mjx import runtime
-        runtime.configure_memory(options.get("memory_fraction"))
+    """Process-wide settings that must precede anything that may start an engine's runtime
+    (`auto` may ask JAX for its GPUs): each engine that may run this dataset sets its own."""
+    for name in (ENGINES if backend == "auto" else [backend]):
+        engine(name).prepare(options)
 
 
-def size_check(backend: str) -> Optional[Callable[[Any], None]]:
+def size_check(backend: str) -> Callable[[Any], None]:
     """The engine's refusal of a batch too large for it, from its sizes alone
     (`config.build_config` calls it before building tables): the CPU engine's check of host
-    memory. None for the GPU engines: they check their device's memory once they have the
-    device (`check_options`, `create`)."""
-    return engine("cpu").check_sizes if backend == "cpu" else None
+    memory; the GPU engines check their device's memory once they have the device."""
+    return engine(backend).check_sizes
 
 
 def check_options(config: SimConfig, reason: str, options: dict[str, Any]) -> Any:
@@ -122,15 +153,15 @@ def check_options(config: SimConfig, reason: str, options: dict[str, Any]) -> An
     Raises:
       TypeError: an option of another engine, or none at all, naming this engine's options.
     """
-    mine = ENGINE_OPTIONS[config.backend]
+    mine = engine(config.backend).options
     unknown = sorted(set(options) - set(mine))
     if unknown:
         # with backend="auto" an option of an engine that was not chosen is left unused
         # (the user may not know which engine runs); asked by name, it is a mistake
         asked = "auto" not in reason
-        if asked or any(name not in OPTIONS for name in unknown):
+        if asked or any(name not in all_options() for name in unknown):
             owners = [f"{n!r} is an option of backend={e!r}" for n in unknown
-                      for e, names in ENGINE_OPTIONS.items() if n in names]
+                      for e, names in engine_options().items() if n in names]
             raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
                             f"backend={config.backend!r} (its options are {list(mine)})"
                             + "".join(f"; {o}" for o in owners))

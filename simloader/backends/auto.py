@@ -6,46 +6,37 @@ estimate next to every engine's measured throughput and says whether `auto` chos
 
 - the CPU engine runs `min(nbatch, cores)` trajectories at once, each at this model's own
   single-thread `mj_step` rate, timed here in a few milliseconds (`cpu_step_seconds`), times
-  `CPU_EFFICIENCY` (threads share caches and memory bandwidth);
+  an efficiency (threads share caches and memory bandwidth: `cpu/entry.py`);
 - a GPU engine takes `floor + nbatch * cost` seconds per step of the batch: `floor` the fixed
   latency of launching one step (kernels, a CUDA graph's replay, XLA's loop), `cost` what one
   more trajectory adds once the GPU is busy; both scale with the model's own step time on one
-  CPU core (`GPU_RULE`, fitted per engine and for models with and without contacts).
+  CPU core (`gpu_rule.py`; each engine's constants in its `entry.py`, fitted for models with
+  and without contacts);
+- a policy in the loop and cameras scale each engine's rate by its own measured factor.
+
+Each registered engine answers for itself (`Engine.estimate` in `contract.py`), so an engine
+from outside simloader competes on the same terms.
 
 So a small batch belongs on the CPU (the GPU's fixed latency dominates), a large one on a GPU
 engine, and the crossing moves with the model: MJX-JAX wins contact-free models (XLA fuses
 the whole step), MuJoCo Warp contact-rich ones. Cameras render only on the CPU engine and on
-MuJoCo Warp; MJX on the CPU is never faster than MuJoCo's own CPU threads (measured on the
-2-core machine), so without a GPU "auto" is the CPU engine. Nothing here starts JAX unless MJX
-is the estimate's choice (then JAX is asked whether it sees a GPU).
+MuJoCo Warp. Without a GPU, MJX on JAX's CPU competes too: it beat MuJoCo's own threads on
+the tiny contact-free cart-pole from about 50 trajectories on (2-core machine), and lost 7x
+on the humanoid. Nothing here starts JAX unless MJX is the estimate's choice.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib.util
 import time
 from typing import Any
 
 import mujoco
 import numpy as np
 
-from simloader import observe, sharding
-
-# threads of the CPU engine reach this fraction of (cores x one thread's rate), as delivered
-# (fitted: 0.34-0.49 for the humanoid on 16 cores, 0.42 for the cart-pole on 2)
-CPU_EFFICIENCY = 0.4
-# per GPU engine and contacts (True/False): (floor, cost) of one step of a batch, each as
-# (seconds, multiple of the model's single-core mj_step time); fitted to simloader's delivered
-# throughput on an H200 (benchmarks/results/auto_choice-h200-2026-11-26.md: cart-pole and
-# humanoid at 64, 1024 and 8192 trajectories). MuJoCo Warp's floor is its graph's kernel
-# launches (about 0.24 ms a step for the cart-pole, 0.52 ms for the humanoid); MJX's fused
-# XLA step is cheaper without contacts and much dearer with them.
-GPU_RULE = {
-    "warp": {False: ((212e-6, 15.5), (0.0, 1 / 167)), True: ((212e-6, 15.5), (0.0, 1 / 199))},
-    "mjx": {False: ((200e-6, 0.0), (0.0, 1 / 300)), True: ((0.0, 115.0), (0.0, 1 / 43))},
-}
+from simloader import backends, observe, sharding
+from simloader.backends.contract import Job
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,95 +95,59 @@ def _time_steps(model: mujoco.MjModel, budget_s: float) -> float:
     return best
 
 
-def estimate(backend: str, step_s: float, nbatch: int, contacts: bool,
-             cores: int) -> float:
-    """The rule's steps per second of `backend` for a batch of `nbatch` trajectories of a
-    model whose single-core `mj_step` takes `step_s` seconds."""
-    if backend == "cpu":
-        return min(nbatch, cores) / step_s * CPU_EFFICIENCY
-    (floor_s, floor_k), (cost_s, cost_k) = GPU_RULE[backend][contacts]
-    per_step = floor_s + floor_k * step_s + nbatch * (cost_s + cost_k * step_s)
-    return nbatch / per_step
-
-
-def candidates(gpu_only: bool) -> dict[str, str]:
-    """{engine: why it cannot run here, or ""} for every engine `auto` may choose."""
-    from simloader.backends import _gpu_visible, mjx_installed
-    from simloader.backends.warp import runtime as warp_runtime
-    out = {"cpu": "the GPU engines only (impl='auto')" if gpu_only else ""}
-    import torch
-    out["warp"] = warp_runtime.missing() or (
-        "" if torch.cuda.is_available() else
-        "MuJoCo Warp on the CPU (for tests) is slower than the CPU engine")
-    if not mjx_installed():
-        out["mjx"] = "MJX is not installed (pip install 'simloader[mjx]')"
-    elif not (_gpu_visible() and _jax_gpu_plugin()):
-        out["mjx"] = "JAX has no GPU here (MJX on the CPU is slower than the CPU engine)"
-    else:
-        out["mjx"] = ""
-    return out
-
-
-def _jax_gpu_plugin() -> bool:
-    """Whether JAX's CUDA plugin is installed (without starting JAX)."""
-    for name in ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_plugins.xla_cuda12",
-                 "jax_plugins.xla_cuda13"):
-        try:
-            if importlib.util.find_spec(name) is not None:
-                return True
-        except (ImportError, ValueError):
-            continue
-    return False
-
-
-def _jax_sees_gpu() -> bool:
-    try:
-        import jax
-        return any(d.platform == "gpu" for d in jax.devices())
-    except Exception:  # JAX without a usable platform
-        return False
+def candidates() -> dict[str, str]:
+    """{engine: why it cannot run here, or ""} for every registered engine."""
+    return {name: backends.engine(name).missing() or "" for name in backends.ENGINES}
 
 
 def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
     """The engine for `asked` (a name, or "auto"), and why.
 
     Args:
-      asked: "cpu", "mjx", "warp" or "auto".
-      gpu_only: the older `impl="auto"`: only the GPU engines may be chosen.
-      probe: what the rule looks at: `model` (the base MjModel), `nbatch`, `observations`,
-        `policy`.
+      asked: a registered engine's name, or "auto".
+      gpu_only: the older `impl="auto"`: the CPU engine may not be chosen.
+      probe: what the rule looks at: `model` (the base MjModel), `nbatch`, `nstep`,
+        `num_batches` (None: endless), `observations`, `policy`.
+
+    Raises:
+      ValueError: with `gpu_only`, no GPU engine can run here.
     """
     if asked != "auto":
         return Choice(asked, "asked")
-    can = candidates(gpu_only)
+    engines = {name: backends.engine(name) for name in backends.ENGINES}
+    why = candidates()
+    if gpu_only:
+        why["cpu"] = "the GPU engines only (impl='auto')"
     cameras = any(isinstance(o, observe.CameraImage) for o in probe.observations)
-    if cameras:
-        can["mjx"] = can["mjx"] or "MJX does not render cameras"
-    if probe.policy is not None and not can["warp"]:
-        # a policy between steps: MJX dispatches a jitted step per call and waits on the
-        # host, MuJoCo Warp replays one captured CUDA graph (bench_policy_mjx results)
-        can["mjx"] = can["mjx"] or "a policy in the loop runs faster on MuJoCo Warp"
-    running = [name for name, why in can.items() if not why]
-    if not running:  # only with gpu_only: say what is missing
-        raise ValueError(f"backend: no GPU engine can run here ({can['warp']}; {can['mjx']}); "
-                         f"use backend='cpu'")
-    if running == ["cpu"]:
-        return Choice("cpu", f"auto: the only engine that runs here (warp: {can['warp']}; "
-                             f"mjx: {can['mjx']})")
-    contacts = has_contacts(probe.model)
-    step_s = cpu_step_seconds(probe.model)
+    running = [name for name in engines if not why[name]]
+    if not running:
+        said = "; ".join(f"{n}: {w}" for n, w in why.items() if n != "cpu")
+        raise ValueError(f"backend: no GPU engine can run here ({said}); use backend='cpu'")
+    if len(running) == 1:
+        said = "; ".join(f"{n}: {w}" for n, w in why.items() if w)
+        return Choice(running[0], f"auto: the only engine that runs here ({said})")
     cores = sharding.available_cpus()
-    rates = {name: estimate(name, step_s, probe.nbatch, contacts, cores) for name in running}
-    if cameras and "warp" in rates and "cpu" in rates:
-        # rendering dominates a camera batch: MuJoCo Warp renders every world in one launch,
-        # the CPU engine one image at a time per thread
-        rates["warp"] = max(rates["warp"], rates["cpu"] * 2)
+    steps = (None if probe.num_batches is None else
+             probe.nbatch * probe.nstep * probe.num_batches)
+    job = Job(step_s=cpu_step_seconds(probe.model), nbatch=probe.nbatch,
+              contacts=has_contacts(probe.model), cores=cores,
+              policy=probe.policy is not None, cameras=cameras, steps=steps)
+    rates = {name: rate for name in running
+             if (rate := engines[name].estimate(job)) is not None}
+    if steps is not None:
+        # a stream of known length: the steps over start-up plus simulation
+        rates = {name: steps / (engines[name].startup_s(job) + steps / rate)
+                 for name, rate in rates.items()}
+    if not rates:
+        raise ValueError(f"backend: no engine that runs here can simulate this dataset "
+                         f"({', '.join(running)}; cameras: {cameras})")
     order = sorted(rates, key=rates.get, reverse=True)
-    best = order[0]
-    if best == "mjx" and not _jax_sees_gpu():
-        order.remove("mjx")
-        best = order[0]
-    said = ", ".join(f"{name} ~{rates[name] / 1e6:.2g}M" for name in sorted(rates, key=rates.get,
-                                                                           reverse=True))
-    return Choice(best, f"auto: estimated steps/s for nbatch={probe.nbatch} on {cores} cores "
-                        f"and this GPU: {said} (rule in simloader/backends/auto.py)")
+    for best in order:
+        if not engines[best].confirm():  # may start the runtime (JAX asked for its GPUs)
+            break
+    said = ", ".join(f"{name} ~{rates[name] / 1e6:.2g}M" for name in order)
+    gpu = " and this GPU" if backends.gpu_visible() else ""
+    length = ("" if steps is None else
+              f", over this stream's {steps / 1e6:.3g}M steps with a first run's start-up")
+    return Choice(best, f"auto: estimated steps/s for nbatch={probe.nbatch} on {cores} "
+                        f"cores{gpu}{length}: {said} (rule in simloader/backends/auto.py)")

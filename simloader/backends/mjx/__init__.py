@@ -1,5 +1,6 @@
 """MJX on JAX (`backend="mjx"`): MuJoCo in XLA, on the GPU or the CPU.
 
+  entry.py           what the registry sees: availability, auto's estimate, entry points
   runtime.py         importing MJX quietly, JAX's memory and caches, the device, the fork guard
   impls.py           the implementation interface MJX-JAX fills
   pool.py            models on the device, batched where they differ
@@ -11,14 +12,3 @@
   drivers.py         the open or the closed loop, chosen once per backend
   backend.py         options, the backend, the hand-off to torch
 """
-
-from simloader.backends.mjx.backend import MjxBackend, MjxOptions, check_options
-from simloader.backends.mjx.runtime import configure_memory
-
-
-def create(config, shard, stats) -> MjxBackend:
-    """The engine of one shard (the registry's entry point, as every engine's)."""
-    return MjxBackend(config, shard, stats, config.options)
-
-
-__all__ = ["MjxBackend", "MjxOptions", "check_options", "configure_memory", "create"]

@@ -1,6 +1,7 @@
 """The Warp engine (`backend="warp"`): MuJoCo Warp (the `mujoco-warp` package)
 driven from torch, without JAX.
 
+  entry.py     what the registry sees: availability, auto's estimate, the entry points
   runtime.py   can it run, on which device, importing Warp quietly, the lock on
                Warp's process-wide device and stream
   options.py   its options and checks at construction: models, per-world arrays, buffers
@@ -9,14 +10,3 @@ driven from torch, without JAX.
   cameras.py   MuJoCo Warp's renderer inside the step
   backend.py   each batch: host draws, per-trajectory state on the device, the hand-off
 """
-
-from simloader.backends.warp.backend import WarpBackend
-from simloader.backends.warp.options import WarpOptions, check_options
-
-
-def create(config, shard, stats) -> WarpBackend:
-    """The engine of one shard (the registry's entry point, as every engine's)."""
-    return WarpBackend(config, shard, stats, config.options)
-
-
-__all__ = ["WarpBackend", "WarpOptions", "check_options", "create"]

@@ -1,0 +1,108 @@
+"""What an engine offers the registry: the `Engine` protocol, and what `auto` asks of it.
+
+An engine lives in a package of its own whose light entry module (`entry.py`: no JAX, no Warp,
+no CUDA at import) holds an `Engine`; the registry (`backends/__init__.py`) maps the engine's
+`backend=` word to that module and calls nothing else. An engine from outside simloader joins
+with `simloader.backends.register_engine(engine)`. `tests/test_engines.py` checks every
+built-in entry against the protocol and streams batches through an engine registered from
+outside the package.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Optional, Protocol, runtime_checkable
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """What `backend="auto"` asks every engine to estimate its steps/s for.
+
+    Attributes:
+      step_s: the model's `mj_step` time on one CPU core (`auto.cpu_step_seconds`).
+      nbatch: trajectories per batch.
+      contacts: whether any two geoms of the model may collide.
+      cores: the CPU cores this process may use.
+      policy: whether a policy picks every step's controls (`policy=`).
+      cameras: whether the batch records images (`simloader.Camera`).
+      steps: the steps this process will simulate (`nbatch * nstep * num_batches`), or None
+        for an endless stream: with a known length, an engine's start-up counts too.
+    """
+
+    step_s: float
+    nbatch: int
+    contacts: bool
+    cores: int
+    policy: bool
+    cameras: bool
+    steps: Optional[int] = None
+
+
+@runtime_checkable
+class Engine(Protocol):
+    """An engine as the registry sees it.
+
+    Attributes:
+      name: its `backend=` word.
+      options: the keyword options of `SimDataset` it takes (a dataset passes only these).
+    """
+
+    name: str
+    options: tuple[str, ...]
+
+    def missing(self) -> Optional[str]:
+        """Why it cannot run in this process (what to install, what hardware), or None; fast,
+        starts nothing (no JAX, no CUDA context)."""
+
+    def confirm(self) -> Optional[str]:
+        """The thorough form of `missing`, which may start the engine's runtime (JAX asked
+        for its GPUs); called only for the engine `auto` is about to choose."""
+
+    def estimate(self, job: Job) -> Optional[float]:
+        """Its steps/s for `job`, from a measured rule, for `backend="auto"`; None: it cannot
+        simulate this job (e.g. cameras on an engine that does not render)."""
+
+    def startup_s(self, job: Job) -> float:
+        """Its estimated seconds to the first batch (compilation, kernels), for `auto` on a
+        stream of known length."""
+
+    def prepare(self, options: dict[str, Any]) -> None:
+        """Process-wide settings that must precede anything that may start its runtime (the
+        `auto` choice included): for MJX, how JAX takes GPU memory."""
+
+    def check_sizes(self, sizes: Any) -> None:
+        """Refuses a batch too large for it from its sizes alone (before tables are built)."""
+
+    def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
+        """Validates the configuration and its options at construction; returns its resolved
+        options (a frozen dataclass with `simulated_by() -> str`; its compared fields enter
+        the resume fingerprint)."""
+
+    def create(self, config: Any, shard: Any, stats: Any) -> Any:
+        """Its `Backend` (`backends.base`) for one shard, in the process that iterates."""
+
+
+class EngineEntry:
+    """Defaults for an `Engine` (subclass it and fill in the rest): runs everywhere, needs no
+    process-wide settings, no size limit of its own, never chosen by `auto`."""
+
+    name: str = ""
+    options: tuple[str, ...] = ()
+
+    def missing(self) -> Optional[str]:
+        return None
+
+    def confirm(self) -> Optional[str]:
+        return self.missing()
+
+    def estimate(self, job: Job) -> Optional[float]:
+        return None
+
+    def startup_s(self, job: Job) -> float:
+        return 0.0
+
+    def prepare(self, options: dict[str, Any]) -> None:
+        return None
+
+    def check_sizes(self, sizes: Any) -> None:
+        return None

@@ -1,0 +1,52 @@
+"""The CPU engine as the registry sees it (`backend="cpu"`): light, imports nothing heavy."""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+from simloader.backends.contract import EngineEntry, Job
+
+# its threads reach this fraction of (cores x one thread's rate), as delivered (fitted:
+# 0.34-0.49 for the humanoid on 16 cores, 0.34-0.46 for the cart-pole on 2;
+# benchmarks/results/auto_choice-*.md)
+EFFICIENCY = 0.35
+# a policy between steps (a torch call per step on the host): the closed loop's share of the
+# open loop's rate (0.25 for the cart-pole, 0.5 for the humanoid on 2 cores;
+# bench_policy_rollout-every-step-checked-2core-2026-11-26.md)
+POLICY = 0.3
+# cameras: one mujoco.Renderer per thread; the rendered batch's share of the plain one
+# (cart-pole, 64x64 RGB every step, 2 cores: auto_choice-2core-2026-11-26.md)
+CAMERAS = 0.05
+
+
+class CpuEngine(EngineEntry):
+    """MuJoCo's native multithreaded CPU simulation (`mujoco.batch`), bit for bit
+    `mujoco.rollout`."""
+
+    name = "cpu"
+    options = ()
+
+    def estimate(self, job: Job) -> Optional[float]:
+        if job.cameras:
+            from simloader.backends.cpu import render
+            try:
+                render.gl_platform()
+            except (RuntimeError, ValueError):
+                return None  # no OpenGL here: it cannot render
+        rate = min(job.nbatch, job.cores) / job.step_s * EFFICIENCY
+        return rate * (POLICY if job.policy else 1.0) * (CAMERAS if job.cameras else 1.0)
+
+    def check_sizes(self, sizes: Any) -> None:
+        from simloader.backends.cpu import options
+        options.check_sizes(sizes)
+
+    def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
+        from simloader.backends.cpu import options as cpu_options
+        return cpu_options.check_options(config, options, reason)
+
+    def create(self, config: Any, shard: Any, stats: Any) -> Any:
+        from simloader.backends.cpu.backend import RolloutBackend
+        return RolloutBackend(config, shard, stats)
+
+
+ENGINE = CpuEngine()

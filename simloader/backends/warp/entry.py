@@ -1,0 +1,59 @@
+"""The Warp engine as the registry sees it (`backend="warp"`): light; neither Warp nor CUDA
+is started by these checks."""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+from simloader.backends import gpu_rule
+from simloader.backends.contract import EngineEntry, Job
+
+# (floor, cost) of one step of a batch, fitted on an H200 to simloader's delivered steps/s
+# (auto_choice-h200-2026-11-26.md): the graph's kernel launches, about 0.24 ms a step for the
+# cart-pole and 0.52 ms for the humanoid, then a small cost per trajectory
+RULE = {False: ((212e-6, 15.5), (0.0, 1 / 167)), True: ((212e-6, 15.5), (0.0, 1 / 199))}
+# a torch policy between steps inside the captured graph: 0.78 of the open loop for the
+# cart-pole, 1.0 for the humanoid (bench_policy_mjx-every-step-checked-h200-2026-11-26.md)
+POLICY = 0.8
+# seconds to the first batch on a machine's first run: MuJoCo Warp compiles its kernels (21 s
+# for the humanoid, 38 s for the cart-pole on the H200; cached afterwards, a few seconds)
+STARTUP = 20.0
+# cameras: MuJoCo Warp renders every world in one launch; the rendered batch's share of the
+# plain one (cart-pole, one 64x64 RGB camera every step: 0.09-0.31, auto_choice-h200)
+CAMERAS = 0.1
+
+
+class WarpEngine(EngineEntry):
+    """MuJoCo Warp driven from torch with CUDA graphs; no JAX."""
+
+    name = "warp"
+    options = ("naconmax", "njmax")
+
+    def missing(self) -> Optional[str]:
+        import torch
+        from simloader.backends.warp import runtime
+        why = runtime.missing()
+        if why is None and not torch.cuda.is_available():
+            # SIMLOADER_WARP_ON_CPU runs it on Warp's CPU device for the tests: never for auto
+            return "MuJoCo Warp on the CPU (for tests) is slower than the CPU engine"
+        return why
+
+    def estimate(self, job: Job) -> Optional[float]:
+        rate = gpu_rule.steps_per_second(job, RULE)
+        return rate * (POLICY if job.policy else 1.0) * (CAMERAS if job.cameras else 1.0)
+
+    def startup_s(self, job: Job) -> float:
+        """A first run's: MuJoCo Warp's kernels compiled, the engine built, its graph
+        captured (later runs load the kernels in seconds: `simloader warmup`)."""
+        return STARTUP
+
+    def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
+        from simloader.backends.warp import options as warp_options
+        return warp_options.check_options(config, options, reason)
+
+    def create(self, config: Any, shard: Any, stats: Any) -> Any:
+        from simloader.backends.warp.backend import WarpBackend
+        return WarpBackend(config, shard, stats, config.options)
+
+
+ENGINE = WarpEngine()
