@@ -102,6 +102,9 @@ def main() -> None:
     p.add_argument("--random-seconds", type=float, default=120.0)
     p.add_argument("--folder", help="where the store goes (default: a temporary folder)")
     p.add_argument("--keep", action="store_true", help="keep the store")
+    p.add_argument("--store", help="a store an earlier --keep run left (same sizes): resumed "
+                                   "as simloader.write resumes (nothing to write if whole) "
+                                   "and kept")
     common.add_output_options(p)
     args = p.parse_args()
 
@@ -113,8 +116,11 @@ def main() -> None:
     per_slot = args.nbatch * (args.nstep + 1) * nstate * 8 + \
         args.nbatch * args.nstep * model.nu * 8
     batches = max(1, math.ceil(args.gb * 1e9 / per_slot))
-    folder = tempfile.mkdtemp(prefix="bench_store_epoch-", dir=args.folder)
-    path = os.path.join(folder, "store.zarr")
+    if args.store:
+        folder, path, args.keep = None, args.store, True
+    else:
+        folder = tempfile.mkdtemp(prefix="bench_store_epoch-", dir=args.folder)
+        path = os.path.join(folder, "store.zarr")
     try:
         start = time.perf_counter()
         simloader.write(ds, path, batches=batches, progress=True)
