@@ -100,7 +100,7 @@ def measures(model: Any, w: common.Workload, seed: int) -> dict[str, Any]:
         "- frame check": Function(backend, w, {"finite": _no_frame_check}),
         "- clamp": Function(backend, w, {}, patch=_no_clamp()),
         "- set_state": Function(backend, w, {"step": _ctrl_only}),
-        "simloader delivered": bench.SimloaderMeasure(model, w, "mjx", seed, impl="jax",
+        "simloader delivered": bench.SimloaderMeasure(model, w, "mjx", seed,
                                                       compilation_cache=False),
     }
     backend.close()

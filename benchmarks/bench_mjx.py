@@ -10,7 +10,8 @@ batch-major. simloader is timed as delivered: torch tensors in hand on the devic
 repetitions. A single-environment Python `mj_step` loop gives the speed-up column; `--cpu` adds
 raw `mujoco.rollout` and simloader's rollout backend on all cores (bench_rollout.py's code).
 
-`--impl` picks simloader's `impl=`; the raw baseline runs the engine simloader resolved. On
+`--backend` picks simloader's GPU engine (`mjx`, `warp` or `auto`); the raw baseline runs the
+engine simloader resolved. On
 `warp` that is simloader's Warp engine, the public `mujoco_warp` from torch (not MJX's vendored
 Warp through JAX): the raw rows are `simloader.bench.RawWarp`, one captured step graph replayed
 with the same work (controls in, state and sensors out every step) and with no controls at all
@@ -24,7 +25,7 @@ on Warp, its kernel cache) and of a second process reusing them (cached).
     python benchmarks/bench_mjx.py --quick
     python benchmarks/bench_mjx.py --save --results-dir $OUT          # on the GPU machine
     python benchmarks/bench_mjx.py --workloads humanoid:4096x200 humanoid:16384x200 --cpu
-    python benchmarks/bench_mjx.py --impl warp --workloads humanoid:8192x200 --save
+    python benchmarks/bench_mjx.py --backend warp --workloads humanoid:8192x200 --save
 """
 
 from __future__ import annotations
@@ -68,25 +69,27 @@ def output_gb(model: mujoco.MjModel, w: common.Workload) -> float:
     return w.steps * (nstate + model.nsensordata + model.nu) * 4 / 1e9
 
 
-RawMjx = bench.RawMjx  # the package's baseline of impl="jax" (it backs `simloader bench` too)
+RawMjx = bench.RawMjx  # the package's baseline of backend="mjx" (it backs `simloader bench` too)
 
 
 def simloader_dataset(model: mujoco.MjModel, w: common.Workload, seed: int,
-                      cache: Any, impl: str) -> simloader.SimDataset:
-    """The dataset measured; `cache`: its `compilation_cache` option (False: JAX's setting)."""
-    return simloader.SimDataset(model, backend="mjx", nbatch=w.nbatch, nstep=w.nstep,
-                                control=simloader.controls.Uniform(), seed=seed,
-                                compilation_cache=cache, impl=impl)
+                      cache: Any, backend: str) -> simloader.SimDataset:
+    """The dataset measured; `cache`: its `compilation_cache` option (False: JAX's setting;
+    for MJX only)."""
+    options = {"compilation_cache": cache} if backend == "mjx" else {}
+    return simloader.SimDataset(model, backend=backend, nbatch=w.nbatch, nstep=w.nstep,
+                                control=simloader.controls.Uniform(), seed=seed, **options)
 
 
 class SimloaderMjx(bench.SimloaderMeasure):
     """simloader's MJX backend, warmed up by one pass (which compiles), then measured."""
 
-    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int, impl: str):
+    def __init__(self, model: mujoco.MjModel, w: common.Workload, seed: int, backend: str):
         import torch
         # compilation_cache=False: JAX's setting, which main() turns off in this process
-        super().__init__(model, w, "mjx", seed, compilation_cache=False, impl=impl)
-        self.options = self.ds.config.options  # the implementation resolved, buffer sizes
+        options = {"compilation_cache": False} if backend == "mjx" else {}
+        super().__init__(model, w, backend, seed, **options)
+        self.options = self.ds.config.options  # the engine's resolved options, buffer sizes
         if torch.cuda.is_available() and self.device.type != "cuda":
             raise RuntimeError(f"simloader mjx delivered on {self.device}, not on the GPU")
 
@@ -101,7 +104,7 @@ def first_batch_child(args: argparse.Namespace) -> None:
     w = args.workloads[0]
     model = common.load_model(w.name, args.model_dir)
     start = time.perf_counter()
-    ds = simloader_dataset(model, w, args.seed, cache=args.cache_dir, impl=args.impl)
+    ds = simloader_dataset(model, w, args.seed, cache=args.cache_dir, backend=args.backend)
     common.time_stream(ds, 0)
     print(json.dumps({"first_batch_s": time.perf_counter() - start,
                       "compile_s": ds.stats.get("compile_s", 0.0),
@@ -114,7 +117,7 @@ def cold_and_cached(w: common.Workload, args: argparse.Namespace) -> list[str]:
             tempfile.TemporaryDirectory(prefix="simloader-warp-cache-") as warp_cache:
         command = [sys.executable, __file__, "--first-batch", "--cache-dir", cache,
                    "--workloads", str(w), "--model-dir", str(common.model_dir(args.model_dir)),
-                   "--seed", str(args.seed), "--impl", args.impl]
+                   "--seed", str(args.seed), "--backend", args.backend]
         env = dict(os.environ, WARP_CACHE_PATH=warp_cache)
         row = [w.name, f"{w.nbatch} x {w.nstep}"]
         for run in ("cold", "cached"):
@@ -137,10 +140,10 @@ COMPILE_HEADERS = ["workload", "nbatch x nstep", "cold: first batch s", "cold: c
 
 
 def try_simloader(model: mujoco.MjModel, w: common.Workload, seed: int,
-                  impl: str) -> tuple[Optional[SimloaderMjx], str]:
-    """simloader's MJX measure, or None and why (the backend may be missing or failing)."""
+                  backend: str) -> tuple[Optional[SimloaderMjx], str]:
+    """simloader's GPU engine measure, or None and why (it may be missing or failing)."""
     try:
-        return SimloaderMjx(model, w, seed, impl), ""
+        return SimloaderMjx(model, w, seed, backend), ""
     except Exception as e:  # report and go on with the raw numbers
         traceback.print_exc()
         return None, f"{type(e).__name__}: {e}".splitlines()[0][:200]
@@ -148,8 +151,8 @@ def try_simloader(model: mujoco.MjModel, w: common.Workload, seed: int,
 
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
-    p.add_argument("--impl", choices=("auto", "jax", "warp"), default="auto",
-                   help="simloader's impl= (raw runs the engine it resolved)")
+    p.add_argument("--backend", choices=("mjx", "warp", "auto"), default="mjx",
+                   help="simloader's GPU engine (raw runs the engine it resolved)")
     p.add_argument("--cpu", action="store_true",
                    help="also raw mujoco.rollout and simloader's rollout backend on all cores")
     p.add_argument("--no-compile", action="store_true",
@@ -181,17 +184,17 @@ def main() -> None:
     gpu = jax_device()
     for w in run:
         model = common.load_model(w.name, args.model_dir)
-        sim, why = try_simloader(model, w, args.seed, args.impl)
-        impl = sim.options.impl if sim is not None else ("jax" if args.impl == "auto"
-                                                         else args.impl)
-        SIMLOADER = f"simloader mjx ({impl})"
+        sim, why = try_simloader(model, w, args.seed, args.backend)
+        impl = sim.ds.config.backend if sim is not None else (
+            "mjx" if args.backend == "auto" else args.backend)
+        SIMLOADER = f"simloader {impl}"
         if impl == "warp":
             # simloader's Warp engine is mujoco_warp from torch: its raw loop, not MJX's Warp,
             # with MuJoCo Warp's buffer sizes as simloader resolved them
             sizes = (sim.options.naconmax, sim.options.njmax) if sim else (None, None)
             RAW, raw = bench.RAW_WARP, bench.RawWarp(model, w, args.seed, sizes)
         else:
-            RAW, raw = f"raw MJX-{impl} vmap+scan", RawMjx(model, w, args.seed)
+            RAW, raw = "raw MJX vmap+scan", RawMjx(model, w, args.seed)
         nbatches = common.batches_for(args, raw.batch_s)
         counts.append(f"{nbatches} for {w}")
         measures: dict[str, Callable[[], float]] = {RAW: lambda: raw.measure(nbatches)}
@@ -203,9 +206,9 @@ def main() -> None:
             measures[BARE] = lambda: bare.measure(nbatches)
             runs_on[BARE] = gpu
             if sim is not None:
-                notes.append(f"{w}: simloader chose {sim.options.impl} "
-                             f"({sim.options.impl_reason}), naconmax={sim.options.naconmax}, "
-                             f"njmax={sim.options.njmax}")
+                notes.append(f"{w}: simloader ran {sim.ds.config.backend} "
+                             f"({sim.ds.config.backend_reason}), "
+                             f"naconmax={sim.options.naconmax}, njmax={sim.options.njmax}")
         if sim is not None:
             measures[SIMLOADER] = lambda: sim.measure(nbatches)
             differ = {k: (sim.shapes[k], v) for k, v in raw.shapes.items() if sim.shapes[k] != v}

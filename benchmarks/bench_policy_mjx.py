@@ -36,6 +36,10 @@ GRAPH = "raw Warp graph + torch"
 CAMERA_OPEN, CAMERA_POLICY = "open loop + camera", "simloader policy= + camera"
 
 
+# simloader's engine for each implementation the raw baselines name (MJX's own words)
+ENGINE = {"jax": "mjx", "warp": "warp"}
+
+
 def main() -> None:
     p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK, throughput=True)
     p.add_argument("--impls", nargs="+", choices=("jax", "warp"),
@@ -58,10 +62,10 @@ def main() -> None:
         default = [i for i in IMPLS.get(w.name, ("jax",)) if i != "warp" or device == "cuda"]
         for impl in args.impls or default:
             sims = {
-                "open loop": bench.SimloaderMeasure(model, w, "mjx", args.seed, impl=impl,
+                "open loop": bench.SimloaderMeasure(model, w, ENGINE[impl], args.seed,
                                                     record=("state",)),
                 "simloader policy=": bench.SimloaderMeasure(
-                    model, w, "mjx", args.seed, impl=impl, control=None, policy=policy,
+                    model, w, ENGINE[impl], args.seed, control=None, policy=policy,
                     record=("state", "qpos", "qvel")),
             }
             if args.camera and impl == "warp":
@@ -69,9 +73,9 @@ def main() -> None:
                 height, width = (int(x) for x in size.split("x"))
                 camera = simloader.Camera(name, height=height, width=width)
                 sims[CAMERA_OPEN] = bench.SimloaderMeasure(
-                    model, w, "mjx", args.seed, impl=impl, record=("state", camera))
+                    model, w, ENGINE[impl], args.seed, record=("state", camera))
                 sims[CAMERA_POLICY] = bench.SimloaderMeasure(
-                    model, w, "mjx", args.seed, impl=impl, control=None, policy=policy,
+                    model, w, ENGINE[impl], args.seed, control=None, policy=policy,
                     record=("state", "qpos", "qvel", camera))
             options = sims["open loop"].ds.config.options
             # MuJoCo Warp's buffer sizes as simloader resolved them (none on MJX-JAX)

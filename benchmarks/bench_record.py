@@ -30,7 +30,7 @@ def main() -> None:
     for w in common.workloads(args, DEFAULT, QUICK):
         model = common.load_model(w.name, args.model_dir)
         for impl in args.impls:
-            sims = {name: bench.SimloaderMeasure(model, w, "mjx", args.seed, impl=impl,
+            sims = {name: bench.SimloaderMeasure(model, w, {"jax": "mjx"}.get(impl, impl), args.seed,
                                                  record=record)
                     for name, record in RECORDS.items()}
             nbatches = common.batches_for(args, max(s.first_s for s in sims.values()) / 10)

@@ -33,7 +33,7 @@ The raw scripts import neither simloader nor this folder; they are the recipes o
 Run on the GPU machine from the repository root:
   python benchmarks/bench_startup.py --model-dir .models/dm_control --save --results-dir $OUT
 Smoke run on a laptop:
-  python benchmarks/bench_startup.py --quick --engines rollout jax
+  python benchmarks/bench_startup.py --quick --engines cpu mjx
 """
 
 from __future__ import annotations
@@ -53,10 +53,10 @@ from typing import Any, Optional
 import common
 
 REPO = common.REPO
-ENGINES = ("rollout", "jax", "warp")
-DEFAULT = ["jax:cartpole:4096x200", "jax:humanoid:4096x200", "warp:humanoid:8192x200",
-           "rollout:cartpole:4096x200"]
-QUICK = ["rollout:cartpole:64x20", "jax:cartpole:64x20", "warp:cartpole:64x20"]
+ENGINES = ("cpu", "mjx", "warp")
+DEFAULT = ["mjx:cartpole:4096x200", "mjx:humanoid:4096x200", "warp:humanoid:8192x200",
+           "cpu:cartpole:4096x200"]
+QUICK = ["cpu:cartpole:64x20", "mjx:cartpole:64x20", "warp:cartpole:64x20"]
 PHASES = ("startup", "import_torch", "import_engine", "construct", "trace", "compile",
           "first_sim", "handoff")
 CPU_AFTER_TORCH_S = 0.5  # rollout: simloader's first batch at most this after torch's import
@@ -229,8 +229,6 @@ import simloader
 from simloader import controls
 mark("import_engine")
 kwargs = {"backend": SPEC["backend"]}
-if SPEC.get("impl"):
-    kwargs["impl"] = SPEC["impl"]
 ds = simloader.SimDataset(SPEC["model"], nbatch=SPEC["nbatch"], nstep=SPEC["nstep"],
                           control=controls.Uniform(), seed=SPEC["seed"], **kwargs)
 mark("construct")
@@ -250,21 +248,21 @@ trace, comp = stats.get("trace_s"), stats.get("compile_s")
 P["trace"] = trace
 P["compile"] = comp
 P["first_sim"] = max(0.0, first_s - (trace or 0.0) - (comp or 0.0))
-X.update({k: stats.get(k) for k in ("traces", "compiles", "programs_loaded", "impl",
+X.update({k: stats.get(k) for k in ("traces", "compiles", "programs_loaded", "backend",
                                       "graph_captures")})
 handed_over(batch)
 it.close()
 '''
 
-RAW_SCRIPT = {"jax": RAW_JAX, "warp": RAW_WARP, "rollout": RAW_ROLLOUT}
-SIM_OPTIONS = {"jax": {"backend": "mjx", "impl": "jax"}, "warp": {"backend": "mjx", "impl": "warp"},
-               "rollout": {"backend": "rollout"}}
+RAW_SCRIPT = {"mjx": RAW_JAX, "warp": RAW_WARP, "cpu": RAW_ROLLOUT}
+SIM_OPTIONS = {"mjx": {"backend": "mjx"}, "warp": {"backend": "warp"},
+               "cpu": {"backend": "cpu"}}
 
 
 # -- the parent ---------------------------------------------------------------------------------
 
 def parse_workload(text: str) -> tuple[str, common.Workload]:
-    """`jax:humanoid:4096x200` -> ("jax", Workload("humanoid", 4096, 200))."""
+    """`mjx:humanoid:4096x200` -> ("mjx", Workload("humanoid", 4096, 200))."""
     try:
         engine, rest = text.split(":", 1)
     except ValueError:
@@ -344,7 +342,7 @@ def median(values: list[Optional[float]]) -> Optional[float]:
 
 def target(engine: str, model: str, kind: str) -> tuple[str, Optional[float]]:
     """(what, bound) of the issue's targets for simloader's `kind` ("cold"/"warm") row."""
-    if engine == "rollout":
+    if engine == "cpu":
         return "after torch", CPU_AFTER_TORCH_S
     if kind == "cold":
         return "ratio", 1.05

@@ -8,7 +8,7 @@ Rows, per workload, all measured in this process with alternating repetitions (m
   step's controls copied into `d.ctrl` from a (nworld, nstep, nu) tensor drawn on the GPU
   every batch, and the state (time, qpos, qvel, act) and sensors copied into
   (nworld, nstep, ...) frames.
-- simloader open loop: `SimDataset(impl="warp", control=controls.Uniform())` iterated (fresh
+- simloader open loop: `SimDataset(control=controls.Uniform())` iterated (fresh
   controls drawn every batch, divergence checks, clamping, outputs handed over).
 - with --policy: simloader with a 2x256 MLP policy in the loop, next to its open loop.
 - with --pixels: cart-pole with one 64x64 RGB camera every step against a raw step + render
@@ -53,7 +53,8 @@ class Simloader:
     runner is timed, so no runner's work overlaps another's)."""
 
     def __init__(self, model, nworld: int, nstep: int, batches: int = 1, **kwargs):
-        self.ds = simloader.SimDataset(model, backend="mjx", nbatch=nworld, nstep=nstep,
+        kwargs.setdefault("backend", "warp")
+        self.ds = simloader.SimDataset(model, nbatch=nworld, nstep=nstep,
                                        num_batches=batches, **kwargs)
         self.batches = batches
         self()  # the first epoch: build, capture, compile
@@ -100,21 +101,21 @@ def measure(runners: dict, steps: int, repeats: int) -> dict[str, float]:
 def rows_for(w: common.Workload, model, args) -> list[list]:
     steps = w.nbatch * w.nstep
     n = max(3, int(args.seconds * 4e6 / steps))  # batches per timed simloader run
-    ours = Simloader(model, w.nbatch, w.nstep, n, impl="warp", control=controls.Uniform(),
+    ours = Simloader(model, w.nbatch, w.nstep, n, control=controls.Uniform(),
                      **sizes(args))
     runners = {
         "raw MuJoCo Warp graph, no controls (ceiling)": RawWarp(
             model, w, args.seed, ours.sizes(), same_work=False),
         "raw MuJoCo Warp graph, same work": RawWarp(model, w, args.seed, ours.sizes()),
-        "simloader impl='warp', open loop": ours,
+        "simloader warp, open loop": ours,
     }
     if args.policy and w.name == "humanoid":
-        runners["simloader impl='warp', 2x256 MLP policy"] = Simloader(
-            model, w.nbatch, w.nstep, n, impl="warp", policy=mlp(model, "cuda"), **sizes(args))
+        runners["simloader warp, 2x256 MLP policy"] = Simloader(
+            model, w.nbatch, w.nstep, n, policy=mlp(model, "cuda"), **sizes(args))
     rates = measure(runners, steps, args.repeats)
     if args.jax and w.name == "cartpole":
         # in a process of its own: JAX and torch would share one GPU's memory here
-        rates["simloader impl='jax', open loop (own process)"] = jax_rate(model, w, n,
+        rates["simloader mjx, open loop (own process)"] = jax_rate(model, w, n,
                                                                           args.repeats)
     same = rates["raw MuJoCo Warp graph, same work"]
     return [[str(w), name, f"{rate / 1e6:.2f}M", f"{rate / same:.3f}"]
@@ -144,8 +145,8 @@ def jax_rate(model, w: common.Workload, n: int, repeats: int) -> float:
     """simloader's MJX-JAX steps/s on the workload, timed as `Simloader` times, in a child.
 
     The child gets this very model as an .mjb file: by name it would load simloader's built-in
-    model, which is not --model-dir's (the built-in cart-pole runs implicitfast with 100
-    solver iterations, dm_control's Euler with 1)."""
+    model, which is not --model-dir's (the built-in cart-pole keeps its own sensors and
+    camera)."""
     with tempfile.TemporaryDirectory() as folder:
         path = os.path.join(folder, f"{w.name}.mjb")
         mujoco.mj_saveModel(model, path, None)
@@ -192,7 +193,7 @@ def startup_rows(args) -> list[list]:
     script and simloader, alternating."""
     name, nworld, nstep = "humanoid", 8192, 200
     runs = {"raw MuJoCo Warp script": (_RAW_START, str(simloader.builtin_path(name))),
-            "simloader impl='warp'": (_OURS_START, name)}
+            "simloader warp": (_OURS_START, name)}
     times: dict[str, list] = {k: [] for k in runs}
     for i in range(args.repeats + 1):  # the first round warms the kernel caches
         for label, (script, model) in runs.items():
@@ -211,13 +212,13 @@ def pixel_rows(args) -> list[list]:
     model = simloader.load_model("cartpole")
     nworld, nstep = (64, 10) if args.quick else (16384, 50)
     n = max(3, int(args.seconds * 2e6 / (nworld * nstep)))  # batches per timed epoch
-    ours = Simloader(model, nworld, nstep, n, impl="warp",
+    ours = Simloader(model, nworld, nstep, n,
                      record=("state", simloader.Camera(0, height=64, width=64)))
     runners = {
         "raw MuJoCo Warp step + render graph, RGB copied out": RawWarp(
             model, common.Workload("cartpole", nworld, nstep), args.seed, ours.sizes(),
             same_work=False, cameras=True),
-        "simloader impl='warp', Camera 64x64 RGB": ours,
+        "simloader warp, Camera 64x64 RGB": ours,
     }
     rates = measure(runners, nworld * nstep, args.repeats)
     raw = rates["raw MuJoCo Warp step + render graph, RGB copied out"]
