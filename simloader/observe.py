@@ -282,15 +282,6 @@ def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, .
     return tuple(out)
 
 
-def cameras(observations: Sequence[Observation]) -> dict[Camera, tuple[CameraImage, ...]]:
-    """The cameras among `observations`, each with its images, in the order given."""
-    out: dict[Camera, list[CameraImage]] = {}
-    for o in observations:
-        if isinstance(o, CameraImage):
-            out.setdefault(o.camera, []).append(o)
-    return {cam: tuple(images) for cam, images in out.items()}
-
-
 def jax_frame(observations: Sequence[Observation], model_axes: Any, m: Any,
               d: Any) -> dict[str, Any]:
     """One frame of every observation, `{key: (nbatch, *shape)}`, from the batched `mjx.Data`
