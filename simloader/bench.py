@@ -281,7 +281,7 @@ class RawBaseline:
 class RawMjx(RawBaseline):
     """The raw MJX-JAX baseline: one jitted function per workload, `f(key, index) -> arrays`.
 
-    What simloader's MJX backend runs on `impl="jax"` (its Warp engine is `RawWarp`'s).
+    What simloader runs on `backend="mjx"` (its Warp engine is `RawWarp`'s).
 
     Args:
       controls: draw uniform controls for every step (True), or step with none.
@@ -367,9 +367,9 @@ class RawWarp(RawBaseline):
     """The raw MuJoCo Warp baseline: one `mujoco_warp.step` captured once as a CUDA graph and
     replayed, from torch.
 
-    This is what simloader's Warp engine (`impl="warp"`) runs: the public `mujoco_warp`
+    This is what simloader's Warp engine (`backend="warp"`) runs: the public `mujoco_warp`
     package driven from torch, one CUDA graph per step, no MJX and no JAX; so it is the loop
-    simloader's `impl="warp"` is compared with (MJX's vendored Warp, through JAX, would be
+    simloader's `backend="warp"` is compared with (MJX's vendored Warp, through JAX, would be
     another engine). "Same work" (`same_work=True`) is what simloader does besides stepping,
     in the plainest torch a user would write: every batch, controls drawn uniformly within
     `ctrl_bounds` into a (nbatch, nstep, nu) tensor; every step, its controls copied into

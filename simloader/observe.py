@@ -96,9 +96,8 @@ class Observation:
         runs with x64; integer and bool fields keep theirs)."""
         raise NotImplementedError
 
-    def mjx_refusal(self, data: Any, impl: str) -> Optional[str]:
-        """Why MJX (implementation `impl`, whose `make_data` gives `data`) cannot record this,
-        or None."""
+    def mjx_refusal(self, data: Any) -> Optional[str]:
+        """Why MJX (whose `make_data` gives `data`) cannot record this, or None."""
         return None
 
     def fields(self) -> tuple[str, ...]:
@@ -141,7 +140,7 @@ class Field(Observation):
         value = fields[self.key]
         return value.reshape(value.shape[0], *self.shape)
 
-    def mjx_refusal(self, data, impl):
+    def mjx_refusal(self, data):
         import jax
         value = _mjx_field(data, self.key)
         if value is None:
@@ -413,19 +412,18 @@ def _check_computed(model: mujoco.MjModel, data: mujoco.MjData, fields: Sequence
                              f"of the simulation: MuJoCo computes it {why}")
 
 
-def check_mjx(observations: Sequence[Observation], data: Any, impl: str) -> None:
-    """Refuses, by name and with the reason, what MJX implementation `impl` cannot record.
+def check_mjx(observations: Sequence[Observation], data: Any) -> None:
+    """Refuses, by name and with the reason, what MJX cannot record.
 
-    Field names are checked against `data`, one trajectory's `mjx.Data` of that implementation
-    (public fields, and the implementation's own under `_impl`: for "jax" `DataJAX`, for
-    "warp" `DataWarp`), their shapes and dtype kinds against MuJoCo's. Run on the host at
-    construction.
+    Field names are checked against `data`, one trajectory's `mjx.Data` (public fields, and
+    those MJX's XLA implementation keeps under `_impl`, `DataJAX`), their shapes and dtype
+    kinds against MuJoCo's. Run on the host at construction.
 
     Raises:
       ValueError: naming every refused observation and why.
     """
     refused = [f"{o.key}: {why}" for o in observations
-               if (why := o.mjx_refusal(data, impl)) is not None]
+               if (why := o.mjx_refusal(data)) is not None]
     if refused:
         raise ValueError("record: backend='mjx' cannot record " + "; ".join(refused)
                          + "; use backend='cpu' for these")

@@ -265,7 +265,7 @@ def test_diverged_trajectory_restarts_from_a_fresh_initial_state(continued):
 
 def test_model_list_batches_only_the_fields_that_differ(pole_masses, continued):
     ds, _ = continued
-    _, axes = mjx_pool.put_models(ds.config, ds.config.options.implementation(), jax.devices()[0])
+    _, axes = mjx_pool.put_models(ds.config, jax.devices()[0])
     batched = {jax.tree_util.keystr(path) for path, axis in
                jax.tree_util.tree_flatten_with_path(axes)[0] if axis == 0}
     assert {".body_mass", ".body_inertia"} <= batched

@@ -1,5 +1,5 @@
 """The MJX side of `record=`: each observation's `jax_value` on one mjx.Data against MuJoCo C
-after the same steps (float32, named tolerances), and the host-side refusals for impl="jax"."""
+after the same steps (float32, named tolerances), and the host-side refusals."""
 
 import mujoco
 import numpy as np
@@ -29,7 +29,7 @@ def test_jax_values_match_mujoco_c_after_a_contact_step():
         mujoco.mj_step(model, data)
     assert data.ncon > 0
     observations = observe.parse(model, NAMES)
-    observe.check_mjx(observations, mjx.make_data(model, impl="jax"), "jax")
+    observe.check_mjx(observations, mjx.make_data(model, impl="jax"))
     m = mjx.put_model(model, impl="jax")
     d = mjx.put_data(model, data, impl="jax")
     mujoco.mj_step(model, data)
@@ -90,7 +90,7 @@ def test_check_mjx_refuses_by_name_with_the_reason():
     observations = observe.parse(model, ("qpos", "M", "ncon", "geom_xquat", "qfrc_spring",
                                          "nefc", "xmat"))
     with pytest.raises(ValueError) as info:
-        observe.check_mjx(observations, mjx.make_data(model, impl="jax"), "jax")
+        observe.check_mjx(observations, mjx.make_data(model, impl="jax"))
     message = str(info.value)
     assert message.startswith("record: backend='mjx' cannot record M: MJX stores M "
                               "with shape (")

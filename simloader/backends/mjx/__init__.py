@@ -2,7 +2,6 @@
 
   entry.py           what the registry sees: availability, auto's estimate, entry points
   runtime.py         importing MJX quietly, JAX's memory and caches, the device, the fork guard
-  impls.py           the implementation interface MJX-JAX fills
   pool.py            models on the device, batched where they differ
   randomize.py       domain randomization in the jitted function; setconst.py its derived
                      constants

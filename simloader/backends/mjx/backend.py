@@ -14,7 +14,6 @@ persistent cache.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import sys
 import time
@@ -34,7 +33,6 @@ from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import drivers, runtime
-from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.program import BatchArgs, Placed, Program
 from simloader.config import SimConfig
 
@@ -55,9 +53,6 @@ class MjxOptions:
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "placed": None}
-
-    def implementation(self) -> Implementation:
-        return Implementation()
 
     def simulated_by(self) -> str:
         return "MJX on JAX"
@@ -95,9 +90,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     runtime.configure_cache(cache)
     device = runtime.jax_device(config.device)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
-    impl = Implementation()
-    placed = Placed.put(config, impl, device)
-    observe.check_mjx(config.observations, placed.data0, impl.name)
+    placed = Placed.put(config, device)
+    observe.check_mjx(config.observations, placed.data0)
     if images:
         raise ValueError(f"record: backend='mjx' cannot render {[o.key for o in images]}: "
                          f"MJX does not render; use backend='warp' on a CUDA GPU, or "
@@ -106,7 +100,7 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
                              f"memory", count=config.prefetch + 2, itemsize=4)
     if config.randomization is not None:
-        mjx_randomize.check(config.model, placed.model, config.randomization, impl)
+        mjx_randomize.check(config.model, placed.model, config.randomization)
     return MjxOptions(cache, fraction, placed)
 
 
@@ -151,7 +145,7 @@ class MjxBackend(Backend):
             placed = options.placed if options.placed and options.placed.device == device \
                 else None
             self.program = programs[device, options] = Program(
-                config, options.implementation(), device, options.compilation_cache, placed)
+                config, device, options.compilation_cache, placed)
         self.options = options
         self.device = device
         self.first = True  # the first batch may compile (Warp's kernels, on first use)
@@ -191,10 +185,7 @@ class MjxBackend(Backend):
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
         # waiting here also orders the hand-off before any torch stream reads the buffers
-        hint = self.program.impl.first_batch_hint if self.first else None
-        with runtime.slow_notice("running the first batch", hint=hint) if hint \
-                else contextlib.nullcontext():
-            outputs = jax.block_until_ready(produced.outputs)
+        outputs = jax.block_until_ready(produced.outputs)
         self.first = False
         ready = time.perf_counter()
         # the device runs batches in order: this one started at its dispatch or when the

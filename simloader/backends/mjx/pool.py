@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader.backends.mjx.impls import Implementation
+from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
 S = mujoco.mjtState
@@ -26,7 +26,17 @@ _UNSIMULATED = (
 )
 
 
-def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> tuple[Any, Any]:
+def put_model(model: mujoco.MjModel, device: jax.Device) -> Any:
+    """The model on `device` (not yet batched), in MJX's XLA implementation."""
+    return mjx.put_model(model, device=device, impl="jax")
+
+
+def make_data(model: mujoco.MjModel, device: jax.Device) -> Any:
+    """One trajectory's mjx.Data as `make_data` leaves it."""
+    return mjx.make_data(model, device=device, impl="jax")
+
+
+def put_models(config: SimConfig, device: jax.Device) -> tuple[Any, Any]:
     """The model, or the model list or variant pool as one mjx.Model batched only where the
     models differ.
 
@@ -51,7 +61,7 @@ def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> t
                                  f"{mujoco.mj_stateSize(model, int(bit))}); use "
                                  f"backend='cpu'")
         try:
-            puts.append(impl.put_model(model, host))
+            puts.append(put_model(model, host))
         except NotImplementedError as e:
             raise ValueError(f"{name}: MJX does not support a feature of this model: {e}; use "
                              f"backend='cpu'") from None
@@ -76,13 +86,6 @@ def put_models(config: SimConfig, impl: Implementation, device: jax.Device) -> t
     batched, axes = [], []
     for (path, _), column in zip(paths, zip(*columns)):
         same = all(np.array_equal(column[0], leaf) for leaf in column[1:])
-        if not same:
-            field = field_name(path)
-            why = impl.cannot_randomize(field)
-            if why:
-                other = next(i for i, leaf in enumerate(column) if not np.array_equal(column[0], leaf))
-                raise ValueError(f"{names[other]}: {field} differs from {names[0]}, but with "
-                                 f"backend='mjx' it cannot differ per trajectory ({why})")
         batched.append(column[0] if same else jnp.stack(column))
         axes.append(None if same else 0)
     return jax.device_put(treedef.unflatten(batched), device), treedef.unflatten(axes)

@@ -6,8 +6,8 @@ arguments, so it is traced and compiled once per configuration (and device) and 
 batch and every iterator of the dataset. Random controls are drawn inside it with `jax.random`;
 initial states are drawn on the host (they are small) and transferred.
 
-It is written once for every MJX implementation (`impls.py`): reset, set the inputs, step and
-check each trajectory the same way; the implementation supplies what differs.
+It resets, sets the inputs, steps and checks each trajectory the same way, in MJX's XLA
+implementation (`pool.put_model`, `pool.make_data`).
 
 Each trajectory starts as `mujoco.rollout` starts it: `mj_resetData` defaults (zero inputs,
 mocap bodies at their model poses, `eq_active0`, zero warmstart) with the `mjSTATE_FULLPHYSICS`
@@ -42,8 +42,7 @@ from simloader import controls, observe, resume, rules
 from simloader.backends.base import Stats, progress_line
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import stored_program
-from simloader.backends.mjx.impls import Implementation
-from simloader.backends.mjx.pool import PHYSICS, pooled, put_models
+from simloader.backends.mjx.pool import PHYSICS, make_data, pooled, put_models
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
@@ -278,9 +277,9 @@ class Placed:
     data0: Any
 
     @classmethod
-    def put(cls, config: SimConfig, impl: Implementation, device: jax.Device) -> "Placed":
-        model, pool_axes = put_models(config, impl, device)
-        return cls(device, model, pool_axes, impl.make_data(config.model, device))
+    def put(cls, config: SimConfig, device: jax.Device) -> "Placed":
+        model, pool_axes = put_models(config, device)
+        return cls(device, model, pool_axes, make_data(config.model, device))
 
 
 class Program:
@@ -294,12 +293,12 @@ class Program:
       placed: the models already on `device`, or None to put them.
     """
 
-    def __init__(self, config: SimConfig, impl: Implementation, device: jax.Device,
+    def __init__(self, config: SimConfig, device: jax.Device,
                  cache: Any = False, placed: Optional[Placed] = None):
         c = config
-        self.config, self.device, self.impl = c, device, impl
+        self.config, self.device = c, device
         self.store = stored_program.store_for(cache)
-        placed = placed or Placed.put(c, impl, device)
+        placed = placed or Placed.put(c, device)
         self.model, pool_axes, self.data0 = placed.model, placed.pool_axes, placed.data0
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
         # per model of the pool (variants too): the inputs and states mj_resetData leaves,
@@ -366,7 +365,7 @@ class Program:
         estimate = None if self.store is None else self.store.last_compile_s(digest)
         start = time.perf_counter()
         with progress_line(f"tracing and compiling the batch function ({c.nbatch} x "
-                           f"{c.nstep}, MJX-{self.impl.name.upper()} on {self.device.platform})",
+                           f"{c.nstep}, MJX-JAX on {self.device.platform})",
                            estimate_s=estimate):
             if key is not None:
                 exported = self._export(simulate, leaves)

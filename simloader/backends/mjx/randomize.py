@@ -22,7 +22,6 @@ import mujoco
 import numpy as np
 
 from simloader import randomize as dr
-from simloader.backends.mjx.impls import Implementation
 from simloader.backends.mjx.runtime import mjx
 from simloader.backends.mjx import setconst as mjx_setconst
 
@@ -60,28 +59,15 @@ _DERIVED = mjx_setconst.OUTPUTS + (
     "light_dir0")
 
 
-def check(model: mujoco.MjModel, mx: mjx.Model, plan: dr.RandomizationPlan,
-          impl: Implementation) -> None:
-    """Refuses, by name, the parameters the MJX backend cannot randomize faithfully.
+def check(model: mujoco.MjModel, mx: mjx.Model, plan: dr.RandomizationPlan) -> None:
+    """Refuses, by name, the parameters MJX cannot randomize faithfully.
 
     Raises:
-      ValueError: a field outside `FIELDS`, or one the implementation shares across
-        trajectories, a friction loss the model has at zero, or a fluid option of a model
-        without fluid forces; the message lists what can be randomized.
+      ValueError: a field outside `FIELDS`, a friction loss the model has at zero, or a fluid
+        option of a model without fluid forces; the message lists what can be randomized.
     """
     for r in plan.resolved:
         field, key = r.field, r.param.key
-        why = impl.cannot_randomize(field) or (
-            None if impl.recomputes_constants or field not in mjx_setconst.INPUTS else
-            "MuJoCo derives constants from it (mj_setConst) that simloader recomputes only "
-            "with backend='mjx'")
-        if field in FIELDS and why:
-            allowed = [f for f in FIELDS if not impl.cannot_randomize(f) and (
-                impl.recomputes_constants or f not in mjx_setconst.INPUTS)]
-            raise ValueError(
-                f"randomize: {key}: backend='mjx' cannot randomize {field} ({why}); it "
-                f"can randomize {', '.join(allowed)} (MJX randomizes {len(FIELDS)} "
-                f"fields, backend='cpu' any floating-point field)")
         if field not in FIELDS:
             raise ValueError(
                 f"randomize: {key}: backend='mjx' cannot randomize {field} ({_why(field, mx)}); "
