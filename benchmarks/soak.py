@@ -171,7 +171,8 @@ def main() -> None:
         ["JAX traces + compilations after the first batch (must be 0)",
          "n/a (no JAX)" if recompiled is None else
          f"{recompiled} ({'ok' if not recompiled else 'FAIL'})"],
-        ["simloader compilations, compile time", f"{stats['compiles']}, {stats['compile_s']:.1f} s"],
+        ["simloader compilations, compile time",
+         f"{stats.get('compiles', 0)}, {stats.get('compile_s', 0.0):.1f} s"],
         ["diverged trajectories", f"{stats['diverged']:,}"],
         ["verdict", "FAIL" if failed else ("incomplete" if stopped else "ok")],
     ]

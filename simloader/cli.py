@@ -210,7 +210,7 @@ def warmup(args: argparse.Namespace) -> None:
                                   num_batches=1)
     print(ds.describe().splitlines()[-1])
     next(iter(ds))
-    print(f"warm: compiled in {ds.stats['compile_s']:.1f} s, first batch after "
+    print(f"warm: compiled in {ds.stats.get('compile_s', 0.0):.1f} s, first batch after "
           f"{time.perf_counter() - start:.1f} s; later processes reuse the caches")
 
 

@@ -147,7 +147,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations)
         self.source = models.source(model)  # where the model came from, for describe()
-        self._stats = Stats()
+        self._stats = Stats.of(backends.engine(self.config.backend).counters)
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__

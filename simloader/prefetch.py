@@ -92,6 +92,8 @@ class Prefetcher:
                 item = self._queue.get(timeout=_POLL_S)
             except queue.Empty:
                 if not self._thread.is_alive() and self._queue.empty():
+                    if self._stop.is_set():  # closed: the stream ends here
+                        return
                     raise RuntimeError("simloader: the prefetch thread ended unexpectedly")
                 continue
             if item is _END:
@@ -103,6 +105,11 @@ class Prefetcher:
     def close(self) -> None:
         """Stops the producer after its current item and waits for it."""
         self._stop.set()
+        if threading.current_thread() is self._thread:
+            # the consumer's generator was dropped and finalized by a garbage collection that
+            # ran on the producer thread itself: it cannot wait for itself; it stops after this
+            # item, as asked (seen once in the suite: "cannot join current thread")
+            return
         while self._thread.is_alive():
             try:  # unblock a producer waiting on a full queue
                 self._queue.get_nowait()

@@ -274,3 +274,28 @@ def test_iterated_dataset_pickles_without_its_iterator():
     copy = pickle.loads(pickle.dumps(ds))
     assert len(list(copy)) == 2
     it.close()
+
+
+def test_a_prefetcher_closed_from_its_own_producer_thread_stops_without_error():
+    """A garbage collection may run on the producer thread and finalize the consumer's
+    dropped generator there, which closes the prefetcher from its own thread: it must stop,
+    not raise "cannot join current thread" (seen once in the suite)."""
+    import threading
+    from simloader.prefetch import Prefetcher
+    closed, made = threading.Event(), threading.Event()
+    holder = []
+
+    def produce(i):
+        if i == 1:
+            made.wait(5)
+            holder[0].close()  # as the finalizer would, on this very thread
+            closed.set()
+        return i
+
+    prefetcher = Prefetcher(produce, iter(range(100)), 2)
+    holder.append(prefetcher)
+    made.set()
+    got = list(prefetcher)
+    assert closed.wait(5) and got == [0]  # closed while making item 1: the stream ends
+    prefetcher.close()
+    assert not prefetcher._thread.is_alive()

@@ -70,7 +70,7 @@ class SerialBackend(base.Backend):
 
     def deliver(self, produced):
         x0, control, params, state, sensordata = produced
-        self.stats.add(batches=1, steps=self.config.nbatch * self.config.nstep)
+        self.stats.add(batches=1, steps=self.config.nbatch * self.config.nstep, rollouts=1)
         out = {"state": torch.from_numpy(state), "sensordata": torch.from_numpy(sensordata),
                "control": torch.from_numpy(control), "initial_state": torch.from_numpy(x0),
                "diverged": torch.from_numpy(~np.isfinite(state).all(axis=(1, 2)))}
@@ -82,6 +82,7 @@ class SerialBackend(base.Backend):
 class SerialEngine(EngineEntry):
     name = "serial_test"
     options = ("threads",)
+    counters = ("rollouts",)  # its own, in ds.stats
 
     def check_options(self, config, options, reason):
         if [o.key for o in config.observations] != ["state", "sensordata"]:
@@ -112,6 +113,11 @@ def test_an_engine_from_outside_streams_what_the_cpu_engine_streams(serial):
     theirs = list(torch.utils.data.DataLoader(ds, batch_size=None))
     ours = list(cpu)
     assert len(theirs) == len(ours) == 2
+    # each engine's counters are its own: none of MJX's or Warp's on the CPU engine
+    assert ds.stats["batches"] == ds.stats["rollouts"] == 2
+    assert "rollouts" not in cpu.stats
+    assert not {"compile_s", "overflow", "graph_captures"} & set(cpu.stats)
+    assert cpu.stats["batches"] == 2
     for a, b in zip(theirs, ours):
         for key in ("state", "sensordata", "control", "initial_state", "diverged"):
             assert torch.equal(a[key], b[key]), key

@@ -31,59 +31,50 @@ from simloader.config import SimConfig
 
 @dataclasses.dataclass
 class Stats:
-    """Counters of one iterator (one DataLoader worker, or the main process).
+    """Counters of one iterator (one DataLoader worker, or the main process): those every
+    engine keeps, and the engine's own (`Engine.counters`, documented in its `entry.py`).
 
     Attributes:
       batches: batches delivered.
       steps: simulated steps delivered (trajectories x steps).
       diverged: trajectories flagged as diverged.
-      simulate_s: seconds spent simulating (CPU engine: in MuJoCo; GPU engines: until results ready).
-      compile_s: seconds spent making the batch function ready to run (MJX): tracing,
-        lowering and compiling, or loading what earlier processes stored.
-      compiles: compilations (MJX): one per configuration, never per batch.
-      traces: times the batch function was traced in Python (MJX): 0 when a stored
-        program was loaded (`stored_program.py`).
-      trace_s: of `compile_s`, seconds spent tracing and lowering.
-      programs_loaded: batch functions loaded from the program store instead of traced.
-      overflow: trajectories that lost contacts or constraint rows to MuJoCo Warp's buffer
-        sizes (backend="warp"; flagged in the batch's `overflow`).
-      solver_limit: trajectories whose constraint solver stopped at its iteration limit in a
-        batch (backend="warp"; MuJoCo C stops there too, silently).
-      graph_captures: CUDA graphs the Warp engine captured (backend="warp", on a GPU): one per
-        dataset and device, at its first batch, never again.
+      simulate_s: seconds spent simulating (CPU engine: in MuJoCo; GPU engines: until results
+        ready).
+      own: the engine's own counters by name, each from 0.
     """
 
-    # every engine
     batches: int = 0
     steps: int = 0
     diverged: int = 0
     simulate_s: float = 0.0
-    # making the MJX batch function ready
-    compile_s: float = 0.0
-    compiles: int = 0
-    traces: int = 0
-    trace_s: float = 0.0
-    programs_loaded: int = 0
-    # MuJoCo Warp's buffers, solver and graphs
-    overflow: int = 0
-    solver_limit: int = 0
-    graph_captures: int = 0
+    own: dict[str, float] = dataclasses.field(default_factory=dict)
     lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
+
+    @classmethod
+    def of(cls, counters: tuple[str, ...]) -> "Stats":
+        """Counters for an engine whose own are `counters`."""
+        return cls(own=dict.fromkeys(counters, 0))
 
     def add(self, **values: float) -> None:
         with self.lock:
             for k, v in values.items():
-                setattr(self, k, getattr(self, k) + v)
+                if k in self.own:
+                    self.own[k] += v
+                else:
+                    setattr(self, k, getattr(self, k) + v)  # AttributeError: not a counter
 
     def __getstate__(self) -> dict:
         # a worker process gets its own counters (and lock)
-        return {k: v for k, v in self.__dict__.items() if k != "lock"}
+        return {k: (dict(v) if k == "own" else v) for k, v in self.__dict__.items()
+                if k != "lock"}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state, lock=threading.Lock())
 
     def as_dict(self) -> dict[str, float]:
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "lock"}
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+               if f.name not in ("lock", "own")}
+        out.update(self.own)
         out["steps_per_s"] = self.steps / self.simulate_s if self.simulate_s else 0.0
         return out
 

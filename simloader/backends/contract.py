@@ -45,10 +45,12 @@ class Engine(Protocol):
     Attributes:
       name: its `backend=` word.
       options: the keyword options of `SimDataset` it takes (a dataset passes only these).
+      counters: its own counters in `SimDataset.stats` (besides every engine's).
     """
 
     name: str
     options: tuple[str, ...]
+    counters: tuple[str, ...]
 
     def missing(self) -> Optional[str]:
         """Why it cannot run in this process (what to install, what hardware), or None; fast,
@@ -88,6 +90,7 @@ class EngineEntry:
 
     name: str = ""
     options: tuple[str, ...] = ()
+    counters: tuple[str, ...] = ()
 
     def missing(self) -> Optional[str]:
         return None

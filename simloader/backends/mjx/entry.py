@@ -47,6 +47,11 @@ class MjxEngine(EngineEntry):
 
     name = "mjx"
     options = ("compilation_cache", "memory_fraction")
+    # compile_s: seconds making the batch function ready (tracing, lowering, compiling, or
+    # loading what earlier processes stored); compiles: one per configuration, never per
+    # batch; traces: times it was traced in Python (0 when a stored program was loaded);
+    # trace_s: of compile_s, tracing and lowering; programs_loaded: loaded, not traced
+    counters = ("compile_s", "compiles", "traces", "trace_s", "programs_loaded")
 
     def missing(self) -> Optional[str]:
         if not installed():

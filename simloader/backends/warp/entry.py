@@ -28,6 +28,11 @@ class WarpEngine(EngineEntry):
 
     name = "warp"
     options = ("naconmax", "njmax")
+    # overflow: trajectories that lost contacts or constraint rows to the buffer sizes (the
+    # batch's `overflow` flags them); solver_limit: trajectories whose constraint solver
+    # stopped at its iteration limit in a batch (MuJoCo C stops there too, silently);
+    # graph_captures: CUDA graphs captured, one per dataset and device, at its first batch
+    counters = ("overflow", "solver_limit", "graph_captures")
 
     def missing(self) -> Optional[str]:
         import torch
