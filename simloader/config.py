@@ -246,8 +246,9 @@ def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, contro
     return plan
 
 
-def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep: Any, control: Any,
-                 control_spec: Any, initial_state: Any, randomize: Any, continue_episodes: Any,
+def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep: Any,
+                 control: Any, control_spec: Any, initial_state: Any, randomize: Any,
+                 continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
                  prefetch: Any, record: Any, record_every: Any, policy: Any = None,
                  policy_noise: Any = None,
@@ -258,7 +259,7 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
 
     `choose`: the engine for the model and sizes (`backends.auto.choose` with the `backend`
     argument bound): called with a namespace of the base `model`, `nbatch`, `nstep`,
-    `observations` and `policy`, returns a `Choice` (`backend`, `reason`).
+    `num_batches`, `observations` and `policy`, returns a `Choice` (`backend`, `reason`).
     `size_check`: the chosen engine's refusal of a batch too large for it, from the sizes
     alone (`backends.size_check`; the namespace holds `SimConfig`'s size fields and
     `prefetch`), called before the (nbatch x ...) tables are built: seconds of work, and

@@ -135,8 +135,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         backend, options, gpu_only = backends.spelled(backend, backend_options)
         backends.prepare(backend, options)
         config = build_config(
-            model, choose=functools.partial(auto.choose, backend, gpu_only), nbatch=nbatch, nstep=nstep,
-            control=control, control_spec=control_spec, initial_state=initial_state,
+            model, choose=functools.partial(auto.choose, backend, gpu_only), nbatch=nbatch,
+            nstep=nstep, control=control, control_spec=control_spec, initial_state=initial_state,
             randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
             seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
             record=record, record_every=record_every, policy=policy,

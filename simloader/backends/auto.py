@@ -28,14 +28,13 @@ on the humanoid. Nothing here starts JAX unless MJX is the estimate's choice.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import time
 from typing import Any
 
 import mujoco
 import numpy as np
 
-from simloader import backends, observe, sharding
+from simloader import backends, observe, resume, sharding
 from simloader.backends.contract import Job
 
 
@@ -64,10 +63,8 @@ def has_contacts(model: mujoco.MjModel) -> bool:
 def cpu_step_seconds(model: mujoco.MjModel, budget_s: float = 0.02) -> float:
     """This model's `mj_step` time on one core: the best of a few timed runs from its
     default state with zero controls, within about `budget_s` seconds."""
-    # by the model's saved bytes: a cache by object id would outlive the model
-    buffer = np.empty(mujoco.mj_sizeModel(model), dtype=np.uint8)
-    mujoco.mj_saveModel(model, None, buffer)
-    key = hashlib.sha256(buffer.tobytes()).hexdigest()
+    # by the model's digest (its saved bytes): a cache by object id would outlive the model
+    key = resume.model_digest(model)
     if key not in _STEP_SECONDS:
         _STEP_SECONDS[key] = _time_steps(model, budget_s)
     return _STEP_SECONDS[key]
