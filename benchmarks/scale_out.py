@@ -4,7 +4,11 @@ For each engine (`cpu`: MuJoCo on the CPU; `mjx`: MJX on JAX; `warp`: MuJoCo War
 number of ranks of `--nprocs`, one `torchrun --standalone --nproc_per_node=N` job of this script
 in its child role: each rank streams its own part of one seeded stream on its own GPU
 (`cuda:LOCAL_RANK`; the CPU without one) and times `--batches` batches after a warm-up batch.
-The modes:
+With `--nodes M` (M > 1) the job is M local "nodes" at once: M torchrun processes with the
+static rendezvous (`--nnodes M --node-rank i --master-addr 127.0.0.1 --master-port PORT`,
+N/M ranks each), node i seeing GPUs i*N/M .. (i+1)*N/M-1 only (`CUDA_VISIBLE_DEVICES`), so
+LOCAL_RANK restarts at 0 in every node while the global ranks stay distinct: "2 nodes of 2
+GPUs" on a 4-GPU host. The modes:
 
 - `open`: open-loop uniform controls, state and sensors of every step;
 - `camera`: the same with a 64x64 RGB camera;
@@ -15,16 +19,23 @@ The modes:
 
 A row reports the steps/s of all ranks together (all ranks' steps over the slowest rank's
 time), per rank, and against the first `--nprocs` in the same run; and two checks of the
-stream: every rank's first batch differs from every other's (seeds by global rank), and
-simulating that batch again from (seed, rank, batch index) gives it again (bit for bit on
-the CPU backend; on a GPU, the same initial states and controls and states within 1e-3).
-A combination an engine refuses (a camera on MJX-JAX, say) is a row saying so.
+stream: every rank's first batch differs from every other's (seeds by global rank), and what
+simulating that batch again from (seed, rank, batch index) gives: "bit-equal" (torch.equal on
+every key), else whether the draws are equal (initial_state and control bit for bit) and the
+largest |difference| of "state" over the ranks ("draws equal; states apart by 2.1e+01").
+`--deterministic` builds every dataset with `deterministic=True` (bit-identical batches for a
+seed where the engine can); an engine that cannot refuses, as does any combination an engine
+refuses (a camera on MJX-JAX, say): a row saying so.
 
 Targets (issue: several GPUs): 2 GPUs at least 1.95x one for Warp humanoid 8192 per GPU and
 JAX cart-pole; 4 GPUs at least 3.8x. NVLink multicast stays off in NCCL (shared machines).
 
     python benchmarks/scale_out.py --nprocs 1 2 --save --results-dir $OUT        # on 2 GPUs
+    python benchmarks/scale_out.py --nprocs 2 4 --nodes 2 --save --results-dir $OUT  # 4 GPUs
+    python benchmarks/scale_out.py --nprocs 1 2 --deterministic --modes open policy \\
+        --tag deterministic --save --results-dir $OUT
     python benchmarks/scale_out.py --quick --engines cpu --nprocs 1 2         # CPU smoke run
+    python benchmarks/scale_out.py --quick --engines cpu --nprocs 2 --nodes 2  # 2 CPU "nodes"
 """
 
 from __future__ import annotations
@@ -33,6 +44,8 @@ import argparse
 import hashlib
 import json
 import os
+import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -49,7 +62,6 @@ WORKLOADS = {"cpu": "cartpole:1024x100", "mjx": "cartpole:8192x1000",
              "warp": "humanoid:8192x200"}
 QUICK = {"cpu": "cartpole:64x20", "mjx": "cartpole:64x20", "warp": "cartpole:64x20"}
 QUICK_CAMERA = "cartpole:4x5"  # a CPU without a GPU renders about 30 frames/s
-GPU_TOL = 1e-3  # a GPU batch simulated again: MuJoCo Warp's atomics may reorder sums
 REFUSED = 3  # the child's exit status when the engine refuses the combination
 
 
@@ -73,8 +85,9 @@ def _dataset(args, device):
         dtype = torch.float64 if args.engine == "cpu" else torch.float32
         mlp = mlp.to(device=device, dtype=dtype)
         drive = {"policy": lambda obs: mlp(obs["state"])}
+    extra = {"deterministic": True} if args.deterministic else {}
     return simloader.SimDataset(w.name, nbatch=w.nbatch, nstep=w.nstep, seed=args.seed,
-                                record=tuple(record), device=device, **drive,
+                                record=tuple(record), device=device, **drive, **extra,
                                 **ENGINES[args.engine])
 
 
@@ -85,19 +98,50 @@ def _digest(batch) -> str:
     return h.hexdigest()[:16]
 
 
-def _again(ds, shard, index, batch) -> bool:
-    """The rank's batch `index`, simulated again from its seed, equals `batch` (bit for bit
-    on the CPU; on a GPU the same draws and states within GPU_TOL)."""
+def _flat(batch, prefix=""):
+    """The batch's tensors by key (nested dicts, such as "params", as "params/KEY")."""
+    out = {}
+    for k, v in batch.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}/"))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def _again(ds, shard, index, batch) -> dict:
+    """The rank's batch `index` simulated again from its seed, against `batch`: `draws`
+    (initial_state and control bit-equal), `bit` (torch.equal on every key), `apart` (the
+    largest |difference| of "state") and `differ` (the keys not bit-equal)."""
     import torch
     backend = ds.make_backend(shard)
     try:
         _, again, _ = next(iter(ds.stream(backend, [index])))
     finally:
         backend.close()
-    if ds.config.backend == "cpu":
-        return all(torch.equal(again[k], batch[k]) for k in batch if k != "params")
-    return (torch.equal(again["initial_state"], batch["initial_state"]) and
-            (again["state"] - batch["state"]).abs().max().item() <= GPU_TOL)
+    a, b = _flat(again), _flat(batch)
+    differ = sorted(k for k in set(a) | set(b)
+                    if k not in a or k not in b or not torch.equal(a[k], b[k]))
+    apart = 0.0
+    if "state" in differ and a["state"].shape == b["state"].shape:
+        apart = (a["state"].double() - b["state"].double()).abs().max().item()
+    return {"draws": not {"initial_state", "control"} & set(differ), "bit": not differ,
+            "apart": apart, "differ": differ}
+
+
+def _again_text(checks) -> str:
+    """What the ranks' batches simulated again say: "bit-equal", or "draws equal; states apart
+    by 2.1e+01" (the largest over the ranks)."""
+    if all(c["bit"] for c in checks):
+        return "bit-equal"
+    draws = "draws equal" if all(c["draws"] for c in checks) else "draws DIFFER"
+    apart = max(c["apart"] for c in checks)
+    differ = sorted({k for c in checks for k in c["differ"]} - {"initial_state", "control"})
+    if apart != apart or apart > 0:  # NaN counts as apart
+        return f"{draws}; states apart by {apart:.1e}"
+    if "state" in differ:
+        return f"{draws}; state not comparable"
+    return f"{draws}; states bit-equal; {', '.join(differ) or 'nothing else'} differ"
 
 
 def child(args) -> None:
@@ -107,6 +151,7 @@ def child(args) -> None:
     import simloader
     from simloader import sharding
     gpu = torch.cuda.is_available()
+    # under --nodes, cuda:LOCAL_RANK is right: this node's CUDA_VISIBLE_DEVICES are its GPUs
     local = int(os.environ.get("LOCAL_RANK", "0"))
     device = f"cuda:{local}" if gpu else "cpu"
     if gpu:
@@ -140,14 +185,17 @@ def child(args) -> None:
     seconds = time.perf_counter() - start
     results = [None] * world
     dist.all_gather_object(results, {"rank": rank, "seconds": seconds, "digest": digest,
-                                     "again": same, "device": str(device)})
+                                     "again": same, "device": str(device),
+                                     "node": int(os.environ.get("GROUP_RANK", "0")),
+                                     "gpus": os.environ.get("CUDA_VISIBLE_DEVICES", "")})
     if rank == 0:
         steps = args.batches * w.nbatch * w.nstep
         slowest = max(r["seconds"] for r in results)
         out = {"steps_per_s": world * steps / slowest,
                "per_rank": [steps / r["seconds"] for r in results],
                "distinct": len({r["digest"] for r in results}) == world,
-               "reproducible": all(r["again"] for r in results),
+               "again": _again_text([r["again"] for r in results]),
+               "placement": [[r["node"], r["device"], r["gpus"]] for r in results],
                "device": torch.cuda.get_device_name(0) if gpu else "CPU"}
         if args.mode == "write":
             stored = simloader.StoredDataset(args.store)
@@ -161,8 +209,65 @@ def child(args) -> None:
 
 # --------------------------------------------------------------------------- the jobs
 
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _visible_gpus() -> list[str]:
+    """The GPUs this process may use, as CUDA_VISIBLE_DEVICES names them (none: [])."""
+    import torch
+    if not torch.cuda.is_available():
+        return []
+    given = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if given is not None:
+        return [g.strip() for g in given.split(",") if g.strip()]
+    return [str(i) for i in range(torch.cuda.device_count())]
+
+
+def launches(nproc: int, nodes: int) -> list[tuple[list[str], dict[str, str]]]:
+    """The torchrun options and environment of each node of a job of `nproc` ranks: one
+    `--standalone` process, or `nodes` of the static rendezvous on this host, node i with
+    GPUs i*nproc/nodes .. (i+1)*nproc/nodes-1 as its CUDA_VISIBLE_DEVICES (where there are
+    GPUs)."""
+    # the ddp example imports simloader too: the checkout's, installed or not
+    path = os.pathsep.join(filter(None, [str(common.REPO), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, **SAFE_ENV, "PYTHONPATH": path}
+    if nodes == 1:
+        return [(["--standalone", f"--nproc_per_node={nproc}"], env)]
+    if nproc % nodes:
+        raise SystemExit(f"--nprocs {nproc} is not a multiple of --nodes {nodes}")
+    per, port, gpus = nproc // nodes, _free_port(), _visible_gpus()
+    if gpus and len(gpus) < nproc:
+        raise SystemExit(f"{nproc} ranks need {nproc} GPUs; {len(gpus)} visible")
+    out = []
+    for i in range(nodes):
+        node_env = dict(env)
+        if gpus:
+            node_env["CUDA_VISIBLE_DEVICES"] = ",".join(gpus[i * per:(i + 1) * per])
+        out.append(([f"--nnodes={nodes}", f"--node-rank={i}", f"--nproc_per_node={per}",
+                     "--rdzv-backend=static", "--master-addr=127.0.0.1",
+                     f"--master-port={port}"], node_env))
+    return out
+
+
+def _stop(procs) -> None:
+    """Ends the torchrun processes this script started, with their ranks (their own sessions)."""
+    for proc in procs:
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    for proc in procs:
+        proc.wait()
+
+
 def run(nproc: int, args, engine: str, mode: str, workload: str) -> dict:
-    """One torchrun job of `nproc` local ranks; rank 0's figures (or why it was refused)."""
+    """One torchrun job of `nproc` ranks over `--nodes` local nodes; rank 0's figures (or why
+    it was refused)."""
+    what = f"{engine}/{mode} on {nproc} rank(s), {args.nodes} node(s)"
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "result.json")
         if mode == "ddp":
@@ -175,24 +280,71 @@ def run(nproc: int, args, engine: str, mode: str, workload: str) -> dict:
             command = [__file__, "--child", "--engine", engine, "--mode", mode,
                        "--workload", workload, "--batches", str(args.batches),
                        "--seed", str(args.seed), "--store", os.path.join(tmp, "s.zarr")]
-        command = [sys.executable, "-m", "torch.distributed.run", "--standalone",
-                   f"--nproc_per_node={nproc}", *command, "--json", path]
+            if args.deterministic:
+                command.append("--deterministic")
+        procs, logs = [], []
         try:
-            proc = subprocess.run(command, env={**os.environ, **SAFE_ENV}, capture_output=True,
-                                  text=True, timeout=args.job_timeout)
-        except subprocess.TimeoutExpired as e:
-            raise SystemExit(f"{engine}/{mode} on {nproc} rank(s) ran past --job-timeout "
-                             f"({args.job_timeout} s):\n{(e.stderr or b'')[-3000:]!r}")
-        if proc.returncode != 0 and os.path.exists(path):
+            for i, (options, env) in enumerate(launches(nproc, args.nodes)):
+                out, err = (open(os.path.join(tmp, f"node{i}.{x}"), "w+") for x in "oe")
+                logs.append((out, err))
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "torch.distributed.run", *options, *command,
+                     "--json", path], env=env, stdout=out, stderr=err, text=True,
+                    start_new_session=True))
+            deadline = time.monotonic() + args.job_timeout
+            while any(proc.poll() is None for proc in procs):
+                if any(proc.poll() for proc in procs):  # a failed node: the others would wait
+                    time.sleep(10)  # for it; a refusal ends them all in this time
+                    break
+                if time.monotonic() > deadline:
+                    _stop(procs)
+                    raise SystemExit(f"{what} ran past --job-timeout ({args.job_timeout} s):"
+                                     f"\n{_tails(logs)}")
+                time.sleep(0.2)
+        finally:
+            _stop(procs)
+        codes = [proc.returncode for proc in procs]
+        if any(codes) and os.path.exists(path):
             with open(path) as f:
                 refused = json.load(f)
             if "refused" in refused:
+                _close(logs)
                 return refused
-        if proc.returncode != 0:
-            raise SystemExit(f"{engine}/{mode} on {nproc} rank(s) failed ({proc.returncode}):"
-                             f"\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}")
+        if any(codes):
+            text = _tails(logs)
+            _close(logs)
+            raise SystemExit(f"{what} failed ({codes}):\n{text}")
+        _close(logs)
         with open(path) as f:
             return json.load(f)
+
+
+def _tails(logs) -> str:
+    text = []
+    for i, (out, err) in enumerate(logs):
+        out.seek(0)
+        err.seek(0)
+        text.append(f"-- node {i} stdout:\n{out.read()[-3000:]}\n-- node {i} stderr:\n"
+                    f"{err.read()[-5000:]}")
+    return "\n".join(text)
+
+
+def _close(logs) -> None:
+    for out, err in logs:
+        out.close()
+        err.close()
+
+
+def _placement(placement) -> str:
+    """" (GPUs 0,1 | 2,3)": each node's CUDA_VISIBLE_DEVICES, where nodes set them."""
+    if not placement:
+        return ""
+    nodes: dict = {}
+    for node, _, gpus in placement:
+        nodes.setdefault(node, gpus)
+    if len(nodes) < 2 or not any(nodes.values()):
+        return ""
+    return f" (GPUs {' | '.join(nodes[n] for n in sorted(nodes))})"
 
 
 def main() -> None:
@@ -207,7 +359,14 @@ def main() -> None:
     p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=list(ENGINES))
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     p.add_argument("--nprocs", type=int, nargs="+", default=[1, 2],
-                   help="ranks (GPUs) of each job; the first is the reference")
+                   help="ranks (GPUs) of each job, all nodes together; the first is the "
+                        "reference")
+    p.add_argument("--nodes", type=int, default=1,
+                   help="local nodes per job (torchrun's static rendezvous on 127.0.0.1, "
+                        "each node its share of the GPUs); every --nprocs a multiple of it")
+    p.add_argument("--deterministic", action="store_true",
+                   help="SimDataset(deterministic=True): bit-identical batches for a seed, "
+                        "or a 'refused' row where the engine cannot (not the ddp example)")
     p.add_argument("--workloads", nargs="+", metavar="ENGINE=MODEL:NBATCHxNSTEP", default=[],
                    help=f"per-rank sizes (default {WORKLOADS}; --quick {QUICK['cpu']})")
     p.add_argument("--batches", type=int, default=8, help="timed batches per rank")
@@ -221,6 +380,8 @@ def main() -> None:
     args = p.parse_args()
     if args.child:
         return child(args)
+    if args.nodes < 1 or any(n % args.nodes for n in args.nprocs):
+        p.error(f"--nodes {args.nodes}: every --nprocs must be a multiple of it")
     sizes = {**(QUICK if args.quick else WORKLOADS),
              **dict(item.split("=", 1) for item in args.workloads)}
 
@@ -232,26 +393,33 @@ def main() -> None:
             workload = QUICK_CAMERA if args.quick and mode == "camera" else sizes[engine]
             r = run(nproc, args, engine, mode, workload)
             if "refused" in r:
-                rows.append([engine, mode, workload, nproc, "refused: " + r["refused"],
-                             "", "", "", ""])
+                rows.append([engine, mode, workload, args.nodes, nproc,
+                             "refused: " + r["refused"], "", "", "", "", ""])
                 break
             reference = reference or r["steps_per_s"]
             per_rank = r.get("per_rank", [r["steps_per_s"] / nproc])
-            checks = ("" if mode == "ddp" else
-                      f"{'yes' if r['distinct'] else 'NO'} / {'yes' if r['reproducible'] else 'NO'}")
+            distinct = "" if mode == "ddp" else "yes" if r["distinct"] else "NO"
+            again = "" if mode == "ddp" else r["again"]
             if mode == "write":
-                checks += f"; {r['stored']} stored, ranks {r['ranks_in_store']}"
-            rows.append([engine, mode, workload, nproc, r["device"],
+                again += f"; {r['stored']} stored, ranks {r['ranks_in_store']}"
+            rows.append([engine, mode, workload, args.nodes, nproc,
+                         r["device"] + _placement(r.get("placement")),
                          f"{r['steps_per_s'] / 1e6:.3g}M",
                          f"{min(per_rank) / 1e6:.3g}M", f"{r['steps_per_s'] / reference:.2f}x",
-                         checks])
-    headers = ["engine", "mode", "per-rank workload", "ranks", "device", "steps/s, all ranks",
-               "slowest rank", f"vs {args.nprocs[0]} rank(s)",
-               "streams distinct / reproducible"]
-    notes = (f"Each row is one torchrun job, one process per GPU (or CPU processes without "
-             f"GPUs), {args.batches} timed batches per rank after a warm-up batch; steps/s is "
-             f"all ranks' steps over the slowest rank's time (`ddp`: the DDP example's own "
-             f"figure, training included).")
+                         distinct, again])
+    headers = ["engine", "mode", "per-rank workload", "nodes", "ranks (all nodes)", "device",
+               "steps/s, all ranks", "slowest rank", f"vs {args.nprocs[0]} rank(s)",
+               "ranks' streams distinct", "first batch simulated again"]
+    nodes = (f" over {args.nodes} local nodes (torchrun's static rendezvous, each node its "
+             f"share of the GPUs)" if args.nodes > 1 else "")
+    notes = (f"Each row is one torchrun job{nodes}, one process per GPU (or CPU processes "
+             f"without GPUs), {args.batches} timed batches per rank after a warm-up batch; "
+             f"steps/s is all ranks' steps over the slowest rank's time (`ddp`: the DDP "
+             f"example's own figure, training included). Simulated again: each rank's first "
+             f"batch from (seed, rank, 0); \"bit-equal\" is torch.equal on every key, \"draws "
+             f"equal\" initial_state and control bit-equal, \"apart by\" the largest "
+             f"|difference| of state over the ranks."
+             + (" Datasets built with deterministic=True." if args.deterministic else ""))
     common.report(args, "scale_out", "Scale-out: engines under torchrun",
                   [notes, common.markdown_table(headers, rows)])
 

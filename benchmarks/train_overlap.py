@@ -8,15 +8,26 @@ batches after a warm-up batch, and the time blocked in `next(iterator)` (plus th
 batch's device work) is the waiting time; the fraction of wall time it takes should stay under
 5% (performance.md, target 3), as simloader simulates the next batch while one is trained on.
 
+Next to the waiting share, the overlap as the issue defines it: (train alone + simulate
+alone - wall time per batch in the loop) / min(train alone, simulate alone): 1 when the
+simulation is fully hidden behind the training, 0 when the two run one after the other.
+
 Backend cpu simulates on the CPU (trains on `--device`: the GPU when there is one, with
-the cores split between simulation and torch otherwise); mjx simulates and trains on JAX's
-device. There the two share one GPU: where the training keeps the GPU busy, the times measured
-alone add up rather than overlap, and only the GPU time training leaves idle hides simulation.
-So on a GPU two MLP sizes run by default, one whose steps leave the GPU mostly idle and one that
-keeps it busy (`--mlp`).
+the cores split between simulation and torch otherwise); mjx and warp simulate and train on
+the GPU of `--device`. There the two share one GPU: where the training keeps the GPU busy, the
+times measured alone add up rather than overlap, and only the GPU time training leaves idle
+hides simulation. So on a GPU two MLP sizes run by default, one whose steps leave the GPU mostly
+idle and one that keeps it busy (`--mlp`). With `--sim-device` (one GPU or several) the GPU
+engines also run simulating there (`SimDataset(sim_device=...)`), the batches delivered to
+`--device` where the MLP trains: rows "same GPU" and "other GPU" side by side.
+
+Default workloads: cpu and mjx cart-pole 8192 x 1000, warp humanoid 8192 x 100 (`--workloads`
+replaces them for every backend).
 
     python benchmarks/train_overlap.py --quick
-    python benchmarks/train_overlap.py --backends cpu mjx --save --results-dir $OUT
+    python benchmarks/train_overlap.py --backends cpu mjx warp --save --results-dir $OUT
+    python benchmarks/train_overlap.py --device cuda:0 --sim-device cuda:1 --save \\
+        --results-dir $OUT --tag other-gpu                                   # on 2 GPUs
 """
 
 from __future__ import annotations
@@ -31,14 +42,18 @@ import math  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from typing import Optional  # noqa: E402
 
 import torch  # noqa: E402
 
 import common  # noqa: E402
 import simloader  # noqa: E402
 
-DEFAULT = [common.Workload("cartpole", 8192, 1000)]
+DEFAULTS = {"cpu": [common.Workload("cartpole", 8192, 1000)],
+            "mjx": [common.Workload("cartpole", 8192, 1000)],
+            "warp": [common.Workload("humanoid", 8192, 100)]}
 QUICK = [common.Workload("cartpole", 256, 100)]
+GPU_ENGINES = ("mjx", "warp")
 TARGET = 0.05  # fraction of wall time waiting for data
 
 
@@ -90,9 +105,11 @@ def parse_mlp(text: str) -> tuple[int, int]:
                                          f"{text!r}") from None
 
 
-def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[list[str]]:
+def run(backend: str, w: common.Workload, args: argparse.Namespace,
+        sim_device: Optional[list[str]] = None) -> list[list[str]]:
     """Times simulation alone, then per MLP size calibrates and runs the training loop
-    `--repeats` times; one table row per MLP size."""
+    `--repeats` times; one table row per MLP size. `sim_device`: the GPUs the engine
+    simulates on (None: where the batches are delivered)."""
     options: dict = {"dtype": torch.float32}
     torch_threads = common.cpu_count()
     if backend == "cpu":
@@ -100,6 +117,10 @@ def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[list
         if args.device == "cpu":  # simulation and training share the cores
             options["nthread"] = args.sim_threads or max(1, torch_threads // 2)
             torch_threads = max(1, torch_threads - options["nthread"])
+    elif backend == "warp" or sim_device:
+        options["device"] = args.device
+    if sim_device:
+        options["sim_device"] = sim_device[0] if len(sim_device) == 1 else sim_device
     torch.set_num_threads(torch_threads)
     model = common.load_model(w.name, args.model_dir)
     ds = simloader.SimDataset(model, backend=backend, nbatch=w.nbatch, nstep=w.nstep,
@@ -109,6 +130,9 @@ def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[list
     batch = calib.last
     del calib
     device = batch["state"].device
+    simulated_on = ("CPU" if backend == "cpu" else ", ".join(sim_device) if sim_device
+                    else f"same GPU ({device})" if device.type == "cuda"
+                    else f"same device ({device})")
     sizes = args.mlp or ([(256, 4096), (1024, 32768)] if device.type == "cuda" else [(128, 1024)])
 
     rows = []
@@ -128,22 +152,27 @@ def run(backend: str, w: common.Workload, args: argparse.Namespace) -> list[list
               f"{train_s:.3f} s/batch alone ({nsteps} optimizer steps of {opt_s * 1e3:.2f} ms)",
               file=sys.stderr)
 
-        fractions, during = [], []
+        fractions, during, overlaps = [], [], []
         for _ in common.progress(range(args.repeats), desc=f"{backend} {w} {hidden}"):
             before = ds.stats
             waited, total, loss = overlap(ds, trainer, nsteps, args.batches)
             after = ds.stats
             fractions.append(waited / total)
+            # batches trained on: the warm-up batch (its training is timed) and --batches more
+            per_batch = total / (args.batches + 1)
+            overlaps.append((train_s + sim_s - per_batch) / min(train_s, sim_s))
             # the mjx backend's simulate_s over-counts when the consumer is the slower side
             if backend == "cpu":
                 during.append((after["simulate_s"] - before["simulate_s"])
                               / (after["batches"] - before["batches"]))
         fraction = statistics.median(fractions)
-        rows.append([backend, f"{w.name} {w.nbatch} x {w.nstep}", str(device), mlp,
+        rows.append([backend, f"{w.name} {w.nbatch} x {w.nstep}", simulated_on, str(device),
+                     mlp,
                      f"{sim_s:.3f}", f"{train_s:.3f}", f"{train_s / sim_s:.2f}", nsteps,
                      f"{statistics.median(during):.3f}" if during else "-",
                      f"{100 * fraction:.2f}%", f"{100 * max(fractions):.2f}%",
-                     "yes" if fraction < TARGET else "NO", f"{first_loss:.3g} -> {loss:.3g}"])
+                     "yes" if fraction < TARGET else "NO",
+                     f"{statistics.median(overlaps):.2f}", f"{first_loss:.3g} -> {loss:.3g}"])
     return rows
 
 
@@ -176,25 +205,27 @@ def overlap(ds: simloader.SimDataset, trainer: Trainer, nsteps: int,
         common.drain()  # the batches dispatched ahead must not slow what is timed next
 
 
-HEADERS = ["backend", "workload", "trains on", "MLP", "simulate s/batch (alone)",
-           "train s/batch (alone)", "train / simulate", "optimizer steps per batch",
-           "simulate s/batch (while training, cpu)", "waiting (median)", "waiting (max)",
-           "< 5%", "loss"]
+HEADERS = ["backend", "workload", "simulated on", "trains on", "MLP",
+           "simulate s/batch (alone)", "train s/batch (alone)", "train / simulate",
+           "optimizer steps per batch", "simulate s/batch (while training, cpu)",
+           "waiting (median)", "waiting (max)", "< 5%", "overlap (median)", "loss"]
 
 
 def default_backends() -> list[str]:
-    try:
-        import jax
-        gpu = any(d.platform == "gpu" for d in jax.devices())
-    except Exception:  # JAX missing or without a platform
-        gpu = False
-    return ["cpu", "mjx"] if gpu else ["cpu"]
+    """mjx and warp on a GPU; cpu without one."""
+    return list(GPU_ENGINES) if torch.cuda.is_available() else ["cpu"]
 
 
 def main() -> None:
-    p = common.parser(__doc__.split("\n")[0], DEFAULT, QUICK)
-    p.add_argument("--backends", nargs="+", choices=("cpu", "mjx"),
-                   help="default: cpu, and mjx when JAX sees a GPU")
+    p = common.parser(__doc__.split("\n")[0], [w for ws in DEFAULTS.values() for w in ws],
+                      QUICK)
+    for action in p._actions:  # the defaults are per backend
+        if action.dest == "workloads":
+            action.help = ("what to run, for every backend (default: "
+                           + "; ".join(f"{b} {' '.join(map(str, ws))}"
+                                       for b, ws in DEFAULTS.items()) + ")")
+    p.add_argument("--backends", nargs="+", choices=("cpu", "mjx", "warp"),
+                   help="default: mjx and warp on a GPU, cpu without one")
     p.add_argument("--batches", type=int, default=None,
                    help="batches trained on after the warm-up batch (default 10, --quick 5)")
     p.add_argument("--calibration-batches", type=int, default=3,
@@ -207,7 +238,11 @@ def main() -> None:
                         "1024x32768, which keeps it busy; on the CPU: 128x1024)")
     p.add_argument("--layers", type=int, default=3, help="hidden layers")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                   help="where backend cpu delivers and the MLP trains")
+                   help="where the batches are delivered and the MLP trains (mjx without "
+                        "--sim-device: JAX's device)")
+    p.add_argument("--sim-device", nargs="+", metavar="DEVICE",
+                   help="GPU(s) where mjx and warp simulate as well (SimDataset sim_device=), "
+                        "delivering to --device: rows for the same GPU and for these")
     p.add_argument("--sim-threads", type=int,
                    help="CPU engine threads when training on the CPU (default: half the cores)")
     args = p.parse_args()
@@ -215,14 +250,27 @@ def main() -> None:
 
     table = []
     for backend in args.backends or default_backends():
-        for w in common.workloads(args, DEFAULT, QUICK):
-            table += run(backend, w, args)
+        placements = [None] + ([args.sim_device] if args.sim_device and backend in GPU_ENGINES
+                               else [])
+        for w in common.workloads(args, DEFAULTS[backend], QUICK):
+            for sim_device in placements:
+                try:
+                    table += run(backend, w, args, sim_device)
+                except (ValueError, TypeError) as e:  # the engine refuses the combination
+                    if sim_device is None:
+                        raise
+                    table.append([backend, f"{w.name} {w.nbatch} x {w.nstep}",
+                                  ", ".join(sim_device),
+                                  "refused: " + str(e).splitlines()[0][:160]]
+                                 + [""] * (len(HEADERS) - 4))
 
     text = common.markdown_table(HEADERS, table)
     notes = (f"Waiting: time in next(iterator) and the device sync after it, as a share of the "
              f"wall time of {args.batches} batches of training after a warm-up batch; median and "
              f"max of {args.repeats} runs. Training is set to take {args.slack}x the simulation "
-             f"time of a batch (both measured alone first). Target: waiting < 5%.")
+             f"time of a batch (both measured alone first). Target: waiting < 5%. Overlap: (train "
+             f"alone + simulate alone - wall time per batch in the loop) / min(train alone, "
+             f"simulate alone), median of the runs: 1 = simulation fully hidden, 0 = serial.")
     common.report(args, "train_overlap", "Training while simloader simulates", [notes, text])
 
 

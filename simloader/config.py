@@ -51,6 +51,11 @@ class SimConfig:
       policy: closed loop: the callable that picks every step's controls, or None.
       policy_noise: closed loop: exploration noise added to the policy's controls, drawn as
         `control` generators draw (a plan whose undriven columns are 0), or None.
+      deterministic: the same seed gives bit-identical batches (the engine promised it for
+        this model, `Engine.refuses_determinism`).
+      parts: when the batch is simulated on other devices than `device` (`sim_device=`): one
+        configuration per simulation device, each with its share of the trajectories in
+        order (`nbatch`) and that device as its `device`; None: simulated where delivered.
     """
 
     model: mujoco.MjModel
@@ -80,6 +85,8 @@ class SimConfig:
     torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
     policy: Any = None
     policy_noise: Optional[controls.ControlPlan] = None
+    deterministic: bool = False
+    parts: Optional[tuple["SimConfig", ...]] = None
 
     @property
     def pool(self) -> tuple[mujoco.MjModel, ...]:
@@ -246,24 +253,97 @@ def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, contro
     return plan
 
 
+def _deterministic(deterministic: Any) -> bool:
+    if deterministic is None:  # as the training's own torch code is asked to be
+        return torch.are_deterministic_algorithms_enabled()
+    if not isinstance(deterministic, bool):
+        raise TypeError(f"deterministic: expected None (follow torch."
+                        f"are_deterministic_algorithms_enabled()), True or False, got "
+                        f"{type(deterministic).__name__} {deterministic!r}")
+    return deterministic
+
+
+def sim_devices(sim_device: Any, device: Optional[torch.device]
+                ) -> tuple[Optional[torch.device], Optional[tuple[torch.device, ...]]]:
+    """(where batches are delivered, where they are simulated) from `device` (validated) and
+    `sim_device`: None when simulated where delivered. A device named twice simulates two
+    parts of the batch there. With `sim_device` and no `device`, batches are delivered to
+    torch's current CUDA device (where a training loop runs by default)."""
+    if sim_device is None:
+        return device, None
+    listed = (list(sim_device) if isinstance(sim_device, (list, tuple)) else [sim_device])
+    if not listed:
+        raise ValueError("sim_device: expected a device or a non-empty sequence of devices, "
+                         "got an empty sequence")
+    parsed = []
+    for i, d in enumerate(listed):
+        name = f"sim_device[{i}]" if isinstance(sim_device, (list, tuple)) else "sim_device"
+        try:
+            dev = torch.device(d)
+        except (TypeError, RuntimeError) as e:
+            raise ValueError(f"{name}: expected 'cuda:N' (or 'cpu'), got {d!r}") from e
+        if dev.type == "cuda":
+            if not torch.cuda.is_available():
+                raise ValueError(f"{name}: {d!r} requested but torch sees no CUDA device")
+            index = torch.cuda.current_device() if dev.index is None else dev.index
+            if index >= torch.cuda.device_count():
+                raise ValueError(f"{name}: {d!r} requested but torch sees "
+                                 f"{torch.cuda.device_count()} GPU(s)")
+            dev = torch.device("cuda", index)
+        elif dev.type != "cpu":
+            raise ValueError(f"{name}: expected a cuda device (or 'cpu'), got {d!r}")
+        parsed.append(dev)
+    if device is None:
+        device = (torch.device("cuda", torch.cuda.current_device())
+                  if torch.cuda.is_available() else torch.device("cpu"))
+    if parsed == [device]:
+        return device, None  # simulated where delivered
+    return device, tuple(parsed)
+
+
+def split_sizes(nbatch: int, parts: int) -> list[int]:
+    """Trajectories of each part of a batch split `parts` ways: as even as can be, the
+    first ones one larger."""
+    return [nbatch // parts + (i < nbatch % parts) for i in range(parts)]
+
+
+def _part_of(value: Any, nbatch: int, start: int, stop: int, ndim: int) -> Any:
+    """An argument's rows `start:stop` where it has one per trajectory (an array of `ndim`
+    dimensions with nbatch rows, or a list of nbatch models); else the argument itself."""
+    if isinstance(value, (list, tuple)) and len(value) == nbatch and value and all(
+            isinstance(m, mujoco.MjModel) for m in value):
+        return list(value[start:stop])
+    shape = getattr(value, "shape", None)
+    if shape is not None and len(shape) == ndim and shape[0] == nbatch and nbatch > 1:
+        return value[start:stop]
+    return value
+
+
 def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep: Any,
                  control: Any, control_spec: Any, initial_state: Any, randomize: Any,
                  continue_episodes: Any,
                  num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
                  prefetch: Any, record: Any, record_every: Any, policy: Any = None,
-                 policy_noise: Any = None,
-                 size_check: Callable[[str], Optional[Callable[[Any], None]]] = lambda _: None
+                 policy_noise: Any = None, deterministic: Any = False, sim_device: Any = None,
+                 size_check: Callable[[str], Optional[Callable[[Any], None]]] = lambda _: None,
+                 refuses_determinism: Callable[[str, mujoco.MjModel], Optional[str]] = (
+                     lambda name, model: None)
                  ) -> SimConfig:
     """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig` (the
     engine's options are validated next, by the engine).
 
     `choose`: the engine for the model and sizes (`backends.auto.choose` with the `backend`
     argument bound): called with a namespace of the base `model`, `nbatch`, `nstep`,
-    `num_batches`, `observations` and `policy`, returns a `Choice` (`backend`, `reason`).
+    `num_batches`, `observations`, `policy` and `deterministic`, returns a `Choice`
+    (`backend`, `reason`).
     `size_check`: the chosen engine's refusal of a batch too large for it, from the sizes
     alone (`backends.size_check`; the namespace holds `SimConfig`'s size fields and
     `prefetch`), called before the (nbatch x ...) tables are built: seconds of work, and
-    memory, for an nbatch that is refused anyway."""
+    memory, for an nbatch that is refused anyway.
+    `refuses_determinism`: why engine `name` cannot give bit-identical batches for a model
+    (`backends.refuses_determinism`), or None.
+    With `sim_device`, one configuration per simulation device is built from the same
+    arguments (each with its share of the trajectories) into `parts`."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
     # 0 batches would be a dataset that silently yields nothing
@@ -292,9 +372,23 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
     elif variants is not None:
         base = variants[0]
     observations, record_every = _record(base, record, record_every, nstep)
+    deterministic = _deterministic(deterministic)
+    target, simulated_on = sim_devices(sim_device, _torch_device(device))
+    if simulated_on is not None and len(simulated_on) > nbatch:
+        raise ValueError(f"sim_device: {len(simulated_on)} simulation devices for nbatch="
+                         f"{nbatch} trajectories; each device needs at least one")
     choice = choose(SimpleNamespace(model=base, nbatch=nbatch, nstep=nstep,
                                     num_batches=num_batches, observations=observations,
-                                    policy=policy))
+                                    policy=policy, deterministic=deterministic))
+    if deterministic:
+        refusal = refuses_determinism(choice.backend, base)
+        if refusal is not None:
+            raise ValueError(f"deterministic: backend={choice.backend!r} cannot give "
+                             f"bit-identical batches for this model: {refusal}")
+    if simulated_on is not None and choice.backend == "cpu":
+        raise ValueError(f"sim_device: the CPU engine simulates on the CPU's threads "
+                         f"(nthread=), got sim_device={sim_device!r}; sim_device is for the "
+                         f"GPU engines (backend='mjx' or 'warp')")
     check_sizes = size_check(choice.backend)
     if check_sizes is not None:
         check_sizes(SimpleNamespace(
@@ -312,7 +406,25 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
         variants=variants, control=plan, initial=init, observations=observations,
         record_every=record_every, continue_episodes=continue_episodes,
-        num_batches=num_batches, seed=seed, device=_torch_device(device),
+        num_batches=num_batches, seed=seed, device=target,
         dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch,
-        torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise)
-    return config
+        torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise,
+        deterministic=deterministic)
+    if simulated_on is None:
+        return config
+    # each part: the same arguments over its rows of the per-trajectory ones, simulated and
+    # delivered on its device, the engine already chosen
+    parts, start = [], 0
+    for dev, n in zip(simulated_on, split_sizes(nbatch, len(simulated_on))):
+        stop = start + n
+        parts.append(build_config(
+            model, choose=lambda _probe: choice, nbatch=n, nstep=nstep,
+            control=_part_of(control, nbatch, start, stop, 3), control_spec=control_spec,
+            initial_state=_part_of(initial_state, nbatch, start, stop, 2),
+            randomize=_part_of(randomize, nbatch, start, stop, 1),
+            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
+            device=dev, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
+            record_every=record_every, policy=policy, policy_noise=policy_noise,
+            deterministic=deterministic, size_check=size_check))
+        start = stop
+    return dataclasses.replace(config, parts=tuple(parts))

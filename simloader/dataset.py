@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import inspect
 from collections.abc import Iterable, Iterator, Sequence
@@ -111,6 +110,21 @@ class SimDataset(torch.utils.data.IterableDataset):
       policy_noise: exploration noise added to the policy's controls before MuJoCo's clamp: a
         `simloader.controls` generator or a dict `{component: generator(s)}`, drawn from
         `seed` as `control` is.
+      deterministic: None (default): as `torch.are_deterministic_algorithms_enabled()`.
+        True: the same seed gives bit-identical batches (resume and `regenerate` too) on
+        every engine that can promise it for this model: the CPU engine always, MJX with
+        XLA's deterministic GPU ops (set here if JAX has not started; refused, saying how,
+        if it started without them), MuJoCo Warp for models where its sums cannot race (no
+        contacts, at most one row per constraint type: `backends/warp/determinism.py`);
+        else a ValueError naming the engine, why and the alternative. "auto" chooses among
+        the engines that can. False: the fastest; GPU engines reproduce contact-rich
+        trajectories only in distribution.
+      sim_device: where to simulate when it is not where batches are delivered (`device`,
+        which then defaults to the current CUDA device): a device ("cuda:1") or several
+        (["cuda:1", "cuda:2"]); the batch's trajectories are split across them in order
+        (each its own part of the stream), simulated at once, and gathered on `device` by
+        peer copies that overlap the next batch's simulation. GPU engines only; a policy
+        runs on a copy of its weights on each simulation device.
       **backend_options: the engine's own: `naconmax`/`njmax` for "warp" (MuJoCo Warp's
         buffers; None: sized from the model), `compilation_cache`, `memory_fraction` for
         "mjx" (see `backends.mjx.check_options`); with "auto", those of an engine not chosen
@@ -129,21 +143,26 @@ class SimDataset(torch.utils.data.IterableDataset):
                  seed: int = 0, device: Any = None, dtype: Any = None,
                  nthread: Optional[int] = None, prefetch: int = 2,
                  record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
-                 policy: Any = None, policy_noise: Any = None, **backend_options: Any):
+                 policy: Any = None, policy_noise: Any = None,
+                 deterministic: Optional[bool] = None, sim_device: Any = None,
+                 **backend_options: Any):
         super().__init__()
         _check_keywords(backend_options)
         backend, options, gpu_only = backends.spelled(backend, backend_options)
         backends.prepare(backend, options)
         config = build_config(
-            model, choose=functools.partial(auto.choose, backend, gpu_only), nbatch=nbatch,
-            nstep=nstep, control=control, control_spec=control_spec, initial_state=initial_state,
-            randomize=randomize, continue_episodes=continue_episodes, num_batches=num_batches,
-            seed=seed, device=device, dtype=dtype, nthread=nthread, prefetch=prefetch,
-            record=record, record_every=record_every, policy=policy,
-            policy_noise=policy_noise, size_check=backends.size_check)
-        # one route for every engine option: validated by the engine, kept in the config
-        self.config: SimConfig = dataclasses.replace(
-            config, options=backends.check_options(config, config.backend_reason, options))
+            model, choose=functools.partial(auto.choose, backend,
+                                            gpu_only or sim_device is not None),
+            nbatch=nbatch, nstep=nstep, control=control, control_spec=control_spec,
+            initial_state=initial_state, randomize=randomize,
+            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
+            device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
+            record_every=record_every, policy=policy, policy_noise=policy_noise,
+            deterministic=deterministic, sim_device=sim_device,
+            size_check=backends.size_check, refuses_determinism=backends.refuses_determinism)
+        # one route for every engine option: validated by the engine (for each simulation
+        # device's part), kept in the config
+        self.config: SimConfig = backends.with_options(config, options)
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations)
         self.source = models.source(model)  # where the model came from, for describe()

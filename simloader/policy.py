@@ -157,8 +157,11 @@ class Snapshot:
     is called live (its version is its own `version`, or -1).
     """
 
-    def __init__(self, policy: Any):
+    def __init__(self, policy: Any, device: Optional[torch.device] = None):
         self.policy = policy
+        # where the batch simulates: a module on another device (`sim_device=`) runs as a
+        # copy there, its weights copied across at every batch
+        self.device = device
         self.frozen: Optional[torch.nn.Module] = None
 
     def take(self) -> tuple[Callable, int]:
@@ -174,6 +177,9 @@ class Snapshot:
                                 f"weights (one version per batch) and could not copy this "
                                 f"module ({type(e).__name__}: {e}); make it deep-copyable") \
                     from None
+            if self.device is not None and any(t.device != self.device
+                                               for t in _tensors(self.frozen)):
+                self.frozen.to(self.device)
         theirs, mine = _tensors(live), _tensors(self.frozen)
         # the reader's side of the sequence lock (`updating`): copy while no update runs, and
         # keep the copy only if none ran meanwhile

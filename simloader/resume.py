@@ -103,7 +103,11 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
         randomize = [_describe(r.param) for r in config.randomization.resolved]
     elif config.variants is not None:
         randomize = {"variants": [model_digest(m) for m in config.variants]}
+    # a batch split across simulation devices draws each part from its own stream
+    split = {} if config.parts is None or len(config.parts) == 1 else {
+        "sim_parts": [p.nbatch for p in config.parts]}
     return {
+        **split,
         "backend": config.backend, "nbatch": config.nbatch, "nstep": config.nstep,
         "control_spec": config.control_spec, "seed": config.seed,
         "continue_episodes": config.continue_episodes, "num_batches": config.num_batches,

@@ -4,7 +4,9 @@ Every batch has a global index within its rank. Worker `w` of `W` produces the i
 `w, w + W, w + 2W, ...`, which the DataLoader interleaves back into index order, so the stream
 a rank sees does not depend on the number of workers (fresh episodes). All randomness of batch
 `i` on rank `r` comes from `SeedSequence(seed, spawn_key=(r, i, purpose))`: streams of different
-batches, workers and ranks never coincide, and the same seed repeats the whole stream.
+batches, workers and ranks never coincide, and the same seed repeats the whole stream. A batch
+split across several simulation devices (`sim_device=`) draws each part `p` from
+`spawn_key=(r, i, purpose, p)`.
 """
 
 from __future__ import annotations
@@ -23,12 +25,15 @@ INITIAL, CONTROL, RANDOMIZE = 0, 1, 2
 
 @dataclasses.dataclass(frozen=True)
 class Shard:
-    """Where this iterator runs: distributed rank and DataLoader worker."""
+    """Where this iterator runs: distributed rank and DataLoader worker, and, for a batch
+    split across simulation devices (`sim_device=`), which part of it (`part` of `parts`)."""
 
     rank: int = 0
     world_size: int = 1
     worker: int = 0
     num_workers: int = 1
+    part: int = 0
+    parts: int = 1
 
     def indices(self, num_batches: Optional[int], start: Optional[int] = None):
         """This worker's global batch indices from `start` (endless when num_batches is None)."""
@@ -60,8 +65,10 @@ def current_shard(constructed_rank: Optional[tuple[int, int]] = None) -> Shard:
 
 
 def batch_seed(seed: int, shard: Shard, index: int, purpose: int) -> np.random.SeedSequence:
-    """The seed of one purpose (INITIAL, CONTROL, RANDOMIZE) of global batch `index`."""
-    return np.random.SeedSequence(seed, spawn_key=(shard.rank, index, purpose))
+    """The seed of one purpose (INITIAL, CONTROL, RANDOMIZE) of global batch `index` (of its
+    part `shard.part` when the batch is split across simulation devices)."""
+    key = (shard.rank, index, purpose) + ((shard.part,) if shard.parts > 1 else ())
+    return np.random.SeedSequence(seed, spawn_key=key)
 
 
 def available_cpus() -> int:

@@ -104,10 +104,12 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
       asked: a registered engine's name, or "auto".
       gpu_only: the older `impl="auto"`: the CPU engine may not be chosen.
       probe: what the rule looks at: `model` (the base MjModel), `nbatch`, `nstep`,
-        `num_batches` (None: endless), `observations`, `policy`.
+        `num_batches` (None: endless), `observations`, `policy`, `deterministic` (only the
+        engines that promise bit-identical batches for the model).
 
     Raises:
-      ValueError: with `gpu_only`, no GPU engine can run here.
+      ValueError: no engine can run here (with `gpu_only`: no GPU engine; with
+        `deterministic`: none that promises it), each one's reason said.
     """
     if asked != "auto":
         return Choice(asked, "asked")
@@ -115,11 +117,18 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
     why = candidates()
     if gpu_only:
         why["cpu"] = "the GPU engines only (impl='auto')"
+    if getattr(probe, "deterministic", False):  # only engines that promise it for the model
+        for name in engines:
+            if not why[name]:
+                refusal = engines[name].refuses_determinism(probe.model)
+                if refusal is not None:
+                    why[name] = f"deterministic=True: {refusal}"
     cameras = any(isinstance(o, observe.CameraImage) for o in probe.observations)
     running = [name for name in engines if not why[name]]
     if not running:
-        said = "; ".join(f"{n}: {w}" for n, w in why.items() if n != "cpu")
-        raise ValueError(f"backend: no GPU engine can run here ({said}); use backend='cpu'")
+        said = "; ".join(f"{n}: {w}" for n, w in why.items() if n != "cpu" or not gpu_only)
+        raise ValueError(f"backend: no engine can run this dataset here ({said})"
+                         + ("; use backend='cpu'" if gpu_only else ""))
     if len(running) == 1:
         said = "; ".join(f"{n}: {w}" for n, w in why.items() if w)
         return Choice(running[0], f"auto: the only engine that runs here ({said})")

@@ -75,6 +75,12 @@ class Engine(Protocol):
     def check_sizes(self, sizes: Any) -> None:
         """Refuses a batch too large for it from its sizes alone (before tables are built)."""
 
+    def refuses_determinism(self, model: Any) -> Optional[str]:
+        """Why it cannot give bit-identical batches for `model` from the same seed (with what
+        to use instead), or None when it can. Asked only for `deterministic=True`, before
+        its runtime starts: it may make the process-wide settings that make it deterministic
+        (MJX: XLA's deterministic GPU ops)."""
+
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
         """Validates the configuration and its options at construction; returns its resolved
         options (a frozen dataclass with `simulated_by() -> str`; its compared fields enter
@@ -86,7 +92,8 @@ class Engine(Protocol):
 
 class EngineEntry:
     """Defaults for an `Engine` (subclass it and fill in the rest): runs everywhere, needs no
-    process-wide settings, no size limit of its own, never chosen by `auto`."""
+    process-wide settings, no size limit of its own, never chosen by `auto`, promises no
+    bit-identical batches."""
 
     name: str = ""
     options: tuple[str, ...] = ()
@@ -109,3 +116,7 @@ class EngineEntry:
 
     def check_sizes(self, sizes: Any) -> None:
         return None
+
+    def refuses_determinism(self, model: Any) -> Optional[str]:
+        return (f"backend={self.name!r} does not promise bit-identical batches; "
+                f"backend='cpu' does")

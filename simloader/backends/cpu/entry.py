@@ -36,6 +36,9 @@ class CpuEngine(EngineEntry):
         rate = min(job.nbatch, job.cores) / job.step_s * EFFICIENCY
         return rate * (POLICY if job.policy else 1.0) * (CAMERAS if job.cameras else 1.0)
 
+    def refuses_determinism(self, model: Any) -> Optional[str]:
+        return None  # each trajectory on one thread, in MuJoCo's fixed order: always
+
     def check_sizes(self, sizes: Any) -> None:
         from simloader.backends.cpu import options
         options.check_sizes(sizes)

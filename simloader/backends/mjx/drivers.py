@@ -51,7 +51,8 @@ class ClosedLoop:
 
     def __init__(self, backend: Any):
         self.backend = backend
-        self.snapshot = policy.Snapshot(backend.config.policy)
+        self.snapshot = policy.Snapshot(backend.config.policy,
+                                        runtime.torch_device(backend.device))
         self.loop = _closed_loop(backend.program, backend.config.policy_noise)
         self.previous: Any = None  # the last batch's data (donated to the next)
 

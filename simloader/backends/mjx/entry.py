@@ -100,6 +100,14 @@ class MjxEngine(EngineEntry):
             from simloader.backends.mjx import runtime
             runtime.configure_memory(options.get("memory_fraction"))
 
+    def refuses_determinism(self, model: Any) -> Optional[str]:
+        """XLA's deterministic GPU ops, set before JAX starts (1.25-1.7x slower on an H200,
+        benchmarks/results/determinism-*); refused, saying how, if JAX started without them."""
+        if not installed():
+            return None  # `missing` says why it cannot run at all
+        from simloader.backends.mjx import runtime
+        return runtime.configure_determinism()
+
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
         from simloader.backends.mjx import backend
         return backend.check_options(config, options, reason)

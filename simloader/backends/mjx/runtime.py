@@ -45,6 +45,29 @@ _FRACTION = "XLA_CLIENT_MEM_FRACTION"
 _FRACTION_DEPRECATED = "XLA_PYTHON_CLIENT_MEM_FRACTION"  # jaxlib rejects both being set
 
 
+# XLA's run-to-run determinism on GPUs (deterministic scatters and reductions): MJX's
+# humanoid bit-identical across processes with it, 53 apart in qpos without it (H200,
+# benchmarks/results/determinism-2026-11-22.md); read once, when JAX starts its backends
+DETERMINISTIC_OPS = "--xla_gpu_deterministic_ops=true"
+
+
+def configure_determinism() -> Optional[str]:
+    """Makes XLA's GPU ops deterministic where JAX has not started yet (XLA_FLAGS, for this
+    process and its children); returns why MJX cannot be deterministic in this process, or
+    None."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if DETERMINISTIC_OPS in flags.split():
+        return None
+    if not xla_bridge.backends_are_initialized():
+        os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_OPS}".strip()
+        return None
+    if all(d.platform == "cpu" for d in jax.devices()):
+        return None  # XLA on the CPU sums in a fixed order
+    return (f"JAX started without XLA's deterministic GPU ops; set XLA_FLAGS={DETERMINISTIC_OPS} "
+            f"before anything starts JAX (the first SimDataset with deterministic=True, or "
+            f"your first jax call, does it), or use backend='cpu'")
+
+
 def configure_memory(memory_fraction: Any) -> Optional[float]:
     """Sets how JAX takes GPU memory; effective only before JAX starts its backends.
 

@@ -103,7 +103,8 @@ class WarpBackend(Backend):
         self.restored: Optional[torch.Tensor] = None  # resumed rows, applied at the next batch
         self.rows: Optional[torch.Tensor] = None  # continuing: the rows after the last batch
         self.token = object()  # names this iterator as the engine's owner (holding nothing)
-        self.snapshot = policy.Snapshot(config.policy) if config.policy is not None else None
+        self.snapshot = (policy.Snapshot(config.policy, self.device)
+                         if config.policy is not None else None)
         self.last_ready = 0.0
         self.warned_overflow = False
         self.last: Optional[_Produced] = None

@@ -52,6 +52,11 @@ class WarpEngine(EngineEntry):
         captured (later runs load the kernels in seconds: `simloader warmup`)."""
         return STARTUP
 
+    def refuses_determinism(self, model: Any) -> Optional[str]:
+        """Only models whose steps no GPU atomics can reorder (`warp/determinism.py`)."""
+        from simloader.backends.warp import determinism
+        return determinism.refusal(model)
+
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
         from simloader.backends.warp import options as warp_options
         return warp_options.check_options(config, options, reason)
