@@ -172,7 +172,7 @@ def info(args: argparse.Namespace) -> None:
 
 
 def bench(args: argparse.Namespace) -> None:
-    from simloader import bench as b
+    from simloader.tools import bench as b
     with from_arguments():
         model = simloader.load_model(args.model)
     plot = os.path.join(args.out, args.plot) if args.plot else ""
