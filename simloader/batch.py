@@ -1,8 +1,8 @@
 """The delivered batch: a dict of tensors with named views.
 
-`Batch` is a `dict[str, torch.Tensor]` (the delivered `handoff.Batch`, which torch's default
-collation refuses; `pin_memory` and `default_convert` keep its type: they copy it and update
-the copy), plus `view()`, which finds a named part of a key without index arithmetic and
+`Batch` is a `dict[str, torch.Tensor]` (nested for `params`), which torch's default collation
+refuses (`pin_memory` and `default_convert` keep its type: they copy it and update the copy),
+plus `view()`, which finds a named part of a key without index arithmetic and
 without copying. A batch from a DataLoader worker arrives as a `Batch`, views included (the
 worker's queue pickles it with multiprocessing's ForkingPickler, for which a reducer is
 registered below); `torch.save`/`pickle` store it as an `OrderedDict`, so that
@@ -18,17 +18,23 @@ back, without copies.
 
 from __future__ import annotations
 
+import collections
+from collections.abc import Sequence
 from multiprocessing.reduction import ForkingPickler
 from typing import Any, Optional
 
 import torch
+from torch.utils.data._utils.collate import default_collate_fn_map
 
-from simloader.handoff import Batch as _Delivered
 from simloader.layout import BatchLayout
 
 
-class Batch(_Delivered):
+class Batch(dict):
     """A batch: `dict[str, torch.Tensor]` with named views.
+
+    torch's default collation refuses it, because a `DataLoader` with its default
+    `batch_size=1` would stack single batches into tensors with an extra leading dimension
+    of 1.
 
     Attributes:
       layout: what each column means (`simloader.layout.BatchLayout`), or None for a batch
@@ -44,8 +50,16 @@ class Batch(_Delivered):
 
     def __copy__(self) -> "Batch":
         # torch's default_convert and pin_memory copy a mapping and update the copy: keep the
-        # type and the layout (pickling gives an OrderedDict, see handoff.Batch)
+        # type and the layout (pickling gives an OrderedDict, see __reduce__)
         return Batch(self, layout=self.layout)
+
+    def __reduce__(self):
+        # pickled (torch.save, pickle.dumps) as an OrderedDict, so that loading needs no
+        # simloader: torch.load's weights_only accepts OrderedDict but no other dict type (not
+        # even dict's constructor). Not from a DataLoader worker: its queue pickles with
+        # multiprocessing's ForkingPickler, whose reducer (registered below) takes precedence
+        # over this one and keeps the type and its named views.
+        return collections.OrderedDict, (list(self.items()),)
 
     def view(self, name: str, obj: Optional[str] = None, *, of: Optional[str] = None
              ) -> torch.Tensor:
@@ -88,9 +102,23 @@ def _reduce_across_processes(batch: Batch):
     # dispatch table, looked up by exact type before `__reduce__`, keeps the type and the
     # layout (so `view` works in the training process); the tensors still go through torch's
     # shared-memory reducers. torch.save and plain pickle do not use this table and keep
-    # handoff.Batch's OrderedDict form, which `torch.load(weights_only=True)` accepts (a Batch
+    # Batch.__reduce__'s OrderedDict form, which `torch.load(weights_only=True)` accepts (a Batch
     # with its layout, a simloader class, it would refuse).
     return _rebuild, (list(batch.items()), batch.layout)
 
 
 ForkingPickler.register(Batch, _reduce_across_processes)
+
+
+def _refuse_collation(batch: Any, *, collate_fn_map: Any = None) -> Any:
+    # `batch`: the DataLoader's list of items to stack, as many as its batch_size (fewer only
+    # at the end of a finite dataset)
+    here = f" (here {len(batch)})" if isinstance(batch, Sequence) else ""
+    raise TypeError(f"DataLoader: SimDataset yields whole batches (nbatch trajectories each), "
+                    f"so write DataLoader(ds, batch_size=None); with an integer batch_size "
+                    f"(the default is 1) the DataLoader stacks that many of them{here}, giving "
+                    f"every tensor an extra leading dimension")
+
+
+# torch's documented extension point of default_collate, also used in DataLoader workers
+default_collate_fn_map[Batch] = _refuse_collation

@@ -15,7 +15,7 @@ import torch
 from tqdm import tqdm
 
 import simloader
-from simloader.store import StoreLocked
+from simloader.store import StoreLocked, formats
 from simloader import observe, sharding
 
 DEFAULT_MODEL = "cartpole"
@@ -151,8 +151,9 @@ def write(args: argparse.Namespace) -> None:
         raise SystemExit(f"simloader write: {e}") from None
     print(f"simloader {simloader.__version__}: wrote {args.batches} x {args.nbatch} "
           f"trajectories of {args.nstep} steps of {args.model!r} to {path} ({args.format})")
-    if args.format == "zarr":
-        print(f"read them with simloader.StoredDataset({path!r}) or any zarr v3 reader")
+    hint = formats.read_hint(args.format, path)
+    if hint:
+        print(hint)
 
 
 def info(args: argparse.Namespace) -> None:
@@ -171,7 +172,7 @@ def info(args: argparse.Namespace) -> None:
 
 
 def bench(args: argparse.Namespace) -> None:
-    from simloader import bench as b
+    from simloader.tools import bench as b
     with from_arguments():
         model = simloader.load_model(args.model)
     plot = os.path.join(args.out, args.plot) if args.plot else ""
@@ -239,7 +240,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="the store: a zarr v3 folder (an existing one of the same settings "
                          "is resumed or grown), or for --format minari the dataset's folder, "
                          "named by its id, e.g. datasets/cartpole-uniform-v0")
-    wr.add_argument("--format", default="zarr", choices=("zarr", "minari"))
+    wr.add_argument("--format", default="zarr", choices=tuple(formats.FORMATS))
     wr.add_argument("--backend", default="auto", choices=BACKEND_CHOICES, metavar="BACKEND",
                     help="cpu, mjx, warp or auto (default)")
     wr.add_argument("--nbatch", type=positive_int, default=1024)

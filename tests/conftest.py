@@ -144,7 +144,7 @@ def started_writer():
     import sys
     import time
 
-    from simloader.store import format as store_format
+    from simloader.store import zarr_format as store_format
 
     def start(path, batches, slot, seed=0):
         proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(batches),

@@ -6,7 +6,8 @@ import sys
 
 import pytest
 
-from simloader import bench, cli
+from simloader import cli
+from simloader.tools import bench
 
 
 def test_info_names_columns(capsys):

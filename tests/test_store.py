@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import simloader
-from simloader.store import format as store_format, provenance
+from simloader.store import zarr_format as store_format, provenance
 
 zarr = pytest.importorskip("zarr")
 dr = simloader.randomize

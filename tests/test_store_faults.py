@@ -15,7 +15,7 @@ import torch
 
 import simloader
 import simloader.cli
-from simloader.store import format as store_format, lock, order
+from simloader.store import zarr_format as store_format, lock, order
 from simloader.store.shards import MAX_OPEN, DamagedStore
 
 zarr = pytest.importorskip("zarr")

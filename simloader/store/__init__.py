@@ -1,7 +1,7 @@
 """Keeping the stream: `write` a dataset's batches into a zarr v3 store, `StoredDataset` to
 read them back, and the regeneration of any stored trajectory from its provenance.
 
-    format.py      the store on disk: its arrays, names, shard files, checksums and marks
+    zarr_format.py the store on disk: its arrays, names, shard files, checksums and marks
     shards.py      reading shard files: layouts checked, a bounded table of open shards
     integrity.py   one walk of a store's files; committed slots checked against their sizes
                    and checksums; leftovers of killed writers
@@ -13,7 +13,7 @@ read them back, and the regeneration of any stored trajectory from its provenanc
     minari.py      `write(format="minari")`: a Minari dataset instead
 """
 
-from simloader.store.format import DamagedStore
+from simloader.store.zarr_format import DamagedStore
 from simloader.store.lock import StoreLocked
 from simloader.store.reader import StoredDataset, Transitions
 from simloader.store.writer import write

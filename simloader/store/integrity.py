@@ -17,8 +17,8 @@ from typing import Any, Optional
 import numpy as np
 
 from simloader.atomic import PARTIAL
-from simloader.store.format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, DamagedStore,
-                                    file_crc, read_json)
+from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, DamagedStore,
+                                         file_crc, read_json)
 from simloader.store.shards import ArrayLayout
 
 _MAX_LISTED = 8  # files named in one message; the rest are counted

@@ -7,7 +7,7 @@ import importlib.metadata
 from typing import Any, Optional
 
 from simloader import resume
-from simloader.store.format import FORMAT
+from simloader.store.zarr_format import FORMAT
 
 
 def versions() -> dict[str, Optional[str]]:

@@ -14,7 +14,8 @@ import torch
 from simloader import sharding
 from simloader.layout import did_you_mean
 from simloader.store import integrity, order as orders
-from simloader.store.format import CHECKSUM, PROVENANCE, WRITTEN, DamagedStore, batch_key, leaves
+from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedStore,
+                                         batch_key, leaves)
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.shards import MAX_OPEN, StoredArray

@@ -25,8 +25,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from simloader.store.format import (_NO_CHUNK, _ZARR_DTYPES, DamagedStore, raw_shard_bytes,
-                                    shard_key, zstd)
+from simloader.store.zarr_format import (_NO_CHUNK, _ZARR_DTYPES, DamagedStore,
+                                         raw_shard_bytes, shard_key, zstd)
 
 # Open shards per process: each is one map or one descriptor. Small enough to stay far below
 # the common `ulimit -n` of 256 to 1024 with DataLoader workers' pipes beside it, large enough

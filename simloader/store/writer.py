@@ -16,10 +16,10 @@ import torch
 
 from simloader import sharding
 from simloader.atomic import parents, sync_directories
-from simloader.store import integrity, lock
-from simloader.store.format import (ATTRIBUTE, CHECKSUM, FORMAT, PROVENANCE, WRITTEN,
-                                    ArraySpec, checksum_spec, inside, leaves, read_json, specs_of,
-                                    store_path, write_json, write_shard, zstd)
+from simloader.store import formats, integrity, lock
+from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, PROVENANCE, WRITTEN,
+                                         ArraySpec, checksum_spec, inside, leaves, read_json,
+                                         specs_of, store_path, write_json, write_shard, zstd)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
 
@@ -179,8 +179,8 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
           num_workers: int = 0, progress: bool = True, replace: bool = False) -> str:
     """Streams `batches` batches of `dataset` into a store at `path` and returns the path.
 
-    `format="zarr"`: a zarr v3 group (see `simloader.store.format` for the layout); every
-    batch key becomes an array `batches * nbatch x ...` in its own dtype. `batches` counts
+    `format="zarr"`: a zarr v3 group (see `simloader.store.zarr_format` for the layout);
+    every batch key becomes an array `batches * nbatch x ...` in its own dtype. `batches` counts
     all ranks' batches: under torchrun each rank calls `write` with the same arguments and
     writes its own slots. `num_workers > 0` simulates and writes in DataLoader workers, each
     its own slots. At most `prefetch + 1` batches per worker are in memory.
@@ -213,12 +213,13 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
     if not isinstance(replace, bool):
         raise ValueError(f"replace: expected True or False, got {replace!r}")
     path = os.fspath(path)
-    if format == "minari":
-        from simloader.store import minari
-        return minari.write(dataset, path, batches=batches, progress=progress,
-                            metadata=provenance(dataset, batches), replace=replace)
-    if format != "zarr":
-        raise ValueError(f"format: expected 'zarr' or 'minari', got {format!r}")
+    return formats.get(format).write(dataset, path, batches=batches, num_workers=num_workers,
+                                     progress=progress, replace=replace)
+
+
+def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progress: bool,
+               replace: bool) -> str:
+    """`write(format="zarr")`, its arguments checked."""
     if any(o.rendered for o in dataset.config.observations):
         zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
     rank = sharding.distributed_rank() or (0, 1)

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from simloader import layout
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
@@ -19,11 +20,7 @@ S = mujoco.mjtState
 # The mjSTATE_FULLPHYSICS components MJX simulates. The others must be empty (checked at
 # construction), so this spec's layout is FULLPHYSICS's, column for column.
 PHYSICS = int(S.mjSTATE_TIME | S.mjSTATE_QPOS | S.mjSTATE_QVEL | S.mjSTATE_ACT)
-_UNSIMULATED = (
-    (S.mjSTATE_HISTORY, "actuator and sensor delays", "nhistory"),
-    (S.mjSTATE_PLUGIN, "plugins with state", "npluginstate"),
-    (S.mjSTATE_PLASTIC, "plasticity", "nplastic"),
-)
+_UNSIMULATED = layout.GPU_UNSIMULATED
 
 
 def put_model(model: mujoco.MjModel, device: jax.Device) -> Any:
