@@ -3,7 +3,7 @@ table of models and sizes, next to auto's choice and the rule's estimates.
 
 Rows: the built-in cart-pole (contact-free), the built-in humanoid (contacts) and the
 cart-pole with a 64x64 RGB camera (`Camera("front")`), each at nbatch 64, 1024 and 8192.
-Each engine is timed through simloader as delivered (`simloader.bench.SimloaderMeasure`:
+Each engine is timed through simloader as delivered (`simloader.tools.bench.SimloaderMeasure`:
 a warm-up pass, which compiles on MJX, then the median of `--repeats` passes of `--batches`
 batches, tensors in hand). The camera rows run fewer steps (`--camera-nstep`), since every
 step renders `nbatch` images. Also printed: each model's single-core step time and the rule's
@@ -26,7 +26,8 @@ import common
 from common import markdown_table
 
 import simloader
-from simloader import bench, sharding
+from simloader import sharding
+from simloader.tools import bench
 from simloader import backends
 from simloader.backends import auto
 from simloader.backends.contract import Job

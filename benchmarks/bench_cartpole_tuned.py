@@ -18,7 +18,7 @@ import common
 from common import markdown_table
 
 import simloader
-from simloader import bench
+from simloader.tools import bench
 
 
 def main() -> None:

@@ -36,7 +36,7 @@ from unittest import mock  # noqa: E402
 
 import common  # noqa: E402
 import simloader  # noqa: E402
-from simloader import bench  # noqa: E402
+from simloader.tools import bench  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", 8192, 1000), common.Workload("humanoid", 4096, 200)]
 QUICK = [common.Workload("cartpole", 64, 50)]

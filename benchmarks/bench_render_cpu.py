@@ -21,7 +21,7 @@ import time  # noqa: E402
 import common  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-from simloader import bench  # noqa: E402
+from simloader.tools import bench  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", 512, 50)]
 QUICK = [common.Workload("cartpole", 8, 4)]

@@ -27,7 +27,7 @@ simloader alternate in the warm runs. "Cold" means cold compilation caches: the 
 not dropped (the libraries' files are read from memory after the first child).
 
 The raw scripts import neither simloader nor this folder; they are the recipes of
-`simloader.bench` (`RawMjx`, `RawWarp`, `raw_rollout`), written out.
+`simloader.tools.bench` (`RawMjx`, `RawWarp`, `raw_rollout`), written out.
 `XLA_PYTHON_CLIENT_PREALLOCATE=false` is set for both (simloader's default) unless already set.
 
 Run on the GPU machine from the repository root:
@@ -239,7 +239,7 @@ first_s = time.perf_counter() - start
 _LAST[0] = time.perf_counter()
 if torch.cuda.is_available() and torch.cuda.is_initialized():
     # torch's stream only: a device-wide synchronize could break a CUDA graph capture of the
-    # next batch under way in simloader's producer (see simloader.bench.sync)
+    # next batch under way in simloader's producer (see simloader.tools.bench.sync)
     torch.cuda.current_stream().synchronize()
 mark("handoff")
 stats = ds.stats

@@ -121,8 +121,10 @@ def test_simulated_on_another_gpu_equals_simulating_there(backend):
 @pytest.mark.parametrize("backend", ENGINES)
 def test_split_across_two_gpus_repeats_bit_for_bit(backend):
     def run():
+        # (MJX's deterministic=True needs a process whose JAX started with XLA's deterministic
+        # ops, tested above in fresh processes; its contact-free cart-pole repeats without)
         ds = cartpole(backend, device="cuda:0", sim_device=["cuda:0", "cuda:1"],
-                      deterministic=True)
+                      deterministic=backend == "warp")
         return ds, list(ds)
     ds, a = run()
     _, b = run()

@@ -23,11 +23,7 @@ from simloader.config import SimConfig
 S = mujoco.mjtState
 # The mjSTATE_FULLPHYSICS components the engine simulates. The others must be empty (checked
 # here), so that a FULLPHYSICS row is time, qpos, qvel, act.
-_UNSIMULATED = (
-    (S.mjSTATE_HISTORY, "actuator and sensor delays", "nhistory"),
-    (S.mjSTATE_PLUGIN, "plugins with state", "npluginstate"),
-    (S.mjSTATE_PLASTIC, "plasticity", "nplastic"),
-)
+_UNSIMULATED = layout.GPU_UNSIMULATED
 # MuJoCo Warp's OverflowType bits: the solver stopping at its iteration limits (which MuJoCo C's
 # does silently) is counted; every other bit means a buffer overflowed and something (contacts,
 # constraint rows, collision detail) was dropped
