@@ -26,7 +26,7 @@ import common
 from common import markdown_table
 
 import simloader
-from simloader import sharding
+from simloader import threads
 from simloader.tools import bench
 from simloader import backends
 from simloader.backends import auto
@@ -73,7 +73,7 @@ def main() -> None:
     engines = args.engines or ["cpu", "warp", "mjx"]
     engines = [e for e in engines if not can.get(e) or (e == "mjx" and "JAX has no GPU"
                                                         in can["mjx"])]
-    cores = sharding.available_cpus()
+    cores = threads.available_cpus()
     table, records = [], []
     for name, model, record, nbatch, nstep in rows(args):
         ds = simloader.SimDataset(model, backend="auto", nbatch=nbatch, nstep=nstep,

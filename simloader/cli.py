@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 import simloader
 from simloader.store import StoreLocked, formats
-from simloader import observe, sharding
+from simloader import observe, threads
 
 DEFAULT_MODEL = "cartpole"
 # "rollout": the older spelling of "cpu", still accepted (the library warns once)
@@ -95,7 +95,7 @@ def stream_dataset(args: argparse.Namespace) -> simloader.SimDataset:
                                     initial_state=simloader.initial.Perturbed(),
                                     num_batches=args.batches, seed=args.seed,
                                     # all cores: nothing here trains alongside the simulation
-                                    nthread=sharding.available_cpus(), **record)
+                                    nthread=threads.available_cpus(), **record)
 
 
 # quickstart's batch when --nbatch is not given: a GPU is busy only from thousands of

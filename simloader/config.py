@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import controls, initial, layout, models, observe, sharding
+from simloader import controls, initial, layout, models, observe, threads
 from simloader import policy as simloader_policy
 from simloader import randomize as dr
 
@@ -34,7 +34,7 @@ class SimConfig:
         "auto" estimated).
       options: the engine's own options, resolved by `backends.check_options` (`CpuOptions`,
         `MjxOptions`, `WarpOptions`: buffer sizes, caches, and `simulated_by()`); None only
-        until they are checked.
+        inside `build_config`, and in configurations saved before engines had options.
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
@@ -327,10 +327,13 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
                  policy_noise: Any = None, deterministic: Any = False, sim_device: Any = None,
                  size_check: Callable[[str], Optional[Callable[[Any], None]]] = lambda _: None,
                  refuses_determinism: Callable[[str, mujoco.MjModel], Optional[str]] = (
-                     lambda name, model: None)
+                     lambda name, model: None),
+                 options: Optional[dict[str, Any]] = None,
+                 check_options: Callable[[SimConfig, str, dict[str, Any]], Any] = (
+                     lambda config, reason, options: None)
                  ) -> SimConfig:
-    """Validates `SimDataset`'s arguments (see its docstring) into a `SimConfig` (the
-    engine's options are validated next, by the engine).
+    """Validates `SimDataset`'s arguments (see its docstring) into a complete `SimConfig`,
+    the chosen engine's `options` validated and resolved by the engine.
 
     `choose`: the engine for the model and sizes (`backends.auto.choose` with the `backend`
     argument bound): called with a namespace of the base `model`, `nbatch`, `nstep`,
@@ -342,6 +345,8 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
     memory, for an nbatch that is refused anyway.
     `refuses_determinism`: why engine `name` cannot give bit-identical batches for a model
     (`backends.refuses_determinism`), or None.
+    `check_options`: the chosen engine's validation of the configuration and of its keyword
+    `options` (`backends.check_options`), returning the resolved options.
     With `sim_device`, one configuration per simulation device is built from the same
     arguments (each with its share of the trajectories) into `parts`."""
     nbatch = _int("nbatch", nbatch, 1)
@@ -350,7 +355,7 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
     num_batches = _int("num_batches", num_batches, 1, allow_none=True)
     seed = _int("seed", seed, 0)
     nthread = _int("nthread", nthread, 1, allow_none=True)
-    sharding.check_nthread(nthread)
+    threads.check_nthread(nthread)
     prefetch = _int("prefetch", prefetch, 1)
     if not isinstance(continue_episodes, bool):
         raise TypeError(f"continue_episodes: expected a bool, got {type(continue_episodes).__name__}")
@@ -410,8 +415,9 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
         dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch,
         torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise,
         deterministic=deterministic)
+    options = options or {}
     if simulated_on is None:
-        return config
+        return dataclasses.replace(config, options=check_options(config, choice.reason, options))
     # each part: the same arguments over its rows of the per-trajectory ones, simulated and
     # delivered on its device, the engine already chosen
     parts, start = [], 0
@@ -425,6 +431,8 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
             device=dev, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
             record_every=record_every, policy=policy, policy_noise=policy_noise,
-            deterministic=deterministic, size_check=size_check))
+            deterministic=deterministic, size_check=size_check, options=options,
+            check_options=lambda part, _reason, opts: check_options(part, choice.reason, opts)))
         start = stop
-    return dataclasses.replace(config, parts=tuple(parts))
+    # the engine's options as each part resolved them on its device (the first one's reported)
+    return dataclasses.replace(config, parts=tuple(parts), options=parts[0].options)

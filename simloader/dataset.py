@@ -10,7 +10,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import backends, layout, models, observe, resume, sharding
+from simloader import backends, identity, layout, models, observe, resume, sharding
 from simloader import policy as simloader_policy
 from simloader.backends import auto
 from simloader.backends.base import Backend, Stats
@@ -159,10 +159,9 @@ class SimDataset(torch.utils.data.IterableDataset):
             device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
             record_every=record_every, policy=policy, policy_noise=policy_noise,
             deterministic=deterministic, sim_device=sim_device,
-            size_check=backends.size_check, refuses_determinism=backends.refuses_determinism)
-        # one route for every engine option: validated by the engine (for each simulation
-        # device's part), kept in the config
-        self.config: SimConfig = backends.with_options(config, options)
+            size_check=backends.size_check, refuses_determinism=backends.refuses_determinism,
+            options=options, check_options=backends.check_options)
+        self.config: SimConfig = config
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations)
         self.source = models.source(model)  # where the model came from, for describe()
@@ -224,11 +223,11 @@ class SimDataset(torch.utils.data.IterableDataset):
         if self._progress is None:  # nothing delivered since the last load or iter()
             return self._loaded or self._pending or {
                 "version": resume.VERSION,
-                "config": resume.fingerprint(self.config),
+                "config": identity.fingerprint(self.config),
                 "shard": None, "next_index": None, "trajectories": None}
         shard, next_index, backend, produced = self._progress
         return {"version": resume.VERSION,
-                "config": resume.fingerprint(self.config),
+                "config": identity.fingerprint(self.config),
                 "shard": [shard.worker, shard.num_workers, shard.rank],
                 "next_index": next_index, "trajectories": backend.checkpoint(produced)}
 

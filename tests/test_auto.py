@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import simloader
-from simloader import backends, resume
+from simloader import backends, identity
 from simloader.backends import auto
 from simloader.backends.contract import Job
 
@@ -107,7 +107,7 @@ def probe(name, nbatch, **kwargs):
 
 def test_auto_rule_small_batches_on_the_cpu_large_ones_on_the_gpu(monkeypatch):
     everything_runs(monkeypatch)
-    monkeypatch.setattr(auto.sharding, "available_cpus", lambda: 16)
+    monkeypatch.setattr(auto.threads, "available_cpus", lambda: 16)
     for name in ("cartpole", "humanoid"):
         small = auto.choose("auto", False, probe(name, 16))
         assert small.backend == "cpu", small.reason
@@ -130,7 +130,7 @@ def test_auto_rule_never_takes_mjx_for_cameras_or_a_policy(monkeypatch):
 
 def test_a_short_stream_counts_the_engines_start_up(monkeypatch):
     everything_runs(monkeypatch)
-    monkeypatch.setattr(auto.sharding, "available_cpus", lambda: 16)
+    monkeypatch.setattr(auto.threads, "available_cpus", lambda: 16)
     # 8192 cart-poles x 100 steps: endless on MJX; two batches finish sooner on the CPU than
     # a first MJX compilation (4 s) would
     assert auto.choose("auto", False, probe("cartpole", 8192)).backend == "mjx"
@@ -173,9 +173,9 @@ def test_a_state_saved_with_the_older_names_resumes():
     assert np.array_equal(next(iter(again))["state"], expected)
     # an MJX state of before: backend "mjx" with the option impl
     saved = {"backend": "mjx", "backend_options": {"impl": "warp", "njmax": 4}}
-    assert resume.upgraded(saved) == {"backend": "warp", "backend_options": {"njmax": 4}}
+    assert identity.upgraded(saved) == {"backend": "warp", "backend_options": {"njmax": 4}}
     saved = {"backend": "mjx", "backend_options": {"impl": "jax"}}
-    assert resume.upgraded(saved) == {"backend": "mjx", "backend_options": {}}
+    assert identity.upgraded(saved) == {"backend": "mjx", "backend_options": {}}
 
 
 def test_cli_speaks_the_same_words(capsys):

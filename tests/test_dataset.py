@@ -79,9 +79,9 @@ def test_workers_with_spawn_and_split_threads():
     ds = cartpole(num_batches=2, nthread=None)
     batches = _stream(ds, num_workers=2, multiprocessing_context="spawn")
     assert len(batches) == 2
-    from simloader import sharding
+    from simloader import sharding, threads
     shard = sharding.Shard(worker=0, num_workers=2)
-    assert sharding.threads_per_worker(shard, None) == max(1, sharding.available_cpus() // 2)
+    assert threads.threads_per_worker(shard, None) == max(1, threads.available_cpus() // 2)
 
 
 def test_ranks_draw_distinct_streams(monkeypatch):

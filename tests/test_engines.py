@@ -15,7 +15,7 @@ import torch
 from mujoco import rollout
 
 import simloader
-from simloader import backends, sharding
+from simloader import backends, seeds
 from simloader import randomize as dr
 from simloader.backends import base, contract
 from simloader.backends.contract import EngineEntry, Job
@@ -55,9 +55,9 @@ class SerialBackend(base.Backend):
 
     def produce(self, index):
         c = self.config
-        x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
+        x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
         control = np.empty((c.nbatch, c.nstep, c.ncontrol))
-        c.control.sample_numpy(self.seed(index, sharding.CONTROL), control)
+        c.control.sample_numpy(self.seed(index, seeds.CONTROL), control)
         params = self.draw_models(index)
         models = []
         for i in range(c.nbatch):

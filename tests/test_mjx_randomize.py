@@ -267,7 +267,7 @@ def test_variants_drawn_as_on_the_rollout_backend_once_per_episode(variants, cac
         variant = host(batch["params"]["variant"])
         np.testing.assert_array_equal(variant[ok], first[ok])  # kept while the episode lasts
         # the diverged trajectory restarts with a fresh draw, the rollout backend's
-        seed = np.random.SeedSequence(5, spawn_key=(0, index, simloader.sharding.RANDOMIZE))
+        seed = np.random.SeedSequence(5, spawn_key=(0, index, simloader.seeds.RANDOMIZE))
         assert variant[DIVERGING] == dr.draw_variants(seed, 4, 4)[DIVERGING]
         np.testing.assert_array_equal(host(batch["diverged"]), ~ok)
     assert ds.stats["compiles"] == 1

@@ -183,7 +183,7 @@ def test_variant_pools_of_other_functions_differ():
 
 def test_fingerprint_covers_stream_changing_backend_options_only():
     import dataclasses
-    from simloader import resume
+    from simloader import identity, resume
 
     @dataclasses.dataclass(frozen=True)
     class Options:  # as an engine resolves its options (MJX's and Warp's together)
@@ -193,7 +193,7 @@ def test_fingerprint_covers_stream_changing_backend_options_only():
 
     config = configured().config
     state = {"version": resume.VERSION,
-             "config": resume.fingerprint(dataclasses.replace(config, options=Options(8)))}
+             "config": identity.fingerprint(dataclasses.replace(config, options=Options(8)))}
     # where JAX caches and how much memory it takes, or why an engine was chosen: same stream
     resume.check(dataclasses.replace(config, options=Options(8, "/b", 0.5),
                                      backend_reason="auto: ..."), state)

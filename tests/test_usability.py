@@ -95,22 +95,22 @@ def test_the_default_thread_split_needs_no_warning(monkeypatch):
     # (2 cores: 2 + 2 threads made a CPU training loop 1.3x slower than 2 + 1): by default
     # the simulation takes half the cores when training may run on the CPU, all of them when
     # batches go to a GPU; nothing is said about a default
-    from simloader import sharding
-    monkeypatch.setattr(sharding, "available_cpus", lambda: 2)
+    from simloader import sharding, threads
+    monkeypatch.setattr(threads, "available_cpus", lambda: 2)
     shard = sharding.Shard()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert sharding.threads_per_worker(shard, None, torch_threads=2) == 1
-        assert sharding.threads_per_worker(shard, None, torch_threads=2,
+        assert threads.threads_per_worker(shard, None, torch_threads=2) == 1
+        assert threads.threads_per_worker(shard, None, torch_threads=2,
                                            trains_on_cpu=False) == 2
-        assert sharding.threads_per_worker(shard, None, torch_threads=1) == 2
-        assert sharding.threads_per_worker(shard, 1, torch_threads=2) == 1
+        assert threads.threads_per_worker(shard, None, torch_threads=1) == 2
+        assert threads.threads_per_worker(shard, 1, torch_threads=2) == 1
         simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=2)
 
 
 def test_an_nthread_beyond_the_cores_is_said_at_the_users_line(monkeypatch):
-    from simloader import sharding
-    monkeypatch.setattr(sharding, "available_cpus", lambda: 2)
+    from simloader import threads
+    monkeypatch.setattr(threads, "available_cpus", lambda: 2)
     with pytest.warns(RuntimeWarning, match="nthread=3 asks for more simulation threads than "
                                             "the 2 cores") as seen:
         simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=2, nthread=3)

@@ -13,7 +13,6 @@ working and warn once with the new one (`spelled`).
 
 from __future__ import annotations
 
-import dataclasses
 import glob
 import importlib
 import warnings
@@ -176,24 +175,10 @@ def refuses_determinism(name: str, model: Any) -> Optional[str]:
     return engine(name).refuses_determinism(model)
 
 
-def with_options(config: SimConfig, options: dict[str, Any]) -> SimConfig:
-    """`config` with its engine's options validated and resolved (`check_options`), for
-    each simulation device's part when the batch is split (`SimConfig.parts`; the whole
-    reports the first part's)."""
-    if config.parts is None:
-        return dataclasses.replace(
-            config, options=check_options(config, config.backend_reason, options))
-    parts = tuple(dataclasses.replace(p, options=check_options(p, config.backend_reason,
-                                                                options))
-                  for p in config.parts)
-    return dataclasses.replace(config, parts=parts, options=parts[0].options)
-
-
 def create(config: SimConfig, shard: sharding.Shard, stats: Stats) -> Backend:
     """The engine of `config` for one shard (simulating on other devices than it delivers
     to: `split.SplitBackend`)."""
     if config.parts is not None:
         from simloader.backends.split import SplitBackend
-        return SplitBackend(config, shard, stats,
-                            lambda part, sh, st: engine(part.backend).create(part, sh, st))
+        return SplitBackend(config, shard, stats, engine(config.backend).create)
     return engine(config.backend).create(config, shard, stats)

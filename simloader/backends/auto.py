@@ -34,7 +34,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from simloader import backends, observe, resume, sharding
+from simloader import backends, identity, observe, threads
 from simloader.backends.contract import Job
 
 
@@ -64,7 +64,7 @@ def cpu_step_seconds(model: mujoco.MjModel, budget_s: float = 0.02) -> float:
     """This model's `mj_step` time on one core: the best of a few timed runs from its
     default state with zero controls, within about `budget_s` seconds."""
     # by the model's digest (its saved bytes): a cache by object id would outlive the model
-    key = resume.model_digest(model)
+    key = identity.model_digest(model)
     if key not in _STEP_SECONDS:
         _STEP_SECONDS[key] = _time_steps(model, budget_s)
     return _STEP_SECONDS[key]
@@ -132,7 +132,7 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
     if len(running) == 1:
         said = "; ".join(f"{n}: {w}" for n, w in why.items() if w)
         return Choice(running[0], f"auto: the only engine that runs here ({said})")
-    cores = sharding.available_cpus()
+    cores = threads.available_cpus()
     steps = (None if probe.num_batches is None else
              probe.nbatch * probe.nstep * probe.num_batches)
     job = Job(step_s=cpu_step_seconds(probe.model), nbatch=probe.nbatch,

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from simloader import randomize as dr
-from simloader import sharding
+from simloader import seeds, sharding
 from simloader.config import SimConfig
 
 
@@ -88,14 +88,14 @@ class Backend(abc.ABC):
         self.stats = stats
 
     def seed(self, index: int, purpose: int) -> np.random.SeedSequence:
-        return sharding.batch_seed(self.config.seed, self.shard, index, purpose)
+        return seeds.batch_seed(self.config.seed, self.shard, index, purpose)
 
     def draw_models(self, index: int) -> dict[str, np.ndarray]:
         """Batch `index`'s host draws of what each trajectory runs on: its variant
         ("variant", (nbatch,)) and its randomized values ({key: (nbatch, ...)}), from the
         batch's randomization seed; the engines that draw these on the host draw them here."""
         c = self.config
-        seed = self.seed(index, sharding.RANDOMIZE)
+        seed = self.seed(index, seeds.RANDOMIZE)
         drawn = {}
         if c.variants is not None:
             drawn["variant"] = dr.draw_variants(seed, len(c.variants), c.nbatch)

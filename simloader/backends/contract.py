@@ -84,7 +84,7 @@ class Engine(Protocol):
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
         """Validates the configuration and its options at construction; returns its resolved
         options (a frozen dataclass with `simulated_by() -> str`; its compared fields enter
-        the resume fingerprint)."""
+        the configuration's identity, `identity.fingerprint`)."""
 
     def create(self, config: Any, shard: Any, stats: Any) -> Any:
         """Its `Backend` (`backends.base`) for one shard, in the process that iterates."""

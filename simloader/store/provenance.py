@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.metadata
 from typing import Any, Optional
 
-from simloader import resume
+from simloader import identity
 from simloader.store.zarr_format import FORMAT
 
 
@@ -28,9 +28,9 @@ SIMULATING = ("simloader", "mujoco", "mujoco-mjx", "jax", "mujoco-warp", "warp-l
 
 
 def fingerprint(dataset: Any) -> dict:
-    """What must match to append to a store or regenerate from it: the resume fingerprint
+    """What must match to append to a store or regenerate from it: the configuration's identity
     without `num_batches` (the store's size is `batches`)."""
-    out = dict(resume.fingerprint(dataset.config))
+    out = dict(identity.fingerprint(dataset.config))
     out.pop("num_batches")
     return out
 
@@ -38,8 +38,8 @@ def fingerprint(dataset: Any) -> dict:
 def differences(stored: dict, mine: dict) -> list[str]:
     """What differs between a store's fingerprint and a dataset's, each setting named (down
     to the field of a nested one), as the resume check names them."""
-    return [f"{k}: stored {resume.short(there)}, given {resume.short(here)}"
-            for k, here, there in resume.differences(mine, resume.upgraded(stored))]
+    return [f"{k}: stored {identity.short(there)}, given {identity.short(here)}"
+            for k, here, there in identity.differences(mine, identity.upgraded(stored))]
 
 
 def provenance(dataset: Any, batches: int) -> dict:

@@ -5,8 +5,8 @@ tensorstore). Every batch key is an array `ntrajectories x ...` (the batch's own
 shape and dtype; `params` keys under `params/`, camera images under `camera/NAME/`), and
 `provenance/` holds, per trajectory, the rank, batch index and row that address it in the
 seeded stream, and per batch slot whether it is complete (`provenance/written`). The root's
-attribute `simloader` holds the configuration (the resume fingerprint and the dataset's
-description), the seed and the library versions.
+attribute `simloader` holds the configuration (its identity, `identity.fingerprint`, and the
+dataset's description), the seed and the library versions.
 
 Layout, chosen for writers that never coordinate and readers that never decode twice:
 
@@ -47,7 +47,7 @@ from urllib.parse import unquote
 import numpy as np
 import torch
 
-from simloader import sharding
+from simloader import threads
 from simloader.atomic import atomic_write, parents
 
 FORMAT = 1  # of the `simloader` attribute and the layout below it
@@ -262,7 +262,7 @@ def _encoders():
     global _POOL
     if _POOL is None or _POOL[0] != os.getpid():
         from concurrent.futures import ThreadPoolExecutor
-        _POOL = (os.getpid(), ThreadPoolExecutor(sharding.available_cpus(),
+        _POOL = (os.getpid(), ThreadPoolExecutor(threads.available_cpus(),
                                                  thread_name_prefix="simloader-zstd"))
     return _POOL[1]
 

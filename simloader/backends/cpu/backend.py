@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, mujoco_warnings, resume, sharding
+from simloader import controls, handoff, layout, mujoco_warnings, resume, seeds, threads
 from simloader import randomize as dr
 from simloader.backends.cpu import drivers
 from simloader.backends.cpu import render as cpu_render
@@ -53,7 +53,7 @@ class RolloutBackend(Backend):
     def __init__(self, config, shard, stats):
         super().__init__(config, shard, stats)
         c = config
-        self.nthread = sharding.threads_per_worker(
+        self.nthread = threads.threads_per_worker(
             shard, c.nthread, c.torch_threads,
             trains_on_cpu=c.device is None or c.device.type == "cpu")
         self.batch = mj_batch.Batch(c.model, c.nbatch, nthread=self.nthread)
@@ -95,7 +95,7 @@ class RolloutBackend(Backend):
         rows = self.batch.state
         initial_t, initial = handoff.host_buffer((c.nbatch, c.nstate), pin=self.pin)
         if self.fresh.any():
-            x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
+            x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
             fresh = np.flatnonzero(self.fresh)
             self._randomize(index, fresh)
             rows[fresh] = self.per_trajectory(self.reset_rows)[fresh]

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, policy, rules, sharding
+from simloader import controls, handoff, layout, policy, rules, seeds
 from simloader.backends import policy_loop
 
 # run(out) -> (bad, extras): simulates the batch into `out` ({source: (nbatch, nframes, ...)});
@@ -37,7 +37,7 @@ class OpenLoop:
         if c.control.fixed is not None:
             control[...] = c.control.fixed
         elif c.control.random:
-            c.control.sample_numpy(b.seed(index, sharding.CONTROL), control,
+            c.control.sample_numpy(b.seed(index, seeds.CONTROL), control,
                                    b.per_trajectory(b.control_defaults))
         else:
             # control=None: the inputs stay as mj_resetData left them (in the rows), for every
@@ -118,7 +118,7 @@ class ClosedLoop:
         noise = None
         if c.policy_noise is not None:
             noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
-            c.policy_noise.sample_numpy(backend.seed(index, sharding.CONTROL), noise,
+            c.policy_noise.sample_numpy(backend.seed(index, seeds.CONTROL), noise,
                                         c.policy_noise.default_rows)
         bad = np.zeros(c.nbatch, dtype=bool)
 

@@ -28,7 +28,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import handoff, layout, observe, resume, sharding
+from simloader import handoff, layout, observe, resume, seeds, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
@@ -164,13 +164,13 @@ class MjxBackend(Backend):
         """The batch function's arguments for batch `index` (`program.batch_function`)."""
         c, p = self.config, self.program
         x0 = p.x0 if p.x0 is not None else c.initial.sample(
-            self.seed(index, sharding.INITIAL), c.nbatch).astype(p.dtype)
-        randomize_seed = self.seed(index, sharding.RANDOMIZE)
-        seeds = np.stack([self.seed(index, sharding.CONTROL).generate_state(2, np.uint32),
-                          randomize_seed.generate_state(2, np.uint32)])
+            self.seed(index, seeds.INITIAL), c.nbatch).astype(p.dtype)
+        randomize_seed = self.seed(index, seeds.RANDOMIZE)
+        keys = np.stack([self.seed(index, seeds.CONTROL).generate_state(2, np.uint32),
+                         randomize_seed.generate_state(2, np.uint32)])
         variant = None if c.variants is None else dr.draw_variants(
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
-        return BatchArgs(p.model, p.data0, p.inputs0, x0, p.control, p.bounds, seeds, variant,
+        return BatchArgs(p.model, p.data0, p.inputs0, x0, p.control, p.bounds, keys, variant,
                          self.carry, self.restart)
 
     def produce(self, index: int) -> _Produced:

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import controls, observe, resume, rules
+from simloader import controls, identity, observe, rules
 from simloader.backends.base import Stats, progress_line
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import stored_program
@@ -361,7 +361,7 @@ class Program:
             return self.simulate(*jax.tree.unflatten(tree, leaves))
 
         c = self.config
-        digest = f"{self.device.platform}:{resume.model_digest(c.model)}"
+        digest = f"{self.device.platform}:{identity.model_digest(c.model)}"
         estimate = None if self.store is None else self.store.last_compile_s(digest)
         start = time.perf_counter()
         with progress_line(f"tracing and compiling the batch function ({c.nbatch} x "

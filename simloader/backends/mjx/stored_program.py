@@ -11,7 +11,7 @@ and a later process whose key is the same loads it and compiles it, which JAX's 
 cache answers, without tracing. `compilation_cache=False` turns this off with JAX's cache.
 
 The key is a SHA-256 of everything the traced program is made from:
-- the configuration's fingerprint (`resume.fingerprint`: models by the digest of their saved
+- the configuration's fingerprint (`identity.fingerprint`: models by the digest of their saved
   binary, control generators and their parameters, records, initial states, randomization,
   backend options, dtype) without what enters the function as an argument (seed,
   num_batches);
@@ -39,7 +39,7 @@ from typing import Any, Optional
 
 import jax
 
-from simloader import resume
+from simloader import identity
 from simloader.atomic import atomic_write
 
 FOLDER = "simloader-programs"
@@ -71,8 +71,8 @@ def _version(name: str) -> Optional[str]:
 def key(config: Any, device: jax.Device, leaves: Sequence[Any]) -> str:
     """The key of the program of `config` on `device` called with `leaves` (the flattened
     arguments): equal only if everything the program is traced from is equal."""
-    fingerprint = {k: v for k, v in resume.fingerprint(config).items() if k not in _ARGUMENTS}
-    identity = {
+    fingerprint = {k: v for k, v in identity.fingerprint(config).items() if k not in _ARGUMENTS}
+    traced_from = {
         "fingerprint": fingerprint,
         "arguments": [[list(leaf.shape), str(leaf.dtype)] for leaf in leaves],
         "platform": device.platform, "device_kind": device.device_kind,
@@ -81,7 +81,7 @@ def key(config: Any, device: jax.Device, leaves: Sequence[Any]) -> str:
                                                        "mujoco-mjx", "simloader")},
         "source": source_digest(),
     }
-    text = json.dumps(identity, sort_keys=True, default=str)
+    text = json.dumps(traced_from, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

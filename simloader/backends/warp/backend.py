@@ -24,7 +24,7 @@ import torch
 
 import mujoco
 
-from simloader import handoff, layout, policy, resume, sharding
+from simloader import handoff, layout, policy, resume, seeds, sharding
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
 from simloader.backends.warp import runtime
@@ -132,7 +132,7 @@ class WarpBackend(Backend):
         # on the engine's stream, they are ordered before the reset that reads them (on the
         # producer's own stream, the legacy default one that the consumer trains on, the
         # reset could read them before they arrived)
-        x0 = c.initial.sample(self.seed(index, sharding.INITIAL), c.nbatch)
+        x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
         drawn = self.draw_models(index)
         # the weights this batch runs with, one version of them (a copy taken now)
         weights = self.snapshot.take() if self.snapshot is not None else None

@@ -18,7 +18,7 @@ from typing import Any, Optional
 
 import torch
 
-from simloader import controls, sharding
+from simloader import controls, seeds
 from simloader.backends import policy_loop
 
 
@@ -68,7 +68,7 @@ class OpenLoop:
         defaults = backend.per_trajectory(tables.control_defaults)[:, None]
         self.controls.copy_(defaults.expand(self.controls.shape))
         if c.control.random:
-            c.control.sample_torch(backend.seed(index, sharding.CONTROL), self.controls,
+            c.control.sample_torch(backend.seed(index, seeds.CONTROL), self.controls,
                                    tables.control_params)
 
     def run(self, backend: Any, taken: Any) -> dict[str, torch.Tensor]:
@@ -124,7 +124,7 @@ class ClosedLoop:
             self.engine.stream.wait_stream(torch.cuda.default_stream(backend.device))
         if self.noise is not None:
             self.noise.zero_()
-            c.policy_noise.sample_torch(backend.seed(index, sharding.CONTROL), self.noise,
+            c.policy_noise.sample_torch(backend.seed(index, seeds.CONTROL), self.noise,
                                         backend.tables.noise_params)
 
     def run(self, backend: Any, taken: tuple[Any, int]) -> dict[str, torch.Tensor]:
