@@ -48,29 +48,6 @@ class _Produced:
         self.rows_after, self.ready, self.dispatched = rows_after, ready, dispatched
 
 
-class _Tables:
-    """Per-model host tables on the device, (nmodels, ...) each, gathered per batch by each
-    trajectory's model: reset rows (mjSTATE_INTEGRATION as mj_resetData leaves them), undriven
-    control columns, clamp bounds, and with variants the initial states from the model."""
-
-    def __init__(self, config: SimConfig, device: torch.device):
-        c = config
-        f32 = dict(dtype=torch.float32, device=device)
-        tables = c.model_tables(layout.INTEGRATION)
-        self.reset_rows = torch.as_tensor(tables.reset_rows, **f32)
-        self.control_defaults = torch.as_tensor(tables.control_defaults, **f32)
-        self.low, self.high = (torch.as_tensor(b, **f32) for b in (tables.low, tables.high))
-        self.variant_states = (None if tables.variant_states is None else
-                               torch.as_tensor(tables.variant_states, **f32))
-        self.physics_cols = torch.as_tensor(layout.component_columns(
-            c.model, layout.INTEGRATION, layout.FULLPHYSICS), device=device)
-        # the generators' parameters, for draws on the device
-        self.control_params = c.control.torch_params(self.reset_rows)
-        self.noise_params = (c.policy_noise.torch_params(self.reset_rows)
-                             if c.policy_noise is not None else [])
-        self.clamped = torch.as_tensor(c.model.actuator_ctrllimited.astype(bool), device=device)
-
-
 class WarpBackend(Backend):
     """`backend="warp"`.
 
@@ -93,8 +70,7 @@ class WarpBackend(Backend):
                 self.engine = engines[self.device] = Engine(
                     config, options, self.device,
                     on_capture=lambda: stats.add(graph_captures=1))
-            self.engine.tables = _Tables(config, self.device)
-        self.tables: _Tables = self.engine.tables
+        self.tables = self.engine.tables
         n = config.nbatch
         self.restart: Optional[torch.Tensor] = None  # continuing: rows that start afresh
         self.model_index = (torch.arange(n, device=self.device) if config.models is not None

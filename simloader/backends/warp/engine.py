@@ -63,6 +63,29 @@ def _release_all() -> None:
         torch.cuda.ipc_collect()
 
 
+class DeviceTables:
+    """Per-model host tables on the device, (nmodels, ...) each, gathered per batch by each
+    trajectory's model: reset rows (mjSTATE_INTEGRATION as mj_resetData leaves them), undriven
+    control columns, clamp bounds, and with variants the initial states from the model."""
+
+    def __init__(self, config: Any, device: torch.device):
+        c = config
+        f32 = dict(dtype=torch.float32, device=device)
+        tables = c.model_tables(layout.INTEGRATION)
+        self.reset_rows = torch.as_tensor(tables.reset_rows, **f32)
+        self.control_defaults = torch.as_tensor(tables.control_defaults, **f32)
+        self.low, self.high = (torch.as_tensor(b, **f32) for b in (tables.low, tables.high))
+        self.variant_states = (None if tables.variant_states is None else
+                               torch.as_tensor(tables.variant_states, **f32))
+        self.physics_cols = torch.as_tensor(layout.component_columns(
+            c.model, layout.INTEGRATION, layout.FULLPHYSICS), device=device)
+        # the generators' parameters, for draws on the device
+        self.control_params = c.control.torch_params(self.reset_rows)
+        self.noise_params = (c.policy_noise.torch_params(self.reset_rows)
+                             if c.policy_noise is not None else [])
+        self.clamped = torch.as_tensor(c.model.actuator_ctrllimited.astype(bool), device=device)
+
+
 class Engine:
     """MuJoCo Warp's model and data for `config`, built (and its step graph captured) once.
 
@@ -132,6 +155,8 @@ class Engine:
                 self.graph = self._capture()
                 if on_capture is not None:
                     on_capture()
+            # per-model tables every batch gathers from, on the device once
+            self.tables = DeviceTables(config, device)
         _LIVE.add(self)
         if self.gpu:
             _LIVE_GPU.append(True)
