@@ -178,7 +178,8 @@ def refuses_determinism(name: str, model: Any) -> Optional[str]:
 def create(config: SimConfig, shard: sharding.Shard, stats: Stats) -> Backend:
     """The engine of `config` for one shard (simulating on other devices than it delivers
     to: `split.SplitBackend`)."""
+    make = engine(config.backend).create
     if config.parts is not None:
         from simloader.backends.split import SplitBackend
-        return SplitBackend(config, shard, stats, engine(config.backend).create)
-    return engine(config.backend).create(config, shard, stats)
+        return SplitBackend(config, shard, stats, make)
+    return make(config, shard, stats)
