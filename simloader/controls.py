@@ -24,7 +24,7 @@ from typing import Any, Optional, Union
 import mujoco
 import numpy as np
 
-from simloader import layout
+from simloader import draws, layout
 from simloader.rules import MAXVAL
 
 Names = Optional[Union[str, Sequence[str]]]
@@ -34,11 +34,13 @@ class Generator(abc.ABC):
     """Base class of control generators.
 
     Subclasses are frozen dataclasses with an `on` field and implement `params` (per-column
-    parameters, computed once on the host), `sample_numpy` and `sample_jax` (one draw of shape
-    `(nbatch, nstep, ncolumns)` for the columns they drive).
+    parameters, computed once on the host) and `sample` (one draw of shape
+    `(nbatch, nstep, ncolumns)` for the columns they drive), written once over a
+    `simloader.draws` array library: NumPy for the CPU engine, JAX for MJX, torch for Warp.
     """
 
     on: Names
+    draws: int = 1  # random draws per sample (JAX splits its key into as many)
 
     @abc.abstractmethod
     def params(self, model: mujoco.MjModel, component: layout.Component,
@@ -49,19 +51,11 @@ class Generator(abc.ABC):
         """Validates the draw shape (nbatch, nstep, ncolumns) at construction (ValueError)."""
 
     @abc.abstractmethod
-    def sample_numpy(self, rng: np.random.Generator, params: dict[str, np.ndarray],
-                     shape: tuple[int, int, int]) -> np.ndarray:
-        """A float64 draw of `shape` = (nbatch, nstep, ncolumns)."""
-
-    @abc.abstractmethod
-    def sample_jax(self, key: Any, params: dict[str, Any], shape: tuple[int, int, int]) -> Any:
-        """The same distribution with `jax.random`, in the given float dtype of `params`."""
-
-    @abc.abstractmethod
-    def sample_torch(self, generator: Any, params: dict[str, Any],
-                     shape: tuple[int, int, int]) -> Any:
-        """The same distribution with torch's `generator`, on its device, in the dtype and on
-        the device of `params` (torch tensors): the Warp engine draws on the GPU."""
+    def sample(self, d: Any, params: dict[str, Any], shape: tuple[int, int, int]) -> Any:
+        """A draw of `shape` = (nbatch, nstep, ncolumns) with `d` (a `simloader.draws`
+        library and its random state), in the dtype (and on the device) of `params`, arrays
+        of that library: float64 NumPy on the host, JAX in the jitted batch, torch on the
+        Warp engine's GPU."""
 
 
 def _per_column(value: Any, component: layout.Component, columns: np.ndarray,
@@ -117,16 +111,8 @@ class Uniform(Generator):
             raise ValueError(f"Uniform: expected finite low <= high, got low={low}, high={high}")
         return {"low": low, "high": high}
 
-    def sample_numpy(self, rng, params, shape):
-        return rng.uniform(params["low"], params["high"], size=shape)
-
-    def sample_jax(self, key, params, shape):
-        import jax
-        low, high = params["low"], params["high"]
-        return jax.random.uniform(key, shape, dtype=low.dtype, minval=low, maxval=high)
-
-    def sample_torch(self, generator, params, shape):
-        return _uniform_torch(generator, params["low"], params["high"], shape)
+    def sample(self, d, params, shape):
+        return d.uniform(params["low"], params["high"], shape)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -151,39 +137,19 @@ class Normal(Generator):
     def params(self, model, component, columns):
         return _gaussian_params(self, model, component, columns)
 
-    def sample_numpy(self, rng, params, shape):
-        out = rng.standard_normal(size=shape)
-        out *= params["std"]
-        out += params["mean"]
-        return np.clip(out, params["low"], params["high"], out=out)
-
-    def sample_jax(self, key, params, shape):
-        import jax
-        import jax.numpy as jnp
-        out = params["mean"] + params["std"] * jax.random.normal(key, shape, params["std"].dtype)
-        return jnp.clip(out, params["low"], params["high"])
-
-    def sample_torch(self, generator, params, shape):
-        import torch
-        std = params["std"]
-        out = torch.randn(shape, generator=generator, dtype=std.dtype, device=std.device)
-        out.mul_(std).add_(params["mean"])
-        return torch.clamp(out, params["low"], params["high"])
+    def sample(self, d, params, shape):
+        out = d.normal(shape, params["std"]) * params["std"] + params["mean"]
+        return d.clip(out, params["low"], params["high"])
 
 
 class _Given(Generator):
     """Values given before the batch (`params()["value"]`, shaped to broadcast to
-    (nbatch, nstep, ncolumns)): each sampler only broadcasts them, in its array module."""
+    (nbatch, nstep, ncolumns)): a sample only broadcasts them."""
 
-    def sample_numpy(self, rng, params, shape):
-        return np.broadcast_to(params["value"], shape)
+    draws = 0
 
-    def sample_jax(self, key, params, shape):
-        import jax.numpy as jnp
-        return jnp.broadcast_to(params["value"], shape)
-
-    def sample_torch(self, generator, params, shape):
-        return params["value"].expand(shape)
+    def sample(self, d, params, shape):
+        return d.broadcast(params["value"], shape)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,41 +221,13 @@ class OrnsteinUhlenbeck(Generator):
         a = np.exp(-model.opt.timestep / _positive("OrnsteinUhlenbeck.tau", self.tau))
         return {**_gaussian_params(self, model, component, columns), "a": np.asarray(a)}
 
-    def sample_numpy(self, rng, params, shape):
-        a, std = float(params["a"]), params["std"]
-        out = rng.standard_normal(size=shape)
-        out[:, 1:] *= std * np.sqrt(1.0 - a * a)
-        out[:, 0] *= std
-        for t in range(1, shape[1]):  # a linear recurrence in time, vectorized over the batch
-            out[:, t] += a * out[:, t - 1]
-        out += params["mean"]
-        return np.clip(out, params["low"], params["high"], out=out)
-
-    def sample_jax(self, key, params, shape):
-        import jax
-        import jax.numpy as jnp
-        a, std = params["a"], params["std"]
-        eps = jax.random.normal(key, shape, std.dtype)
-        x0 = eps[:, 0] * std
-
-        def step(x, e):
-            x = a * x + std * jnp.sqrt(1.0 - a * a) * e
-            return x, x
-
-        _, rest = jax.lax.scan(step, x0, jnp.swapaxes(eps[:, 1:], 0, 1))
-        out = jnp.concatenate([x0[:, None], jnp.swapaxes(rest, 0, 1)], axis=1)
-        return jnp.clip(out + params["mean"], params["low"], params["high"])
-
-    def sample_torch(self, generator, params, shape):
-        import torch
-        a, std = float(params["a"]), params["std"]
-        out = torch.randn(shape, generator=generator, dtype=std.dtype, device=std.device)
-        out[:, 1:] *= std * (1.0 - a * a) ** 0.5
-        out[:, 0] *= std
-        for t in range(1, shape[1]):  # the recurrence in time, vectorized over the batch
-            out[:, t].add_(out[:, t - 1], alpha=a)
-        out += params["mean"]
-        return torch.clamp(out, params["low"], params["high"])
+    def sample(self, d, params, shape):
+        a, std = d.scalar(params["a"]), params["std"]
+        eps = d.normal(shape, std)
+        # x[0] = std eps[0]; x[t] = a x[t - 1] + std sqrt(1 - a^2) eps[t]
+        x = d.concat_time(eps[:, 0] * std, eps[:, 1:] * (std * d.sqrt(1.0 - a * a)))
+        return d.clip(d.linear_recurrence(x, a) + params["mean"], params["low"],
+                      params["high"])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -313,24 +251,10 @@ class PiecewiseConstant(Generator):
                              f"{self.hold!r}")
         return Uniform(self.low, self.high, self.on).params(model, component, columns)
 
-    def sample_numpy(self, rng, params, shape):
+    def sample(self, d, params, shape):
         n, t, k = shape
-        held = rng.uniform(params["low"], params["high"], size=(n, -(-t // self.hold), k))
-        return np.repeat(held, self.hold, axis=1)[:, :t]
-
-    def sample_jax(self, key, params, shape):
-        import jax
-        import jax.numpy as jnp
-        n, t, k = shape
-        held = jax.random.uniform(key, (n, -(-t // self.hold), k), params["low"].dtype,
-                                  params["low"], params["high"])
-        return jnp.repeat(held, self.hold, axis=1)[:, :t]
-
-    def sample_torch(self, generator, params, shape):
-        n, t, k = shape
-        held = _uniform_torch(generator, params["low"], params["high"],
-                              (n, -(-t // self.hold), k))
-        return held.repeat_interleave(self.hold, dim=1)[:, :t]
+        held = d.uniform(params["low"], params["high"], (n, -(-t // self.hold), k))
+        return d.repeat(held, self.hold, axis=1)[:, :t]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -365,38 +289,20 @@ class Sinusoid(Generator):
                 "f_low": np.asarray(float(low_f)), "f_high": np.asarray(float(high_f)),
                 "chirp_to": np.asarray(chirp), "dt": np.asarray(model.opt.timestep)}
 
-    def _wave(self, xp, params, f0, phase, nstep):
-        t = _arange(xp, nstep, f0)[None, :, None] * params["dt"]
+    draws = 2  # a frequency and a phase
+
+    def sample(self, d, params, shape):
+        n, nstep, k = shape
+        like = params["amplitude"]
+        f0 = d.uniform(params["f_low"], params["f_high"], (n, 1, k), like)
+        phase = d.uniform(0.0, 2 * np.pi, (n, 1, k), like)
+        t = d.arange(nstep, f0)[None, :, None] * params["dt"]
         if self.chirp_to is None:
             angle = 2 * np.pi * f0 * t
         else:  # instantaneous frequency f0 + (f1 - f0) t / T
             duration = nstep * params["dt"]
             angle = 2 * np.pi * (f0 * t + (params["chirp_to"] - f0) * t * t / (2 * duration))
-        return params["offset"] + params["amplitude"] * xp.sin(angle + phase)
-
-    def sample_numpy(self, rng, params, shape):
-        n, t, k = shape
-        f0 = rng.uniform(params["f_low"], params["f_high"], size=(n, 1, k))
-        phase = rng.uniform(0, 2 * np.pi, size=(n, 1, k))
-        return self._wave(np, params, f0, phase, t)
-
-    def sample_jax(self, key, params, shape):
-        import jax
-        import jax.numpy as jnp
-        n, t, k = shape
-        kf, kp = jax.random.split(key)
-        dtype = params["amplitude"].dtype
-        f0 = jax.random.uniform(kf, (n, 1, k), dtype, params["f_low"], params["f_high"])
-        phase = jax.random.uniform(kp, (n, 1, k), dtype, 0, 2 * np.pi)
-        return self._wave(jnp, params, f0, phase, t)
-
-    def sample_torch(self, generator, params, shape):
-        import torch
-        n, t, k = shape
-        f0 = _uniform_torch(generator, params["f_low"], params["f_high"], (n, 1, k))
-        zero = torch.zeros_like(params["f_low"])
-        phase = _uniform_torch(generator, zero, zero + 2 * np.pi, (n, 1, k))
-        return self._wave(torch, params, f0, phase, t)
+        return params["offset"] + params["amplitude"] * d.xp.sin(angle + phase)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -425,21 +331,6 @@ class FromArray(_Given):
         except ValueError:
             raise ValueError(f"FromArray.values: shape {np.shape(self.values)} does not "
                              f"broadcast to (nbatch, nstep, ncolumns) = {shape}") from None
-
-
-def _uniform_torch(generator: Any, low: Any, high: Any, shape: tuple[int, ...]) -> Any:
-    """Uniform in [low, high) (torch tensors or numbers broadcasting to `shape`) with torch's
-    `generator`, in the dtype and on the device of `low`."""
-    import torch
-    out = torch.rand(shape, generator=generator, dtype=low.dtype, device=low.device)
-    return out.mul_(high - low).add_(low)
-
-
-def _arange(xp: Any, n: int, like: Any) -> Any:
-    """`0, 1, ..., n - 1` in `like`'s dtype (and, for torch, on its device)."""
-    if getattr(xp, "__name__", "") == "torch":
-        return xp.arange(n, dtype=like.dtype, device=like.device)
-    return xp.arange(n, dtype=like.dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -522,8 +413,8 @@ class ControlPlan:
         if driven < self.ncontrol:
             out[...] = (self.default_rows if defaults is None else defaults)[:, None, :]
         for driver, child in zip(self.drivers, seed.spawn(len(self.drivers))):
-            rng = np.random.default_rng(child)
-            draw = driver.generator.sample_numpy(rng, driver.params, (*shape, len(driver.columns)))
+            d = draws.NumpyDraws(np.random.default_rng(child))
+            draw = driver.generator.sample(d, driver.params, (*shape, len(driver.columns)))
             if len(self.drivers) == 1 and driven == self.ncontrol:
                 out[...] = draw
             else:
@@ -545,8 +436,8 @@ class ControlPlan:
         for driver, p, child in zip(self.drivers, params, seed.spawn(len(self.drivers))):
             generator = torch.Generator(out.device)
             generator.manual_seed(int(child.generate_state(1, np.uint64)[0] >> 1))
-            draw = driver.generator.sample_torch(generator, p, (*out.shape[:2],
-                                                                len(driver.columns)))
+            draw = driver.generator.sample(draws.TorchDraws(generator), p,
+                                           (*out.shape[:2], len(driver.columns)))
             out[..., torch.as_tensor(driver.columns, device=out.device)] = draw
 
 
@@ -561,7 +452,8 @@ def sample_jax(drivers: Sequence[Driver], defaults: Any, key: Any, shape: tuple[
     control = jnp.broadcast_to(defaults[:, None, :], shape)
     for driver, k in zip(drivers, jax.random.split(key, len(drivers))):
         params = {name: jnp.asarray(v, dtype) for name, v in driver.params.items()}
-        sample = driver.generator.sample_jax(k, params, (*shape[:2], len(driver.columns)))
+        d = draws.JaxDraws(k, driver.generator.draws)
+        sample = driver.generator.sample(d, params, (*shape[:2], len(driver.columns)))
         control = control.at[..., driver.columns].set(sample.astype(dtype))
     return control
 

@@ -15,10 +15,11 @@ One line per randomized parameter, objects addressed by name:
 Values are drawn fresh for every batch (with `continue_episodes`, once per episode). `set`
 replaces the model's value, `scale` multiplies it, `add` adds to it. Fields that MuJoCo derives
 constants from (`mj_setConst` inputs such as body masses and inertias, and `opt.*`) have those
-constants recomputed per trajectory. The CPU backend draws with NumPy (`sample`) and randomizes
-any floating-point field; the MJX backend draws with `jax.random` inside its jitted function
-(`sample_jax`: same distributions, other numbers) and randomizes the fields listed in
-`simloader.backends.mjx.randomize`.
+constants recomputed per trajectory. Each distribution is written once over a
+`simloader.draws` library (`draw`): the CPU engine draws with NumPy (`RandomizationPlan.sample`)
+and randomizes any floating-point field; the MJX backend draws with `jax.random` inside its
+jitted function (`sample_jax`: same distributions, other numbers) and randomizes the fields
+listed in `simloader.backends.mjx.randomize`.
 
 Structural variants (geometry sizes, meshes) go through `Variants(fn, count)`: `fn(spec, rng)`
 edits an `MjSpec`, compiled into a pool of `count` models sampled per trajectory
@@ -35,6 +36,7 @@ from typing import Any, Optional, Union
 import mujoco
 import numpy as np
 
+from simloader import draws
 from simloader.layout import did_you_mean
 
 Names = Optional[Union[str, Sequence[str]]]
@@ -74,13 +76,10 @@ class Uniform:
     def bounds(self) -> tuple[float, float]:
         return self.low, self.high
 
-    def sample(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-        return rng.uniform(self.low, self.high, shape)
-
-    def sample_jax(self, key: Any, shape: tuple[int, ...], dtype: Any) -> Any:
-        """The same distribution with `jax.random` (inside a jitted function)."""
-        import jax
-        return jax.random.uniform(key, shape, dtype, self.low, self.high)
+    def draw(self, d: Any, shape: tuple[int, ...], like: Any) -> Any:
+        """Values of `shape` with `d` (a `simloader.draws` library: NumPy on the host, JAX in
+        the jitted batch), in `like`'s dtype."""
+        return d.uniform(self.low, self.high, shape, like)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,15 +97,10 @@ class LogUniform:
     def bounds(self) -> tuple[float, float]:
         return self.low, self.high
 
-    def sample(self, rng, shape):
-        return np.exp(rng.uniform(np.log(self.low), np.log(self.high), shape))
-
-    def sample_jax(self, key, shape, dtype):
-        import jax
-        import jax.numpy as jnp
-        draw = jnp.exp(jax.random.uniform(key, shape, dtype, np.log(self.low), np.log(self.high)))
-        # exp in float32 may round one ulp past the bounds
-        return jnp.clip(draw, self.low, self.high)
+    def draw(self, d, shape, like):
+        value = d.xp.exp(d.uniform(np.log(self.low), np.log(self.high), shape, like))
+        # exp may round one ulp past the bounds
+        return d.clip(value, self.low, self.high)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,14 +122,8 @@ class Normal:
         return (-np.inf if self.low is None else self.low,
                 np.inf if self.high is None else self.high)
 
-    def sample(self, rng, shape):
-        return np.clip(rng.normal(self.mean, self.std, shape), *self.bounds())
-
-    def sample_jax(self, key, shape, dtype):
-        import jax
-        import jax.numpy as jnp
-        draw = self.mean + self.std * jax.random.normal(key, shape, dtype)
-        return jnp.clip(draw, *self.bounds())
+    def draw(self, d, shape, like):
+        return d.clip(d.normal(shape, like) * self.std + self.mean, *self.bounds())
 
 
 Distribution = Union[Uniform, LogUniform, Normal]
@@ -329,7 +317,8 @@ class RandomizationPlan:
         """{key: (nbatch, nvalues)} values each trajectory runs with, one stream per param."""
         out = {}
         for r, child in zip(self.resolved, seed.spawn(len(self.resolved))):
-            draw = r.param.dist.sample(np.random.default_rng(child), (nbatch, r.ndraws))
+            draw = r.param.dist.draw(draws.NumpyDraws(np.random.default_rng(child)),
+                                     (nbatch, r.ndraws), np.zeros((), np.float64))
             out[r.param.key] = np.array(r.combine(r.base, np.broadcast_to(
                 draw, (nbatch, len(r.elements)))))
         return out
@@ -340,9 +329,9 @@ class RandomizationPlan:
         distributions do not)."""
         import jax
         import jax.numpy as jnp
-        out = {}
+        out, like = {}, jnp.zeros((), dtype)
         for r, k in zip(self.resolved, jax.random.split(key, len(self.resolved))):
-            draw = r.param.dist.sample_jax(k, (nbatch, r.ndraws), dtype)
+            draw = r.param.dist.draw(draws.JaxDraws(k), (nbatch, r.ndraws), like)
             out[r.param.key] = r.combine(jnp.asarray(r.base, dtype),
                                          jnp.broadcast_to(draw, (nbatch, len(r.elements))))
         return out

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import simloader
-from simloader import controls
+from simloader import controls, draws
 
 S = mujoco.mjtState
 N, T = 400, 200
@@ -28,8 +28,8 @@ def draw(model, control, spec=int(S.mjSTATE_CTRL), backend="numpy", seed=0, n=N,
     import jax.numpy as jnp
     (driver,) = plan.drivers
     params = {k: jnp.asarray(v, jnp.float32) for k, v in driver.params.items()}
-    return np.asarray(driver.generator.sample_jax(jax.random.key(seed), params,
-                                                  (n, t, len(driver.columns))))
+    d = draws.JaxDraws(jax.random.key(seed), driver.generator.draws)
+    return np.asarray(driver.generator.sample(d, params, (n, t, len(driver.columns))))
 
 
 BACKENDS = ["numpy", "jax", "torch"]

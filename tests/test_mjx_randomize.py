@@ -21,7 +21,7 @@ import jax  # noqa: E402  (after the skip: JAX comes with MJX)
 import jax.numpy as jnp  # noqa: E402
 
 import simloader  # noqa: E402
-from simloader import controls  # noqa: E402
+from simloader import controls, draws  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 from simloader.backends.mjx import randomize as mjx_randomize  # noqa: E402
 from simloader.backends.mjx import setconst as mjx_setconst  # noqa: E402
@@ -39,29 +39,36 @@ SETCONST_RTOL = 1e-4
 N = 20000
 
 
+def jax_draw(dist, seed):
+    """N values of `dist` drawn with JAX (as inside MJX's batch function), float32."""
+    like = jnp.zeros((), jnp.float32)
+    return np.asarray(dist.draw(draws.JaxDraws(jax.random.key(seed)), (N,), like))
+
+
 @pytest.mark.parametrize("dist, mean, std, low, high", [
     (dr.Uniform(0.5, 2.0), 1.25, 1.5 / np.sqrt(12), 0.5, 2.0),
     (dr.Normal(10.0, 2.0, low=7.0, high=15.0), None, None, 7.0, 15.0),
     (dr.Normal(1.0, 0.5), 1.0, 0.5, -np.inf, np.inf),
 ])
 def test_jax_draws_in_range_with_the_declared_moments(dist, mean, std, low, high):
-    draw = np.asarray(dist.sample_jax(jax.random.key(0), (N,), jnp.float32))
+    draw = jax_draw(dist, 0)
     assert draw.dtype == np.float32 and draw.min() >= low and draw.max() <= high
     inside = (draw > low) & (draw < high)  # a clipped Normal piles up at its bounds
     assert len(np.unique(draw[inside])) > 0.99 * inside.sum()  # distinct per trajectory
-    reference = dist.sample(np.random.default_rng(0), (N,))  # the NumPy draw, same law
+    # the NumPy draw, same law
+    reference = dist.draw(draws.NumpyDraws(np.random.default_rng(0)), (N,), np.zeros(()))
     # means within 5 standard errors, spreads within 5%
     se = reference.std() / np.sqrt(N)
     assert abs(draw.mean() - reference.mean()) < 5 * np.sqrt(2) * se
     assert abs(draw.std() / reference.std() - 1) < 0.05
     if mean is not None:
         assert abs(draw.mean() - mean) < 5 * se and abs(draw.std() / std - 1) < 0.05
-    fresh = np.asarray(dist.sample_jax(jax.random.key(1), (N,), jnp.float32))
+    fresh = jax_draw(dist, 1)
     assert not np.any((fresh == draw) & inside)  # another key (batch): fresh values
 
 
 def test_jax_log_uniform_is_uniform_in_log_space():
-    draw = np.asarray(dr.LogUniform(1e-3, 1.0).sample_jax(jax.random.key(0), (N,), jnp.float32))
+    draw = jax_draw(dr.LogUniform(1e-3, 1.0), 0)
     assert draw.min() >= np.float32(1e-3) and draw.max() <= 1.0
     logs = np.log(draw)
     # uniform on [log 1e-3, 0]: mean log(1e-3)/2, std 6.91/sqrt(12), standard error 0.014
