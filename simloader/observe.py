@@ -2,9 +2,10 @@
 
 Each name of `record` becomes one `Observation` that knows its batch key, its per-frame shape
 and dtype, what `mujoco.batch` records for it on the CPU (`source`, a field name or an
-`mjtState` spec, and the part of that record it delivers) and, for MJX, its value computed from
-one trajectory's `mjx.Model`/`mjx.Data` (`jax_value`). The CPU backend and delivery loop over
-the observations; none of them names a key.
+`mjtState` spec, and the part of that record it delivers) and which `MjData` fields its value
+is made of (`fields`). Each engine reads them in its own folder (MJX: `backends/mjx/observe.py`,
+MuJoCo Warp: `backends/warp/observe.py`); the CPU backend and delivery loop over the
+observations; none of them names a key. The memory a batch needs: `memory.py`.
 
 Kinds of names:
   "state"            `State`: the `mjSTATE_FULLPHYSICS` vector.
@@ -35,9 +36,6 @@ SENSOR_PREFIX = "sensor:"
 # MjData fields mujoco.batch can record that hold no values of the simulation: plugin
 # instance ids and pointers
 _NOT_VALUES = {"plugin": "plugin instance ids", "plugin_data": "pointers to plugin data"}
-# the components of mjSTATE_FULLPHYSICS that MJX simulates (the others must be empty there)
-_MJX_PHYSICS = int(mujoco.mjtState.mjSTATE_TIME | mujoco.mjtState.mjSTATE_QPOS
-                   | mujoco.mjtState.mjSTATE_QVEL | mujoco.mjtState.mjSTATE_ACT)
 # fields MuJoCo computes only when a sensor needs them (mj_rnePostConstraint, mj_subtreeVel),
 # with what makes it compute them, for the error message; MJX follows the same rule
 _ACC_SENSORS = ("only when the model has an accelerometer, force, torque, framelinacc or "
@@ -90,86 +88,30 @@ class Observation:
             return recorded[..., self.columns[0]:self.columns[1]]
         return recorded.reshape(*recorded.shape[:2], *self.shape)
 
-    def jax_value(self, m: Any, d: Any) -> Any:
-        """The value of one frame, `shape`, from one trajectory's `mjx.Model` and `mjx.Data`
-        (pure; called inside `vmap` inside the scan body). MJX's dtype (float32 unless JAX
-        runs with x64; integer and bool fields keep theirs)."""
-        raise NotImplementedError
-
-    def mjx_refusal(self, data: Any) -> Optional[str]:
-        """Why MJX (whose `make_data` gives `data`) cannot record this, or None."""
-        return None
-
     def fields(self) -> tuple[str, ...]:
         """The MjData fields its value is made of."""
         return (self.key,)
-
-    def torch_value(self, fields: dict[str, Any]) -> Any:
-        """The value of one frame of a whole batch, `(nbatch, *shape)`, from torch tensors
-        `(nbatch, ...)` of the MjData fields named by `fields()` (MuJoCo Warp's arrays, for
-        the Warp closed loop): a view of them where the layout allows, else a new tensor."""
-        raise NotImplementedError
 
 
 @dataclasses.dataclass(frozen=True)
 class State(Observation):
     """`"state"`: the mjSTATE_FULLPHYSICS state vector."""
 
-    def jax_value(self, m, d):
-        from mujoco import mjx
-        return mjx.get_state(m, d, _MJX_PHYSICS)
-
     def fields(self):
         return ("time", "qpos", "qvel", "act")
-
-    def torch_value(self, fields):
-        import torch
-        time, *rest = (fields[name] for name in self.fields())
-        return torch.cat([time.reshape(-1, 1), *rest], dim=1)
 
 
 @dataclasses.dataclass(frozen=True)
 class Field(Observation):
     """An MjData field, by its name."""
 
-    def jax_value(self, m, d):
-        # rotation matrices are (n, 3, 3) in MJX, (n, 9) in MuJoCo: the same values, row-major
-        return _mjx_field(d, self.key).reshape(self.shape)
-
-    def torch_value(self, fields):
-        value = fields[self.key]
-        return value.reshape(value.shape[0], *self.shape)
-
-    def mjx_refusal(self, data):
-        import jax
-        value = _mjx_field(data, self.key)
-        if value is None:
-            return f"MJX has no field {self.key}"
-        if not isinstance(value, jax.Array):
-            return (f"MJX holds {self.key} as a constant of the compiled "
-                    f"model (a size fixed at compilation), not per trajectory")
-        if tuple(value.shape) != self.shape and not (
-                self.key.endswith("mat") and value.size == math.prod(self.shape)):
-            return (f"MJX stores {self.key} with shape {tuple(value.shape)}, "
-                    f"MuJoCo with shape {self.shape} (another layout, e.g. dense instead of "
-                    f"sparse)")
-        if np.dtype(value.dtype).kind != self.dtype.kind:
-            return f"MJX stores {self.key} as {value.dtype}, MuJoCo as {self.dtype}"
-        return None
-
 
 @dataclasses.dataclass(frozen=True)
 class Sensor(Observation):
     """`"sensor:NAME"`: one sensor's columns of sensordata."""
 
-    def jax_value(self, m, d):
-        return d.sensordata[self.columns[0]:self.columns[1]]
-
     def fields(self):
         return ("sensordata",)
-
-    def torch_value(self, fields):
-        return fields["sensordata"][:, self.columns[0]:self.columns[1]]
 
 
 CAMERA_PREFIX = "camera/"
@@ -281,28 +223,6 @@ def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, .
     return tuple(out)
 
 
-def jax_frame(observations: Sequence[Observation], model_axes: Any, m: Any,
-              d: Any) -> dict[str, Any]:
-    """One frame of every observation, `{key: (nbatch, *shape)}`, from the batched `mjx.Data`
-    `d` and its `mjx.Model` `m` (batched along `model_axes`); pure, for the scan body, whose
-    stacked outputs are then `(nframes, nbatch, *shape)`."""
-    import jax
-    return jax.vmap(lambda m, d: {o.key: o.jax_value(m, d) for o in observations
-                                  if not o.rendered}, (model_axes, 0))(m, d)
-
-
-def _mjx_field(d: Any, name: str) -> Any:
-    """MjData field `name` of an mjx.Data: a public field, or one the implementation keeps
-    under `d._impl` (cfrc_ext, cacc, subtree_linvel, ... differ per implementation); None if
-    MJX has no such field."""
-    if name in getattr(type(d), "__dataclass_fields__", {}) and name != "_impl":
-        return getattr(d, name)
-    impl = getattr(d, "_impl", None)
-    if impl is not None and name in getattr(type(impl), "__dataclass_fields__", {}):
-        return getattr(impl, name)
-    return None
-
-
 def recordable_fields() -> tuple[str, ...]:
     """The MjData field names `record` accepts (besides "state" and "sensor:NAME")."""
     return tuple(sorted(set(mj_batch.DATA_FIELDS) - set(_NOT_VALUES)))
@@ -410,107 +330,3 @@ def _check_computed(model: mujoco.MjModel, data: mujoco.MjData, fields: Sequence
             why = _LAZY.get(f.key, "for this model: its computation is off or absent here")
             raise ValueError(f"record: mj_step leaves {f.key} unset, so it would hold no values "
                              f"of the simulation: MuJoCo computes it {why}")
-
-
-def check_mjx(observations: Sequence[Observation], data: Any) -> None:
-    """Refuses, by name and with the reason, what MJX cannot record.
-
-    Field names are checked against `data`, one trajectory's `mjx.Data` (public fields, and
-    those MJX's XLA implementation keeps under `_impl`, `DataJAX`), their shapes and dtype
-    kinds against MuJoCo's. Run on the host at construction.
-
-    Raises:
-      ValueError: naming every refused observation and why.
-    """
-    refused = [f"{o.key}: {why}" for o in observations
-               if (why := o.mjx_refusal(data)) is not None]
-    if refused:
-        raise ValueError("record: backend='mjx' cannot record " + "; ".join(refused)
-                         + "; use backend='cpu' for these")
-
-
-def batch_nbytes(observations: Sequence[Observation], nbatch: int, nframes: int, nstep: int,
-                 ncontrol: int, nstate: int, itemsize: Optional[int] = None) -> int:
-    """Bytes of one batch: the recorded buffers (shared sources counted once), `control`,
-    `initial_state` and `diverged`.
-
-    Args:
-      itemsize: bytes per floating value where the target stores floats in another precision
-        (4 for MJX's float32); None: MuJoCo's (8).
-    """
-    def nbytes(dtype: np.dtype, count: int) -> int:
-        size = itemsize if itemsize is not None and dtype.kind == "f" else dtype.itemsize
-        return size * count
-
-    total, sources = 0, set()
-    for o in observations:
-        if o.source in sources:
-            continue
-        sources.add(o.source)
-        total += nbytes(o.dtype, nbatch * nframes * math.prod(o.source_shape))
-    f64 = np.dtype(np.float64)
-    return (total + nbytes(f64, nbatch * nstep * ncontrol) + nbytes(f64, nbatch * nstate)
-            + nbatch)
-
-
-def check_batch_fits(config: Any, available: int, where: str, *, count: int,
-                     itemsize: Optional[int] = None) -> None:
-    """Refuses a batch of `config` (a `SimConfig`) whose `count` copies in flight need more than
-    `available` bytes of `where` ("host memory", "GPU memory"); `itemsize` as `batch_nbytes`.
-
-    Raises:
-      ValueError: naming `nbatch` and `record`, with the size, what is available and what to
-        reduce.
-    """
-    c = config
-    nbytes = batch_nbytes(c.observations, c.nbatch, c.nframes, c.nstep, c.ncontrol, c.nstate,
-                          itemsize)
-    check_fits(nbytes, available, where, nbatch=c.nbatch, nstep=c.nstep,
-               record_every=c.record_every, count=count)
-
-
-def check_fits(nbytes: int, available: int, where: str, *, nbatch: int, nstep: int,
-               record_every: int, count: int = 1) -> None:
-    """Refuses a batch of `nbytes` whose `count` copies in flight need more than `available`
-    bytes.
-
-    Raises:
-      ValueError: with the size, what is available and what to reduce: `nbatch`, or `nstep`
-        where not even one trajectory fits.
-    """
-    if nbytes * count <= available:
-        return
-    needed = f"{_gib(nbytes)}" + (f" each, {count} in flight ({_gib(nbytes * count)})"
-                                  if count > 1 else "")
-    fits = nbatch * available // (nbytes * count)
-    if fits < 1:  # one trajectory is too long: fewer trajectories would not help
-        steps = nstep * available // (-(-nbytes // nbatch) * count)
-        raise ValueError(
-            f"nstep: a batch of {nbatch} trajectories of {nstep} steps needs {needed}, more "
-            f"than the {_gib(available)} of {where} available, and one trajectory alone does "
-            f"not fit; use a smaller nstep (about {steps} steps fit with nbatch=1), a larger "
-            f"record_every (now {record_every}) or fewer record fields, and continue_episodes="
-            f"True for longer episodes")
-    raise ValueError(
-        f"nbatch, record: a batch needs {needed}, more than the {_gib(available)} of {where} "
-        f"available; use a smaller nbatch (at most {fits} fits), a larger record_every (now "
-        f"{record_every}), fewer or smaller record fields, or fewer batches in flight "
-        f"(prefetch)")
-
-
-def _gib(n: int) -> str:
-    return f"{n / 2**30:.2f} GiB" if n >= 2**27 else f"{n / 2**20:.1f} MiB"
-
-
-def host_available() -> int:
-    """Bytes of host memory available now (Linux MemAvailable; else the physical pages
-    free)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    import os
-    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")

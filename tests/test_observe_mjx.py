@@ -1,4 +1,4 @@
-"""The MJX side of `record=`: each observation's `jax_value` on one mjx.Data against MuJoCo C
+"""The MJX side of `record=`: each observation's MJX value (`backends/mjx/observe.py`) on one mjx.Data against MuJoCo C
 after the same steps (float32, named tolerances), and the host-side refusals."""
 
 import mujoco
@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from simloader import observe, rules
+from simloader import memory, observe, rules
 from tests.test_record import PILE_XML
 
 jax = pytest.importorskip("jax")
 mjx = pytest.importorskip("mujoco.mjx")
+from simloader.backends.mjx import observe as mjx_observe  # noqa: E402
 jnp = jax.numpy
 
 # after one contact step from the same state (reliability check 2: 1e-4); forces are larger
@@ -29,7 +30,7 @@ def test_jax_values_match_mujoco_c_after_a_contact_step():
         mujoco.mj_step(model, data)
     assert data.ncon > 0
     observations = observe.parse(model, NAMES)
-    observe.check_mjx(observations, mjx.make_data(model, impl="jax"))
+    mjx_observe.check(observations, mjx.make_data(model, impl="jax"))
     m = mjx.put_model(model, impl="jax")
     d = mjx.put_data(model, data, impl="jax")
     mujoco.mj_step(model, data)
@@ -38,7 +39,7 @@ def test_jax_values_match_mujoco_c_after_a_contact_step():
     step = jax.jit(mjx.step).lower(m, d).compile(
         compiler_options={"xla_backend_optimization_level": 0})
     d = step(m, d)
-    values = jax.jit(lambda m, d: {o.key: o.jax_value(m, d) for o in observations})(m, d)
+    values = jax.jit(lambda m, d: {o.key: mjx_observe.value(o, m, d) for o in observations})(m, d)
     for o in observations:
         got = np.asarray(values[o.key])
         if isinstance(o, observe.State):
@@ -61,7 +62,7 @@ def test_jax_values_under_vmap_have_the_frame_shape():
     observations = observe.parse(model, ("xpos", "sensor:tip_force", "state", "time"))
     m = mjx.put_model(model, impl="jax")
     d = jax.vmap(lambda _: mjx.make_data(model, impl="jax"))(np.arange(3))
-    values = observe.jax_frame(observations, None, m, d)
+    values = mjx_observe.frame(observations, None, m, d)
     assert sorted(values) == sorted(o.key for o in observations)  # (JAX sorts dict keys)
     for o in observations:
         assert values[o.key].shape == (3, *o.shape), o.key
@@ -82,7 +83,7 @@ def test_a_batch_too_large_for_the_gpu_is_refused(rich_model):
                                          r"the 10.0 MiB of GPU memory available; use a smaller "
                                          r"nbatch \(at most 141 fits\), a larger record_every "
                                          r"\(now 2\)"):
-        observe.check_batch_fits(ds.config, 10 * 2**20, "GPU memory", count=1, itemsize=4)
+        memory.check_batch_fits(ds.config, 10 * 2**20, "GPU memory", count=1, itemsize=4)
 
 
 def test_check_mjx_refuses_by_name_with_the_reason():
@@ -90,7 +91,7 @@ def test_check_mjx_refuses_by_name_with_the_reason():
     observations = observe.parse(model, ("qpos", "M", "ncon", "geom_xquat", "qfrc_spring",
                                          "nefc", "xmat"))
     with pytest.raises(ValueError) as info:
-        observe.check_mjx(observations, mjx.make_data(model, impl="jax"))
+        mjx_observe.check(observations, mjx.make_data(model, impl="jax"))
     message = str(info.value)
     assert message.startswith("record: backend='mjx' cannot record M: MJX stores M "
                               "with shape (")

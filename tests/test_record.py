@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import simloader
-from simloader import observe
+from simloader import memory, observe
 from simloader.batch import Batch
 from tests.conftest import RICH_XML
 
@@ -265,7 +265,7 @@ def test_a_batch_too_large_for_memory_is_refused(rich_model):
 
 def test_batch_nbytes_counts_shared_sources_once(rich_model):
     obs = observe.parse(rich_model, ("sensordata", "sensor:ball", "xpos", "ncon"))
-    nbytes = observe.batch_nbytes(obs, nbatch=2, nframes=5, nstep=10, ncontrol=2, nstate=18)
+    nbytes = memory.batch_nbytes(obs, nbatch=2, nframes=5, nstep=10, ncontrol=2, nstate=18)
     expected = 8 * 2 * 5 * (4 + 15) + 4 * 2 * 5 + 8 * 2 * 10 * 2 + 8 * 2 * 18 + 2
     assert nbytes == expected
 

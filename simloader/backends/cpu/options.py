@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from simloader import observe
+from simloader import memory
 from simloader.backends.cpu import render
 
 
@@ -51,5 +51,5 @@ def check_sizes(sizes: Any) -> None:
     Raises:
       ValueError: naming `nbatch` and `record`, with the size and what is available.
     """
-    observe.check_batch_fits(sizes, observe.host_available(), "host memory",
+    memory.check_batch_fits(sizes, memory.host_available(), "host memory",
                              count=sizes.prefetch + 1)

@@ -28,11 +28,12 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import handoff, layout, observe, resume, seeds, sharding
+from simloader import handoff, layout, memory, observe, resume, seeds, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import drivers, runtime
+from simloader.backends.mjx import observe as mjx_observe
 from simloader.backends.mjx.program import BatchArgs, Placed, Program
 from simloader.config import SimConfig
 
@@ -91,13 +92,13 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
     device = runtime.jax_device(config.device)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
     placed = Placed.put(config, device)
-    observe.check_mjx(config.observations, placed.data0)
+    mjx_observe.check(config.observations, placed.data0)
     if images:
         raise ValueError(f"record: backend='mjx' cannot render {[o.key for o in images]}: "
                          f"MJX does not render; use backend='warp' on a CUDA GPU, or "
                          f"backend='cpu'")
     # the batches in flight (prefetched, being simulated, being consumed), float32 outputs
-    observe.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
+    memory.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
                              f"memory", count=config.prefetch + 2, itemsize=4)
     if config.randomization is not None:
         mjx_randomize.check(config.model, placed.model, config.randomization)

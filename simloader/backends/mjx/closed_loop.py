@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import torch
 
-from simloader import controls, observe, rules
+from simloader import controls, rules
+from simloader.backends.mjx import observe as mjx_observe
 from simloader.backends.mjx.program import seed_key
 from simloader.backends.mjx.runtime import mjx
 
@@ -48,7 +49,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                                      seed_key(seeds[0]), shape, P.dtype)
                  if noise_drivers else None)
         data = jax.vmap(mjx.forward, (P.model_axes, 0))(m, data)
-        obs = observe.jax_frame(P.observations, P.model_axes, m, data)
+        obs = mjx_observe.frame(P.observations, P.model_axes, m, data)
         loop = {"d": data, "t": jnp.zeros((), jnp.int32),
                 "diverged": jnp.zeros(P.nbatch, bool),
                 "frames": {k: jnp.zeros((P.nbatch, nframes, *v.shape[1:]), v.dtype)
@@ -71,7 +72,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         u, bad = controls.as_applied(u, loop["low"], loop["high"], jnp)
         d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, loop["d"], u)
         d, unstable = P.restart_unstable(m, d)
-        obs = observe.jax_frame(P.observations, P.model_axes, m, d)
+        obs = mjx_observe.frame(P.observations, P.model_axes, m, d)
         diverged = loop["diverged"] | unstable | bad
         finite = P.finite(obs)
         if finite is not None:

@@ -38,9 +38,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import controls, identity, observe, rules
+from simloader import controls, identity, rules
 from simloader.backends.base import Stats, progress_line
 from simloader.backends.mjx import randomize as mjx_randomize
+from simloader.backends.mjx import observe as mjx_observe
 from simloader.backends.mjx import stored_program
 from simloader.backends.mjx.pool import PHYSICS, make_data, pooled, put_models
 from simloader.backends.mjx.runtime import mjx
@@ -247,7 +248,7 @@ def batch_function(pieces: Pieces) -> Callable:
             else:
                 loop, _ = jax.lax.scan(advance, loop, us, length=every)
             d, diverged = loop
-            frame = observe.jax_frame(P.observations, P.model_axes, m, d)
+            frame = mjx_observe.frame(P.observations, P.model_axes, m, d)
             finite = P.finite(frame)
             return (d, diverged if finite is None else diverged | ~finite), frame
 

@@ -175,5 +175,5 @@ def memory_available(device: jax.Device) -> int:
     stats = device.memory_stats() if device.platform == "gpu" else None
     if stats and "bytes_limit" in stats:
         return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
-    from simloader import observe
-    return observe.host_available()
+    from simloader import memory
+    return memory.host_available()

@@ -33,6 +33,7 @@ import torch
 
 from simloader import layout, rules
 from simloader.backends.warp import cameras, drivers, runtime
+from simloader.backends.warp import observe as warp_observe
 from simloader.backends.warp.options import CONVERTED, WarpOptions, arrays
 
 S = mujoco.mjtState
@@ -225,7 +226,7 @@ class Engine:
             self.inputs.append((comp.columns, self.views[comp.name], comp.name == "eq_active"))
         self.frames = {}
         for o in self.observations:
-            value = o.torch_value(self.views)
+            value = warp_observe.value(o, self.views)
             self.frames[o.key] = torch.empty((c.nbatch, c.nframes, *value.shape[1:]),
                                              dtype=value.dtype, device=value.device)
         if self.cameras is not None:
@@ -317,7 +318,7 @@ class Engine:
         warmstart = self.views["qacc_warmstart"].clone()
         self.mjw.forward(self.m, self.d)
         self.views["qacc_warmstart"].copy_(warmstart)
-        obs = {o.key: o.torch_value(self.views).clone() for o in self.observations}
+        obs = {o.key: warp_observe.value(o, self.views).clone() for o in self.observations}
         if self.cameras is not None:
             # (written into frame 0 too, which the first step rewrites)
             first = torch.zeros(1, dtype=torch.int64, device=self.t.device)
@@ -358,7 +359,7 @@ class Engine:
             self.mjw.step(self.m, self.d)
             _, unstable = rules.restart_unstable(self.views, self.model_views["qpos0"], torch)
             self.diverged |= unstable
-            obs = {o.key: o.torch_value(self.views) for o in self.observations}
+            obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
             finite = rules.finite([obs[key] for key in self.unchecked], torch)
             if finite is not None:
                 self.diverged |= ~finite

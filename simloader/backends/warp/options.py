@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import layout, observe
+from simloader import layout, memory, observe
 from simloader.backends.warp import cameras, runtime
 from simloader.config import SimConfig
 
@@ -103,8 +103,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
     # and the engine's own buffers of one batch
     device = runtime.sim_device(config.device)
     available = (torch.cuda.mem_get_info(device)[0] if device.type == "cuda"
-                 else observe.host_available())
-    observe.check_batch_fits(config, available, f"{device} memory", count=config.prefetch + 3,
+                 else memory.host_available())
+    memory.check_batch_fits(config, available, f"{device} memory", count=config.prefetch + 3,
                              itemsize=4)
     x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
     naconmax, njmax = buffer_sizes(config.model, config.nbatch, x0, naconmax, njmax)
