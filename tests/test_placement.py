@@ -208,3 +208,27 @@ def test_split_state_does_not_resume_an_unsplit_stream(split_stream):
         control=controls.Uniform(), initial_state=initial.Perturbed(), continue_episodes=True)
     with pytest.raises(ValueError, match="sim_parts"):
         whole.load_state_dict(state)
+
+
+def test_warp_split_in_two_parts_on_its_cpu_device_with_a_policy(monkeypatch):
+    """MuJoCo Warp's kernels on its CPU device (as tests/test_warp.py runs them): a closed
+    loop split in two parts, each running its own copy of the policy, twice the same."""
+    pytest.importorskip("mujoco_warp")
+    monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+    torch.manual_seed(0)
+    mlp = torch.nn.Sequential(torch.nn.Linear(5, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1))
+
+    def run():
+        ds = simloader.SimDataset("cartpole", backend="warp", nbatch=6, nstep=5,
+                                  num_batches=2, seed=1, device="cpu",
+                                  sim_device=["cpu", "cpu"], policy=lambda o: mlp(o["state"]),
+                                  initial_state=initial.Perturbed())
+        return ds, list(ds)
+    ds, a = run()
+    _, b = run()
+    assert [p.nbatch for p in ds.config.parts] == [3, 3]
+    assert a[0]["state"].shape == (6, 5, 5) and a[0]["control"].shape == (6, 5, 1)
+    assert all(torch.equal(x[k], y[k]) for x, y in zip(a, b) for k in x if k != "params")
+    with torch.no_grad():  # the controls are the policy's, row by row
+        first = mlp(a[0]["initial_state"].float()).to(a[0]["control"].dtype)
+    torch.testing.assert_close(a[0]["control"][:, 0], first, rtol=1e-5, atol=1e-5)
