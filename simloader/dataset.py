@@ -201,8 +201,14 @@ class SimDataset(torch.utils.data.IterableDataset):
         if params:
             text += ("\nrandomized: batch[\"params\"] keys, the values each trajectory ran "
                      "with:\n" + "\n".join(f"  {k} {shape}" for k, shape in params))
+        where = ""
+        if c.parts is not None:
+            where = (f"; simulated on {', '.join(str(p.device) for p in c.parts)} (trajectories "
+                     f"{', '.join(str(p.nbatch) for p in c.parts)}), delivered on {c.device}")
+        exact = "; deterministic: bit-identical batches for the same seed" if c.deterministic \
+            else ""
         return text + (f"\nsimulated by: backend={c.backend!r} ({c.options.simulated_by()}; "
-                       f"chosen: {c.backend_reason})")
+                       f"chosen: {c.backend_reason}{where}{exact})")
 
     def __len__(self) -> int:
         if self.config.num_batches is None:

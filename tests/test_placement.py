@@ -38,6 +38,7 @@ def test_deterministic_follows_torch_by_default():
 
 
 def test_deterministic_cpu_engine_is_bit_identical():
+    assert "deterministic: bit-identical batches" in cpu_dataset(deterministic=True).describe()
     a, b = (list(cpu_dataset(deterministic=True, seed=4)) for _ in range(2))
     assert all(torch.equal(x[k], y[k]) for x, y in zip(a, b) for k in x)
 
@@ -156,6 +157,7 @@ def test_parts_take_their_rows_of_per_trajectory_arguments():
     np.testing.assert_array_equal(second.initial.fixed, x0[3:])
     np.testing.assert_array_equal(second.control.fixed, u[3:])
     assert first.device == second.device == torch.device("cpu")
+    assert "simulated on cpu, cpu (trajectories 3, 2), delivered on cpu" in ds.describe()
 
 
 @pytest.fixture(scope="module")
