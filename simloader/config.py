@@ -432,7 +432,7 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
             device=dev, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
             record_every=record_every, policy=policy, policy_noise=policy_noise,
             deterministic=deterministic, size_check=size_check, options=options,
-            check_options=lambda part, _reason, opts: check_options(part, choice.reason, opts)))
+            check_options=check_options))
         start = stop
     # the engine's options as each part resolved them on its device (the first one's reported)
     return dataclasses.replace(config, parts=tuple(parts), options=parts[0].options)

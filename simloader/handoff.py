@@ -39,6 +39,22 @@ def to_target(tensor: torch.Tensor, device: Optional[torch.device],
     return tensor if dtype is None or tensor.dtype == dtype else tensor.to(dtype)
 
 
+def tensors(batch: dict) -> list[torch.Tensor]:
+    """Every tensor of a delivered batch (`params` nested)."""
+    out = []
+    for value in batch.values():
+        out.extend(tensors(value) if isinstance(value, dict) else [value])
+    return out
+
+
+def used_here(batch: dict) -> None:
+    """Tells torch's allocator that the consumer's stream uses the delivered tensors (made on
+    another stream): their memory is not reused until the consumer's work on them is done."""
+    for value in tensors(batch):
+        if value.is_cuda:
+            value.record_stream(torch.cuda.current_stream(value.device))
+
+
 def from_jax(array: Any) -> torch.Tensor:
     """A torch tensor over a JAX array's memory, through DLPack (no copy, same device)."""
     return torch.from_dlpack(array)

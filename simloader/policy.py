@@ -177,9 +177,8 @@ class Snapshot:
                                 f"weights (one version per batch) and could not copy this "
                                 f"module ({type(e).__name__}: {e}); make it deep-copyable") \
                     from None
-            if self.device is not None and any(t.device != self.device
-                                               for t in _tensors(self.frozen)):
-                self.frozen.to(self.device)
+            if self.device is not None:
+                self.frozen.to(self.device)  # in place; nothing moves where it already is
         theirs, mine = _tensors(live), _tensors(self.frozen)
         # the reader's side of the sequence lock (`updating`): copy while no update runs, and
         # keep the copy only if none ran meanwhile

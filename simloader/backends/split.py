@@ -15,13 +15,14 @@ while the next batch already simulates (the prefetcher queued it).
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 from collections.abc import Callable
 from typing import Any, Optional
 
 import torch
 
-from simloader import sharding
+from simloader import handoff, sharding
 from simloader.backends.base import Backend, Stats
 from simloader.config import SimConfig
 
@@ -73,12 +74,13 @@ class SplitBackend(Backend):
 
     def deliver(self, produced: list) -> dict[str, Any]:
         delivered = [part.deliver(p) for part, p in zip(self.parts, produced)]
-        self._count(delivered)
+        self._count()
         self._release()
         sizes = [p.nbatch for p in self.config.parts]
         if self.copy_stream is None:
             return _gather(delivered, sizes, self.device)
-        sources = {t.device for batch in delivered for t in _tensors(batch) if t.is_cuda}
+        sources = {t.device for batch in delivered for t in handoff.tensors(batch)
+                   if t.is_cuda}
         # the copies run on streams of their own on both ends (a cross-device copy runs on
         # the source's current stream and orders itself after the target's current stream),
         # each after what the parts' `deliver` queued on its device's current stream (a
@@ -88,20 +90,19 @@ class SplitBackend(Backend):
                 self.side[d] = (self.copy_stream if d == self.device
                                 else torch.cuda.Stream(d))
             self.side[d].wait_stream(torch.cuda.current_stream(d))
-        with torch.cuda.stream(self.copy_stream):
-            with _streams(s for d, s in self.side.items() if d != self.device):
-                batch = _gather(delivered, sizes, self.device)
+        with contextlib.ExitStack() as scope:
+            # each source device's copy stream current there, then the delivery device's
+            for stream in (*self.side.values(), self.copy_stream):
+                scope.enter_context(torch.cuda.stream(stream))
+            batch = _gather(delivered, sizes, self.device)
             done = torch.cuda.Event()
             done.record(self.copy_stream)
-        consumer = torch.cuda.current_stream(self.device)
-        consumer.wait_event(done)
-        for tensor in _tensors(batch):
-            # made on the copy stream, used on the consumer's: not reused before that is done
-            tensor.record_stream(consumer)
+        torch.cuda.current_stream(self.device).wait_event(done)
+        handoff.used_here(batch)  # made on the copy stream
         self.in_flight = (done, delivered)
         return batch
 
-    def _count(self, delivered: list) -> None:
+    def _count(self) -> None:
         """Adds the batch's counts to the dataset's: one batch, every part's steps and
         diverged trajectories, the slowest part's simulation time, the engines' own."""
         now = [s.as_dict() for s in self.part_stats]
@@ -143,13 +144,6 @@ class SplitBackend(Backend):
             self.threads.shutdown(wait=True)
 
 
-def _tensors(batch: dict) -> list[torch.Tensor]:
-    out = []
-    for value in batch.values():
-        out.extend(_tensors(value) if isinstance(value, dict) else [value])
-    return out
-
-
 def _gather(delivered: list[dict], sizes: list[int], device: torch.device) -> dict:
     """The parts' batches as one on `device`: each key's rows in part order; a value without
     a row per trajectory (the policy's version) from the first part."""
@@ -169,17 +163,3 @@ def _gather(delivered: list[dict], sizes: list[int], device: torch.device) -> di
         out[key] = whole
     return out
 
-
-class _streams:
-    """Makes each stream the current one of its device for the block."""
-
-    def __init__(self, streams):
-        self.contexts = [torch.cuda.stream(s) for s in streams]
-
-    def __enter__(self):
-        for c in self.contexts:
-            c.__enter__()
-
-    def __exit__(self, *exc):
-        for c in reversed(self.contexts):
-            c.__exit__(*exc)

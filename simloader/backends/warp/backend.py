@@ -208,7 +208,7 @@ class WarpBackend(Backend):
             batch["params"] = {k: handoff.to_target(v, c.device, None if k == "variant"
                                                     else c.dtype)
                                for k, v in produced.params.items()}
-        _used_here(batch)
+        handoff.used_here(batch)  # made on the engine's stream
         return batch
 
     def _overflow(self, bits: torch.Tensor) -> torch.Tensor:
@@ -254,13 +254,3 @@ class WarpBackend(Backend):
             self.last.ready.synchronize()
         self.last = None
 
-
-def _used_here(batch: dict) -> None:
-    """Tells torch's allocator that the consumer's stream uses the delivered tensors (made on
-    the engine's stream): their memory is not reused until the consumer's work on them is
-    done."""
-    for value in batch.values():
-        if isinstance(value, dict):
-            _used_here(value)
-        elif value.is_cuda:
-            value.record_stream(torch.cuda.current_stream(value.device))

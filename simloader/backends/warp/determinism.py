@@ -80,11 +80,7 @@ def _actuators_per_dof(model: mujoco.MjModel) -> int:
     for i in range(model.nu):
         if int(model.actuator_trntype[i]) in (int(mujoco.mjtTrn.mjTRN_JOINT),
                                               int(mujoco.mjtTrn.mjTRN_JOINTINPARENT)):
-            joint = model.actuator_trnid[i, 0]
-            start = model.jnt_dofadr[joint]
-            width = {int(_J.mjJNT_FREE): 6, int(_J.mjJNT_BALL): 3}.get(
-                int(model.jnt_type[joint]), 1)
-            counts[start:start + width] += 1
+            counts[model.dof_jntid == model.actuator_trnid[i, 0]] += 1
         else:  # a tendon, site or body transmission reaches many degrees of freedom
             counts += 1
     return int(counts.max(initial=0))
