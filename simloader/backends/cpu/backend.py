@@ -25,11 +25,12 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, mujoco_warnings, resume, seeds, threads
+from simloader import controls, handoff, layout, mujoco_warnings, seeds, threads
 from simloader import randomize as dr
 from simloader.backends.cpu import drivers
 from simloader.backends.cpu import render as cpu_render
 from simloader.backends.base import Backend
+from simloader.trajectories import Trajectories
 
 
 @dataclasses.dataclass
@@ -63,10 +64,12 @@ class RolloutBackend(Backend):
         self.expanded = {} if c.randomization is None else {
             r.field: self.batch.expand(r.field).reshape(c.nbatch, -1)
             for r in c.randomization.resolved}
-        self.params: dict[str, np.ndarray] = {}  # what each trajectory runs with
+        # which trajectories start afresh, the variant and values each runs with
+        self.trajectories = Trajectories(c)
         # per model (of the list, or variant): each row as mj_resetData leaves it (user
         # inputs, zero warmstart), the undriven control columns, and with variants the
-        # initial states that come from the model; `per_trajectory` picks them. The range
+        # initial states that come from the model; `trajectories.per_trajectory` picks them.
+        # The range
         # MuJoCo clamps each control column to, per model (the delivered control is what
         # acted)
         tables = c.model_tables(layout.INTEGRATION)
@@ -75,12 +78,11 @@ class RolloutBackend(Backend):
         self.physics_cols = layout.component_columns(c.model, layout.INTEGRATION,
                                                      layout.FULLPHYSICS)
         self.pin = c.device is not None and c.device.type == "cuda"
-        self.fresh = np.ones(c.nbatch, dtype=bool)  # rows to (re)start from initial states
         # live counters, (nbatch, mjNWARNING); zeroed before every batch, as mujoco.rollout
         # does: mj_resetData, which MuJoCo calls on an unstable simulation, zeroes them and
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
-        self.driver = drivers.driver(self)  # the open or the closed loop
+        self.driver = drivers.driver(c, self.batch)  # the open or the closed loop
         # cameras: rendered by a pool of renderer threads from recorded state rows
         self.images = [o for o in c.observations if o.rendered]
         self.renderer = (cpu_render.RenderPool(c.model, self.images, self.nthread)
@@ -91,23 +93,25 @@ class RolloutBackend(Backend):
         self.counting_warnings = True
 
     def produce(self, index: int) -> _Produced:
-        c = self.config
+        c, t = self.config, self.trajectories
         rows = self.batch.state
         initial_t, initial = handoff.host_buffer((c.nbatch, c.nstate), pin=self.pin)
-        if self.fresh.any():
+        if t.fresh.any():
             x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
-            fresh = np.flatnonzero(self.fresh)
-            self._randomize(index, fresh)
-            rows[fresh] = self.per_trajectory(self.reset_rows)[fresh]
+            fresh = np.flatnonzero(t.fresh)
+            t.take(self.draw_models(index))
+            self._apply_params(fresh)
+            rows[fresh] = t.per_trajectory(self.reset_rows)[fresh]
             if self.variant_states is not None:
-                x0 = self.per_trajectory(self.variant_states)
+                x0 = t.per_trajectory(self.variant_states)
             rows[np.ix_(fresh, self.physics_cols)] = x0[fresh]
         initial[...] = rows[:, self.physics_cols]
 
         # a new buffer per batch, also for a fixed array: a consumer may edit its batch
         control_t, control = handoff.host_buffer((c.nbatch, c.nstep, c.ncontrol), pin=self.pin)
         low, high = self._ctrl_bounds()
-        run = self.driver.prepare(index, control, low, high)
+        run = self.driver.prepare(self.seed(index, seeds.CONTROL),
+                                  t.per_trajectory(self.control_defaults), control, low, high)
 
         recorded = {}  # one buffer per source, shared by the observations that read it
         sources = [(o.source, o.source_shape, o.dtype) for o in c.observations if not o.rendered]
@@ -124,9 +128,9 @@ class RolloutBackend(Backend):
         self.stats.add(simulate_s=time.perf_counter() - start)
         warned = self.warnings.any(axis=1) | bad_control
         # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
-        self.fresh = np.ones(c.nbatch, dtype=bool) if not c.continue_episodes else warned
+        t.finished(warned)
         rows_after = rows.copy() if c.continue_episodes else None
-        params = {k: torch.from_numpy(v.copy()) for k, v in self.params.items()}
+        params = {k: torch.from_numpy(v.copy()) for k, v in t.params.items()}
         images, rendering = {}, []
         if self.images:
             images = {o.key: handoff.host_buffer((c.nbatch, c.nframes, *o.shape),
@@ -146,11 +150,11 @@ class RolloutBackend(Backend):
         if c.models is not None:
             return lambda i: c.models[i]
         if c.variants is not None:
-            variant = self.params["variant"].copy()
+            variant = self.trajectories.params["variant"].copy()
             return lambda i: c.variants[variant[i]]
         if c.randomization is None:
             return lambda i: c.model
-        values = {k: v.copy() for k, v in self.params.items()}
+        values = {k: v.copy() for k, v in self.trajectories.params.items()}
         plan, local = c.randomization, threading.local()
 
         def model_of(i: int) -> mujoco.MjModel:
@@ -172,29 +176,18 @@ class RolloutBackend(Backend):
         if "actuator_ctrlrange" in self.expanded:  # randomized: each trajectory's own
             return controls.applied_bounds([c.model], c.control_spec, self.expanded[
                 "actuator_ctrlrange"].reshape(c.nbatch, c.model.nu, 2))
-        return tuple(self.per_trajectory(b) for b in self.ctrl_bounds)
+        return tuple(self.trajectories.per_trajectory(b) for b in self.ctrl_bounds)
 
-    def per_trajectory(self, table: np.ndarray) -> np.ndarray:
-        """(nbatch, ...): each trajectory's row of a per-model table (its variant's)."""
-        if self.config.variants is not None:
-            return table[self.params["variant"]]
-        return np.broadcast_to(table, (self.config.nbatch, *table.shape[1:]))
-
-    def _randomize(self, index: int, fresh: np.ndarray) -> None:
-        """Draws model parameters (or variants) for the trajectories that start afresh."""
-        self._set_params(self.draw_models(index), fresh)
-
-    def _set_params(self, values: dict[str, np.ndarray], rows: np.ndarray) -> None:
-        """Trajectories `rows` run with their `values` ({key: (nbatch, ...)}) from now on."""
-        c = self.config
-        for key, value in values.items():
-            self.params.setdefault(key, np.empty_like(value))[rows] = value[rows]
+    def _apply_params(self, rows: np.ndarray) -> None:
+        """MuJoCo's batch runs trajectories `rows` with what `trajectories` says they run with
+        (their variant's model, their randomized values) from now on."""
+        c, params = self.config, self.trajectories.params
         if c.variants is not None:
-            self.batch.set_models([c.variants[i] for i in self.params["variant"]])
+            self.batch.set_models([c.variants[i] for i in params["variant"]])
         if c.randomization is None:
             return
         for r in c.randomization.resolved:
-            self.expanded[r.field][np.ix_(rows, r.elements)] = self.params[r.param.key][rows]
+            self.expanded[r.field][np.ix_(rows, r.elements)] = params[r.param.key][rows]
         if c.randomization.setconst:  # constants MuJoCo derives from the changed fields
             self.batch.set_const(None if len(rows) == c.nbatch else rows)
 
@@ -226,15 +219,13 @@ class RolloutBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict]:
         if not self.config.continue_episodes:
             return None
-        return resume.encode_trajectories(layout.INTEGRATION, produced.rows_after,
-                                          produced.warned, {k: v.numpy() for k, v in
-                                                            produced.params.items()})
+        return self.trajectories.checkpoint(produced.rows_after, produced.warned,
+                                            produced.params)
 
     def restore(self, trajectories: dict) -> None:
-        rows, self.fresh, params = resume.decode_trajectories(trajectories, layout.INTEGRATION)
-        self.batch.state[...] = rows
+        self.batch.state[...] = self.trajectories.restore(trajectories)
         # the trajectories that continue run on the models they ran on
-        self._set_params(params, np.arange(self.config.nbatch))
+        self._apply_params(np.arange(self.config.nbatch))
 
     def close(self) -> None:
         # frees the batch's thread pool now rather than at garbage collection: every view of

@@ -2,7 +2,8 @@
 the batch; `mujoco.batch` runs every step in C) and the closed loop (a torch policy picks each
 step's controls; one `Batch.step` per step). Both fill the batch's delivered `control` buffer
 with the rows as they acted and record into the same buffers, so the backend around them is
-one."""
+one. Each takes what it reads as arguments and says what it writes (in, out), as MuJoCo Warp
+marks its kernels' arrays; a driver holds only the configuration and MuJoCo's batch."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, policy, rules, seeds
+from simloader import controls, handoff, layout, policy, rules
 from simloader.backends import policy_loop
 
 # run(out) -> (bad, extras): simulates the batch into `out` ({source: (nbatch, nframes, ...)});
@@ -25,24 +26,24 @@ Run = Callable[[dict], tuple[np.ndarray, dict[str, torch.Tensor]]]
 class OpenLoop:
     """Generated, fixed or absent (`control=None`) controls, all known before the batch."""
 
-    def __init__(self, backend: Any):
-        self.backend = backend
+    def __init__(self, config: Any, batch: mj_batch.Batch):
+        self.config, self.batch = config, batch
 
-    def prepare(self, index: int, control: np.ndarray, low: np.ndarray,
-                high: np.ndarray) -> Run:
-        """Fills batch `index`'s `control` ((nbatch, nstep, ncontrol)) with the rows as MuJoCo
-        applies them (clamped to `low`, `high`, each (nbatch, ncontrol)); returns the run."""
-        b = self.backend
-        c = b.config
+    def prepare(self, seed: np.random.SeedSequence, defaults: np.ndarray, control: np.ndarray,
+                low: np.ndarray, high: np.ndarray) -> Run:
+        """In: the batch's control `seed`, `defaults` (nbatch, ncontrol) each trajectory's
+        undriven control columns, `low`, `high` (nbatch, ncontrol) the clamp bounds. Out:
+        `control` ((nbatch, nstep, ncontrol)) filled with the rows as MuJoCo applies them;
+        returns the run."""
+        c = self.config
         if c.control.fixed is not None:
             control[...] = c.control.fixed
         elif c.control.random:
-            c.control.sample_numpy(b.seed(index, seeds.CONTROL), control,
-                                   b.per_trajectory(b.control_defaults))
+            c.control.sample_numpy(seed, control, defaults)
         else:
             # control=None: the inputs stay as mj_resetData left them (in the rows), for every
             # step; delivered as such
-            control[...] = b.per_trajectory(b.control_defaults)[:, None]
+            control[...] = defaults[:, None]
         control[...], bad = controls.as_applied(control, low[:, None], high[:, None])
         applied = control if c.control.fixed is not None or c.control.random else None
 
@@ -59,7 +60,7 @@ class OpenLoop:
         recording into a one-frame buffer, copied into its frame: the state rows (warmstart
         included) carry the trajectory from call to call, so the steps are those of one call.
         """
-        c, k, batch = self.backend.config, self.backend.config.record_every, self.backend.batch
+        c, k, batch = self.config, self.config.record_every, self.batch
         items = tuple(out)
         if k == 1:
             batch.rollout(c.nstep, control, control_spec=c.control_spec, record=items, out=out)
@@ -77,30 +78,33 @@ class OpenLoop:
                 a[:, j] = frame[s][:, 0]
 
     def close(self) -> None:
-        pass
+        self.batch = None  # it keeps MuJoCo's native batch (and its threads) alive
 
 
 class ClosedLoop:
     """A torch policy picks every step's controls, from observations of the state now."""
 
-    def __init__(self, backend: Any):
-        self.backend = backend
-        self.snapshot = policy.Snapshot(backend.config.policy)
+    def __init__(self, config: Any, batch: mj_batch.Batch):
+        self.config, self.batch = config, batch
+        self.snapshot = policy.Snapshot(config.policy)
         self.live: Optional[LiveSources] = None  # made at the first batch
 
-    def prepare(self, index: int, control: np.ndarray, low: np.ndarray,
-                high: np.ndarray) -> Run:
-        """Takes the weights batch `index` runs with (one version of them, a copy taken now);
-        the run fills `control` step by step with the rows as they acted."""
+    def prepare(self, seed: np.random.SeedSequence, defaults: np.ndarray, control: np.ndarray,
+                low: np.ndarray, high: np.ndarray) -> Run:
+        """In: the batch's control `seed` (its policy noise; `defaults` unused: the noise's
+        undriven columns are 0), `low`, `high` the clamp bounds. Takes the weights the batch
+        runs with (one version of them, a copy taken now). Out: the run fills `control` step
+        by step with the rows as they acted."""
         act, version = self.snapshot.take()
         control[...] = 0.0
 
         def run(out: dict) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
-            return self._steps(index, control, low, high, out, act, version)
+            return self._steps(seed, control, low, high, out, act, version)
         return run
 
-    def _steps(self, index: int, control: np.ndarray, low: np.ndarray, high: np.ndarray,
-               out: dict, act: Any, version: int) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
+    def _steps(self, seed: np.random.SeedSequence, control: np.ndarray, low: np.ndarray,
+               high: np.ndarray, out: dict, act: Any,
+               version: int) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
         """Runs the batch's `nstep` steps (`policy_loop.run`), recording the sources into
         `out` as the open loop.
 
@@ -110,16 +114,14 @@ class ClosedLoop:
         MuJoCo refreshes after every call. The first observations are those of the initial
         state, derived fields by `mj_forward`.
         """
-        backend = self.backend
-        c, b, k = backend.config, backend.batch, backend.config.record_every
+        c, b, k = self.config, self.batch, self.config.record_every
         if self.live is None:
             self.live = LiveSources(b, c)
         live = self.live
         noise = None
         if c.policy_noise is not None:
             noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
-            c.policy_noise.sample_numpy(backend.seed(index, seeds.CONTROL), noise,
-                                        c.policy_noise.default_rows)
+            c.policy_noise.sample_numpy(seed, noise, c.policy_noise.default_rows)
         bad = np.zeros(c.nbatch, dtype=bool)
 
         def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
@@ -141,12 +143,14 @@ class ClosedLoop:
         return bad, extras
 
     def close(self) -> None:
-        self.live = None  # its bound outputs keep the native batch (and its threads) alive
+        # its bound outputs, and the batch, keep the native batch (and its threads) alive
+        self.live = self.batch = None
 
 
-def driver(backend: Any) -> Any:
-    """The backend's driver: the closed loop with a policy, else the open loop."""
-    return ClosedLoop(backend) if policy_loop.chosen(backend.config) else OpenLoop(backend)
+def driver(config: Any, batch: mj_batch.Batch) -> Any:
+    """The driver of `config` over MuJoCo's `batch`: the closed loop with a policy, else the
+    open loop."""
+    return (ClosedLoop if policy_loop.chosen(config) else OpenLoop)(config, batch)
 
 
 class LiveSources:

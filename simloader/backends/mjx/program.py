@@ -298,9 +298,9 @@ class Program:
                  cache: Any = False, placed: Optional[Placed] = None):
         c = config
         self.config, self.device = c, device
-        self.store = stored_program.store_for(cache)
         placed = placed or Placed.put(c, device)
         self.model, pool_axes, self.data0 = placed.model, placed.pool_axes, placed.data0
+        self.store = stored_program.store_for(cache)
         self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
         # per model of the pool (variants too): the inputs and states mj_resetData leaves,
         # the range each control column is clamped to

@@ -24,12 +24,13 @@ import torch
 
 import mujoco
 
-from simloader import handoff, layout, policy, resume, seeds, sharding
+from simloader import handoff, policy, seeds, sharding
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
 from simloader.backends.warp import runtime
 from simloader.backends.warp.engine import Engine
 from simloader.config import SimConfig
+from simloader.trajectories import Trajectories
 
 # engines by configuration and device: every iterator (epoch) of a dataset replays the graph
 # its first one captured; an engine goes away with its dataset's configuration
@@ -71,11 +72,8 @@ class WarpBackend(Backend):
                     config, options, self.device,
                     on_capture=lambda: stats.add(graph_captures=1))
         self.tables = self.engine.tables
-        n = config.nbatch
-        self.restart: Optional[torch.Tensor] = None  # continuing: rows that start afresh
-        self.model_index = (torch.arange(n, device=self.device) if config.models is not None
-                            else torch.zeros(n, dtype=torch.int64, device=self.device))
-        self.params: dict[str, torch.Tensor] = {}  # what each trajectory runs with
+        # which trajectories start afresh, the variant and values each runs with (on the device)
+        self.trajectories = Trajectories(config, self.device)
         self.restored: Optional[torch.Tensor] = None  # resumed rows, applied at the next batch
         self.rows: Optional[torch.Tensor] = None  # continuing: the rows after the last batch
         self.token = object()  # names this iterator as the engine's owner (holding nothing)
@@ -117,25 +115,26 @@ class WarpBackend(Backend):
             self._start_trajectories({k: self.upload(v) for k, v in drawn.items()},
                                      self.upload(x0))
             initial_state = e.physics()
-            e.low.copy_(self.per_trajectory(tables.low))
-            e.high.copy_(self.per_trajectory(tables.high))
+            e.low.copy_(self.trajectories.per_trajectory(tables.low))
+            e.high.copy_(self.trajectories.per_trajectory(tables.high))
             if self.randomized_ctrlrange:
                 self._randomized_bounds()
-            e.loop.prepare(self, index)
+            e.loop.prepare(self.seed(index, seeds.CONTROL),
+                           self.trajectories.per_trajectory(tables.control_defaults))
             e.start()
-            extras = e.loop.run(self, weights)
+            extras = e.loop.run(weights)
+            e.finish()
             outputs = {k: v.clone() for k, v in e.frames.items()}
             outputs.update(control=e.applied(), diverged=e.diverged.clone(),
                            initial_state=initial_state,
                            overflow=e.views["overflow"][:, 0].clone())
-            params = {k: v.clone() for k, v in self.params.items()}
+            params = {k: v.clone() for k, v in self.trajectories.params.items()}
             rows_after = e.integration() if c.continue_episodes else None
             self.rows = rows_after
             ready = torch.cuda.Event() if e.gpu else None
             if ready is not None:
                 ready.record()
-        if c.continue_episodes:
-            self.restart = outputs["diverged"]
+        self.trajectories.finished(outputs["diverged"].clone())  # the consumer may edit its own
         produced = _Produced(outputs, params, extras, rows_after, ready, dispatched)
         self.last = produced
         return produced
@@ -144,9 +143,8 @@ class WarpBackend(Backend):
         """Trajectories that start afresh (all, unless continuing) take their newly drawn
         model (variant) and parameters and restart from their initial state; the others keep
         theirs."""
-        c, e, tables = self.config, self.engine, self.tables
-        fresh = (self.restart if self.restart is not None
-                 else torch.ones(c.nbatch, dtype=torch.bool, device=self.device))
+        c, e, tables, t = self.config, self.engine, self.tables, self.trajectories
+        fresh = t.fresh
         if self.restored is None and c.continue_episodes and e.owner is not self.token:
             # another iterator of this dataset ran on the engine's data since: take back
             # this one's trajectories (the rows it left, warmstart included)
@@ -155,25 +153,13 @@ class WarpBackend(Backend):
             e.reset(self.restored, torch.ones_like(fresh))
             self.restored = None
         e.owner = self.token
-        if "variant" in drawn:
-            self.model_index = torch.where(fresh, drawn["variant"], self.model_index)
-            self.params["variant"] = self.model_index
-        for key, value in drawn.items():
-            if key != "variant":
-                old = self.params.get(key, value)
-                self.params[key] = torch.where(fresh[:, None], value, old)
-        e.set_model(self.model_index, self.params)
-        rows = self.per_trajectory(tables.reset_rows).clone()
+        t.take(drawn)
+        e.set_model(t.model_index, t.params)
+        rows = t.per_trajectory(tables.reset_rows).clone()
         if tables.variant_states is not None:
-            x0 = self.per_trajectory(tables.variant_states)
+            x0 = t.per_trajectory(tables.variant_states)
         rows[:, tables.physics_cols] = x0
         e.reset(rows, fresh)
-
-    def per_trajectory(self, table: torch.Tensor) -> torch.Tensor:
-        """(nbatch, ...): each trajectory's row of a per-model table."""
-        if table.shape[0] == 1:
-            return table.expand(self.config.nbatch, *table.shape[1:])
-        return table.index_select(0, self.model_index)
 
     def _randomized_bounds(self) -> None:
         """Clamp bounds of `ctrl` columns from each trajectory's own (randomized)
@@ -233,19 +219,12 @@ class WarpBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
         if not self.config.continue_episodes:
             return None
-        return resume.encode_trajectories(
-            layout.INTEGRATION, produced.rows_after.cpu().numpy(),
-            produced.outputs["diverged"].cpu().numpy(),
-            {k: v.cpu().numpy() for k, v in produced.params.items()})
+        return self.trajectories.checkpoint(produced.rows_after, produced.outputs["diverged"],
+                                            produced.params)
 
     def restore(self, trajectories: dict[str, Any]) -> None:
-        rows, fresh, params = resume.decode_trajectories(trajectories, layout.INTEGRATION)
-        to = dict(device=self.device)
-        self.restored = torch.as_tensor(rows, **to)
-        self.restart = torch.as_tensor(fresh, **to)
-        self.params = {k: torch.as_tensor(v, **to) for k, v in params.items()}
-        if "variant" in self.params:
-            self.model_index = self.params["variant"]
+        # the rows are loaded at the next batch, inside the engine's stream
+        self.restored = self.trajectories.restore(trajectories)
 
     def close(self) -> None:
         # batches queued but never delivered would keep the GPU busy after the iterator is

@@ -27,23 +27,15 @@ import gc
 import weakref
 from typing import Any, Optional
 
-import mujoco
 import numpy as np
 import torch
 
-from simloader import layout, rules
+from simloader import rules
 from simloader.backends.warp import cameras, drivers, runtime
 from simloader.backends.warp import observe as warp_observe
-from simloader.backends.warp.options import CONVERTED, WarpOptions, arrays
+from simloader.backends.warp import options as warp_options
+from simloader.backends.warp.tables import STATE_ARRAYS, DeviceTables
 
-S = mujoco.mjtState
-# mjSTATE_INTEGRATION components and the MuJoCo Warp data arrays that hold them
-_STATE_ARRAYS = {S.mjSTATE_TIME: "time", S.mjSTATE_QPOS: "qpos", S.mjSTATE_QVEL: "qvel",
-                 S.mjSTATE_ACT: "act", S.mjSTATE_WARMSTART: "qacc_warmstart",
-                 S.mjSTATE_CTRL: "ctrl", S.mjSTATE_QFRC_APPLIED: "qfrc_applied",
-                 S.mjSTATE_XFRC_APPLIED: "xfrc_applied", S.mjSTATE_EQ_ACTIVE: "eq_active",
-                 S.mjSTATE_MOCAP_POS: "mocap_pos", S.mjSTATE_MOCAP_QUAT: "mocap_quat",
-                 S.mjSTATE_USERDATA: "userdata"}
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
 # the engines alive in this process, released at exit (`_release_all`)
 _LIVE: "weakref.WeakSet[Engine]" = weakref.WeakSet()
@@ -64,29 +56,6 @@ def _release_all() -> None:
         torch.cuda.ipc_collect()
 
 
-class DeviceTables:
-    """Per-model host tables on the device, (nmodels, ...) each, gathered per batch by each
-    trajectory's model: reset rows (mjSTATE_INTEGRATION as mj_resetData leaves them), undriven
-    control columns, clamp bounds, and with variants the initial states from the model."""
-
-    def __init__(self, config: Any, device: torch.device):
-        c = config
-        f32 = dict(dtype=torch.float32, device=device)
-        tables = c.model_tables(layout.INTEGRATION)
-        self.reset_rows = torch.as_tensor(tables.reset_rows, **f32)
-        self.control_defaults = torch.as_tensor(tables.control_defaults, **f32)
-        self.low, self.high = (torch.as_tensor(b, **f32) for b in (tables.low, tables.high))
-        self.variant_states = (None if tables.variant_states is None else
-                               torch.as_tensor(tables.variant_states, **f32))
-        self.physics_cols = torch.as_tensor(layout.component_columns(
-            c.model, layout.INTEGRATION, layout.FULLPHYSICS), device=device)
-        # the generators' parameters, for draws on the device
-        self.control_params = c.control.torch_params(self.reset_rows)
-        self.noise_params = (c.policy_noise.torch_params(self.reset_rows)
-                             if c.policy_noise is not None else [])
-        self.clamped = torch.as_tensor(c.model.actuator_ctrllimited.astype(bool), device=device)
-
-
 class Engine:
     """MuJoCo Warp's model and data for `config`, built (and its step graph captured) once.
 
@@ -97,7 +66,7 @@ class Engine:
       on_capture: called after each graph capture (counts them in the dataset's stats).
     """
 
-    def __init__(self, config: Any, options: WarpOptions, device: torch.device,
+    def __init__(self, config: Any, options: warp_options.WarpOptions, device: torch.device,
                  on_capture: Any = None):
         import mujoco_warp as mjw
         self.mjw, self.wp = mjw, runtime.warp()
@@ -112,6 +81,7 @@ class Engine:
         with runtime.WARP_LOCK, self.wp.ScopedDevice(self.wdevice):
             c = config
             n = c.nbatch
+            # MuJoCo Warp's model and data, their arrays never moved, and torch views of them
             model_fields = [f for f in options.per_world if not f.startswith("opt.")]
             self.m = mjw.put_model(c.model, batch_sizes={f: n for f in model_fields})
             for field in options.per_world:  # options: MuJoCo Warp's put_model batches none
@@ -120,34 +90,26 @@ class Engine:
             self.m.opt.warn_overflow = 0  # counted per batch instead
             self.d = mjw.make_data(c.model, nworld=n, naconmax=options.naconmax,
                                    njmax=options.njmax)
-            self.model_views = {k: self.wp.to_torch(v) for k, v in arrays(self.m).items()}
-            self.views = {name: self._data(name) for name in (
-                *_STATE_ARRAYS.values(), "qacc", "sensordata", "overflow")}
-            self.pool_tables = self._pool_tables()
-            # (data array, first column, end) of each non-empty mjSTATE_INTEGRATION component,
-            # in mjtState order: derived once, used by every batch's reset and checkpoint
-            self.integration_layout = []
-            for bit, name in sorted(_STATE_ARRAYS.items(), key=lambda item: int(item[0])):
-                cols = layout.component_columns(c.model, layout.INTEGRATION, int(bit))
-                if len(cols):
-                    self.integration_layout.append((name, int(cols[0]), int(cols[-1]) + 1))
+            self.observations = [o for o in c.observations if not o.rendered]
+            names = (*STATE_ARRAYS.values(), "qacc", "sensordata", "overflow",
+                     *(name for o in self.observations for name in o.fields()))
+            self.views = {name: self._data(name) for name in dict.fromkeys(names)}
+            self.model_views = {k: self.wp.to_torch(v)
+                                for k, v in warp_options.arrays(self.m).items()}
+            # per-model values and tables every batch gathers from, on the device once
+            self.pool_tables = warp_options.pool_tables(c, options, device)
+            self.tables = DeviceTables(c, device)
             # randomized elements, on the device once (not uploaded every batch)
             self.elements = ({} if c.randomization is None else {
                 r.param.key: torch.as_tensor(r.elements, device=device)
                 for r in c.randomization.resolved})
-            self.observations = [o for o in c.observations if not o.rendered]
-            for o in self.observations:
-                for name in o.fields():
-                    self.views.setdefault(name, self._data(name))
-            self.cameras = (cameras.Cameras(self, [o for o in c.observations if o.rendered])
-                            if any(o.rendered for o in c.observations) else None)
             # what the divergence check (`rules.restart_unstable`) leaves finite needs no
             # second look
             self.unchecked = [o.key for o in self.observations
                               if o.floating and not set(o.fields()) <= rules.RESTARTED]
-            self._buffers()
             self.stream = torch.cuda.Stream(device) if self.gpu else None
             self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
+            self._buffers()
             self.graph = self.warp_graph = None
             if self.gpu:
                 # what Warp queued so far went on its own stream, which the engine's does not
@@ -156,8 +118,6 @@ class Engine:
                 self.graph = self._capture()
                 if on_capture is not None:
                     on_capture()
-            # per-model tables every batch gathers from, on the device once
-            self.tables = DeviceTables(config, device)
         _LIVE.add(self)
         if self.gpu:
             _LIVE_GPU.append(True)
@@ -188,72 +148,56 @@ class Engine:
         view = self.wp.to_torch(getattr(self.d, name))
         return view.reshape(view.shape[0], -1)
 
-    def _pool_tables(self) -> dict[str, torch.Tensor]:
-        """For each per-world array that differs across a model pool (lists, variants): the
-        values of every model of the pool, (nmodels, ...), gathered per batch by model index."""
-        c = self.config
-        models = c.models or c.variants
-        if models is None:
-            return {}
-        differing = [f for f in self.options.per_world if f not in self._randomized_fields()]
-        tables: dict[str, list] = {f: [] for f in differing}
-        with self.wp.ScopedDevice("cpu"):
-            for model in models:
-                held = arrays(self.mjw.put_model(model))
-                for f in differing:
-                    tables[f].append(self.wp.to_torch(held[f])[0])
-        return {f: torch.stack(rows).to(self.device) for f, rows in tables.items()}
-
-    def _randomized_fields(self) -> set[str]:
-        plan = self.config.randomization
-        if plan is None:
-            return set()
-        from simloader.backends.warp.options import SETCONST_OUTPUTS
-        out = {CONVERTED.get(r.field, (r.field,))[0] for r in plan.resolved}
-        return out | (set(SETCONST_OUTPUTS) if plan.setconst else set())
-
     def _buffers(self) -> None:
-        """What `_step` reads and writes besides MuJoCo Warp's arrays."""
+        """What `_step` reads and writes besides MuJoCo Warp's arrays: the step index, clamp
+        bounds and flags, the driver's rows, the inputs' views, the frames (cameras' last:
+        their render context binds to the observations' fields)."""
         c, like = self.config, self.views["qpos"]
         self.t = torch.zeros(1, dtype=torch.int64, device=like.device)
         self.low = torch.full((c.nbatch, c.ncontrol), -torch.inf, dtype=like.dtype,
                               device=like.device)
         self.high = torch.full_like(self.low, torch.inf)
-        self.loop = drivers.driver(self)  # the open or closed loop's buffers and rows
         self.diverged = torch.zeros(c.nbatch, dtype=torch.bool, device=like.device)
-        self.inputs = []  # (columns of a control row, MuJoCo Warp's array, boolean)
-        for comp in layout.control_layout(c.model, c.control_spec):
-            self.inputs.append((comp.columns, self.views[comp.name], comp.name == "eq_active"))
+        self.loop = drivers.driver(self)  # the open or closed loop's buffers and rows
+        # (columns of a control row, MuJoCo Warp's array, boolean)
+        self.inputs = [(columns, self.views[name], boolean)
+                       for columns, name, boolean in self.tables.inputs]
         self.frames = {}
         for o in self.observations:
             value = warp_observe.value(o, self.views)
             self.frames[o.key] = torch.empty((c.nbatch, c.nframes, *value.shape[1:]),
                                              dtype=value.dtype, device=value.device)
+        images = [o for o in c.observations if o.rendered]
+        self.cameras = cameras.Cameras(self, images) if images else None
         if self.cameras is not None:
             self.frames.update(self.cameras.frames(c.nbatch, c.nframes))
         self.obs: dict[str, torch.Tensor] = {}
 
     def _capture(self) -> Any:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
-        MuJoCo Warp's kernels and torch's; everything it changes is reset per batch).
-        Captured in thread-local mode, with garbage collection paused (a collection inside the
-        capture could free device memory), under `runtime.WARP_LOCK` (the constructor's)."""
+        MuJoCo Warp's kernels and torch's; everything it changes is reset per batch)."""
         stream = self.stream
         stream.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(stream), \
-                self.wp.ScopedStream(self.warp_stream, sync_enter=False):
-            self._step()
         graph = torch.cuda.CUDAGraph()
+        for capturing in (False, True):
+            with self._capturing(graph) if capturing else self.queued():
+                self._step(capturing)
+        torch.cuda.current_stream(self.device).wait_stream(stream)
+        return graph
+
+    @contextlib.contextmanager
+    def _capturing(self, graph: Any):
+        """torch capturing `graph` on the engine's stream, in thread-local mode, with garbage
+        collection paused (a collection inside the capture could free device memory), under
+        `runtime.WARP_LOCK` (the constructor's)."""
         collecting = gc.isenabled()
         gc.disable()
         try:
-            with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
-                self._step(capturing=True)
+            with torch.cuda.graph(graph, stream=self.stream, capture_error_mode="thread_local"):
+                yield
         finally:
             if collecting:
                 gc.enable()
-        torch.cuda.current_stream(self.device).wait_stream(stream)
-        return graph
 
     # -- per batch -------------------------------------------------------------------------
 
@@ -283,7 +227,7 @@ class Engine:
         if plan is None:
             return
         for r in plan.resolved:
-            field, convert = CONVERTED.get(r.field, (r.field, None))
+            field, convert = warp_options.CONVERTED.get(r.field, (r.field, None))
             value = values[r.param.key]
             flat = self.model_views[field].view(self.config.nbatch, -1)
             flat[:, self.elements[r.param.key]] = (
@@ -294,7 +238,7 @@ class Engine:
     def reset(self, rows: torch.Tensor, fresh: torch.Tensor) -> None:
         """Trajectories `fresh` ((nbatch,) bool) start from their mjSTATE_INTEGRATION `rows`
         ((nbatch, nintegration)); the others continue. Overflow bits start afresh."""
-        for name, start, stop in self.integration_layout:
+        for name, start, stop in self.tables.integration:
             view = self.views[name]
             value = rows[:, start:stop].to(view.dtype) if view.dtype != torch.bool \
                 else rows[:, start:stop] != 0
@@ -308,7 +252,7 @@ class Engine:
     def integration(self) -> torch.Tensor:
         """(nbatch, nintegration): the mjSTATE_INTEGRATION rows now (a new tensor)."""
         like = self.views["qpos"].dtype
-        return torch.cat([self.views[name].to(like) for name, _, _ in self.integration_layout],
+        return torch.cat([self.views[name].to(like) for name, _, _ in self.tables.integration],
                          dim=1)
 
     def observe_now(self) -> dict[str, torch.Tensor]:
@@ -331,7 +275,17 @@ class Engine:
         start (the open loop checks and clamps the batch's rows at once)."""
         self.t.zero_()
         self.diverged.zero_()
-        self.loop.start()
+        bad = self.loop.start(self.low, self.high)
+        if bad is not None:
+            self.diverged |= bad
+
+    def finish(self) -> None:
+        """After a batch's last step: trajectories whose recorded frames hold a non-finite
+        value the divergence check's restart leaves unchecked (`unchecked`) are flagged,
+        once per batch over the delivered frames, as the CPU engine checks its records."""
+        finite = rules.finite([self.frames[key] for key in self.unchecked], torch)
+        if finite is not None:
+            self.diverged |= ~finite
 
     def applied(self) -> torch.Tensor:
         """(nbatch, nstep, ncontrol): the control rows as they acted (a new tensor)."""
@@ -352,18 +306,17 @@ class Engine:
         their frames. Device tensors only, so that one graph serves every step."""
         c = self.config
         with self._warp_capture(capturing):
-            u = self.loop.row()
+            u, bad = self.loop.row(self.t, self.low, self.high)
+            if bad is not None:
+                self.diverged |= bad
             for columns, target, boolean in self.inputs:
                 row = u[:, columns]
                 target.copy_(row != 0 if boolean else row)
             self.mjw.step(self.m, self.d)
+            frame = rules.frame_index(self.t, c.record_every)
             _, unstable = rules.restart_unstable(self.views, self.model_views["qpos0"], torch)
             self.diverged |= unstable
             obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
-            finite = rules.finite([obs[key] for key in self.unchecked], torch)
-            if finite is not None:
-                self.diverged |= ~finite
-            frame = rules.frame_index(self.t, c.record_every)
             for key, value in obs.items():
                 self.frames[key].index_copy_(1, frame, value[:, None])
             if self.cameras is not None:

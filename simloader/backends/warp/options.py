@@ -49,11 +49,14 @@ class WarpOptions:
       naconmax, njmax: MuJoCo Warp's contact pool (whole batch) and constraint rows (per
         trajectory).
       per_world: the model arrays that differ per trajectory (`opt.` for options), sorted.
+      pooled: those of `per_world` taken from each trajectory's model of a pool (a model list
+        or variants) rather than written by randomization, sorted.
     """
 
     naconmax: int
     njmax: int
     per_world: tuple[str, ...]
+    pooled: tuple[str, ...] = ()
 
     def simulated_by(self) -> str:
         return f"MuJoCo Warp, naconmax={self.naconmax}, njmax={self.njmax}"
@@ -91,9 +94,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
              [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
              [f"randomize: variant[{i}]" for i in range(len(models))])
     puts = [_put(name, model) for name, model in zip(names, models)]
-    per_world = set(_differing(puts, names))
-    if config.randomization is not None:
-        per_world |= _randomized(config, puts[0])
+    pooled = set(_differing(puts, names))
+    randomized = _randomized(config, puts[0]) if config.randomization is not None else set()
     _check_records(config)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
     why = cameras.refusal(images)
@@ -108,7 +110,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
                              itemsize=4)
     x0 = config.initial.sample(np.random.SeedSequence(config.seed), config.nbatch)
     naconmax, njmax = buffer_sizes(config.model, config.nbatch, x0, naconmax, njmax)
-    return WarpOptions(naconmax, njmax, tuple(sorted(per_world)))
+    return WarpOptions(naconmax, njmax, tuple(sorted(pooled | randomized)),
+                       tuple(sorted(pooled - randomized)))
 
 
 def _positive(name: str, value: Any) -> Optional[int]:
@@ -150,6 +153,21 @@ def arrays(warp_model: Any) -> dict[str, Any]:
             if isinstance(value, wp.array) and value.size:
                 out[prefix + f.name] = value
     return out
+
+
+def pool_tables(config: SimConfig, options: WarpOptions,
+                device: torch.device) -> dict[str, torch.Tensor]:
+    """For each array of `options.pooled`: the values of every model of the pool (a model
+    list or variants), (nmodels, ...) on `device`, gathered per batch by model index."""
+    if not options.pooled:
+        return {}
+    tables: dict[str, list] = {f: [] for f in options.pooled}
+    wp = runtime.warp()
+    for i, model in enumerate(config.pool):
+        held = arrays(_put(f"model {i} of the pool", model))
+        for f in options.pooled:
+            tables[f].append(wp.to_torch(held[f])[0])
+    return {f: torch.stack(rows).to(device) for f, rows in tables.items()}
 
 
 def batchable(name: str) -> bool:
