@@ -73,7 +73,9 @@ def _dataset(args, device):
     w = common.parse_workload(args.workload)
     record = ["state", "sensordata"]
     if args.mode == "camera":
-        record.append(simloader.Camera(-1, height=64, width=64))
+        # the model's first camera (MuJoCo Warp renders the model's cameras, not the free one)
+        camera = 0 if simloader.load_model(w.name).ncam else -1
+        record.append(simloader.Camera(camera, height=64, width=64))
     drive = {"control": simloader.controls.Uniform()}
     if args.mode == "policy":
         import mujoco
