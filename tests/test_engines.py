@@ -7,6 +7,9 @@ model copy per trajectory for the randomized values; since the CPU engine is bit
 
 import copy
 import dataclasses
+import pathlib
+import subprocess
+import sys
 
 import mujoco
 import numpy as np
@@ -19,6 +22,44 @@ from simloader import backends, seeds
 from simloader import randomize as dr
 from simloader.backends import base, contract
 from simloader.backends.contract import EngineEntry, Job
+
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+# the type checker reads simloader's own modules only: the engines' libraries are skipped
+MYPY_INI = """
+[mypy]
+follow_imports = silent
+ignore_missing_imports = True
+[mypy-torch.*,jax.*,jaxlib.*,mujoco.*,warp.*,mujoco_warp.*,numpy.*,zarr.*]
+follow_imports = skip
+"""
+
+
+def _mypy(tmp_path, *files):
+    ini = tmp_path / "mypy.ini"
+    ini.write_text(MYPY_INI)
+    return subprocess.run([sys.executable, "-m", "mypy", "--config-file", str(ini),
+                           "--cache-dir", str(tmp_path / "cache"), *map(str, files)],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def test_entries_meet_the_protocol_statically_and_a_wrong_one_does_not(tmp_path):
+    # each entry.py annotates `ENGINE: Engine`, so a type checker holds the entry's methods
+    # to the protocol's signatures, as mjlab checks its backends
+    pytest.importorskip("mypy")
+    entries = [REPO / "simloader" / "backends" / e / "entry.py" for e in ("cpu", "mjx", "warp")]
+    done = _mypy(tmp_path, *entries)
+    assert done.returncode == 0, done.stdout + done.stderr
+    wrong = tmp_path / "wrong_entry.py"
+    wrong.write_text(
+        "from simloader.backends.contract import Engine, EngineEntry\n\n\n"
+        "class Wrong(EngineEntry):\n"
+        "    name = 'wrong'\n\n"
+        "    def create(self, config):  # the shard and stats forgotten\n"
+        "        return None\n\n\n"
+        "ENGINE: Engine = Wrong()\n")
+    done = _mypy(tmp_path, wrong)
+    assert done.returncode == 1 and "create" in done.stdout, done.stdout + done.stderr
 
 
 @pytest.mark.parametrize("name", ["cpu", "mjx", "warp"])

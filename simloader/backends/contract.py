@@ -48,9 +48,16 @@ class Engine(Protocol):
       counters: its own counters in `SimDataset.stats` (besides every engine's).
     """
 
-    name: str
-    options: tuple[str, ...]
-    counters: tuple[str, ...]
+    # read-only: an engine may hold them as class attributes of narrower types (a tuple of
+    # two names), which a type checker accepts for a read-only member only
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def options(self) -> tuple[str, ...]: ...
+
+    @property
+    def counters(self) -> tuple[str, ...]: ...
 
     def missing(self) -> Optional[str]:
         """Why it cannot run in this process (what to install, what hardware), or None; fast,

@@ -7,7 +7,7 @@ import importlib.util
 from typing import Any, Optional
 
 from simloader.backends import gpu_rule
-from simloader.backends.contract import EngineEntry, Job
+from simloader.backends.contract import Engine, EngineEntry, Job
 
 # (floor, cost) of one step of a batch, fitted on an H200 to simloader's delivered steps/s
 # (auto_choice-h200-2026-11-26.md): XLA fuses a contact-free step (about 0.2 ms a step
@@ -117,4 +117,5 @@ class MjxEngine(EngineEntry):
         return MjxBackend(config, shard, stats, config.options)
 
 
-ENGINE = MjxEngine()
+# annotated: a type checker holds the entry to the protocol (tests/test_engines.py runs mypy)
+ENGINE: Engine = MjxEngine()
