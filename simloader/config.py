@@ -358,7 +358,8 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
     threads.check_nthread(nthread)
     prefetch = _int("prefetch", prefetch, 1)
     if not isinstance(continue_episodes, bool):
-        raise TypeError(f"continue_episodes: expected a bool, got {type(continue_episodes).__name__}")
+        raise TypeError(f"continue_episodes: expected a bool, got "
+                        f"{type(continue_episodes).__name__}")
     if isinstance(control_spec, str):
         control_spec = layout.parse_control_spec(control_spec)
     if isinstance(control_spec, bool) or not isinstance(control_spec, (int, np.integer,

@@ -29,7 +29,8 @@ def builtin_path(name: str) -> pathlib.Path:
     """Path of the built-in model `name` (see `builtin_models()`)."""
     path = _ASSETS / f"{name}.xml"
     if not path.is_file():
-        raise ValueError(f"model: no built-in model {name!r}; built-in models are {builtin_models()}")
+        raise ValueError(f"model: no built-in model {name!r}; built-in models are "
+                         f"{builtin_models()}")
     return path
 
 

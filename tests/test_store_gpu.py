@@ -4,7 +4,6 @@ read back and regenerated from their provenance within the engine's tolerance.
 Needs no zarr (the store is simloader's own reading and writing); numcodecs for the images.
 """
 
-import numpy as np
 import pytest
 import torch
 
