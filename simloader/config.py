@@ -183,17 +183,25 @@ def _randomization(model_arg: Any, model: mujoco.MjModel, randomize: Any, nbatch
     return None, plan, None
 
 
-def _torch_device(device: Any) -> Optional[torch.device]:
-    if device is None:
+def _torch_device(device: Any, name: str = "device",
+                  none: bool = True) -> Optional[torch.device]:
+    """`device` as a torch device torch can use here, named `name` in errors: a cpu device, or
+    a cuda device of a GPU torch sees (None stays None where `none`)."""
+    if device is None and none:
         return None
     try:
         dev = torch.device(device)
     except (TypeError, RuntimeError) as e:
-        raise ValueError(f"device: expected None, 'cpu', 'cuda' or 'cuda:N', got {device!r}") from e
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device: {device!r} requested but torch sees no CUDA device")
+        allowed = "None, 'cpu', 'cuda' or 'cuda:N'" if none else "'cpu', 'cuda' or 'cuda:N'"
+        raise ValueError(f"{name}: expected {allowed}, got {device!r}") from e
     if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"device: expected a cpu or cuda device, got {device!r}")
+        raise ValueError(f"{name}: expected a cpu or cuda device, got {device!r}")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{name}: {device!r} requested but torch sees no CUDA device")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{name}: {device!r} requested but torch sees "
+                             f"{torch.cuda.device_count()} GPU(s)")
     return dev
 
 
@@ -278,20 +286,9 @@ def sim_devices(sim_device: Any, device: Optional[torch.device]
     parsed = []
     for i, d in enumerate(listed):
         name = f"sim_device[{i}]" if isinstance(sim_device, (list, tuple)) else "sim_device"
-        try:
-            dev = torch.device(d)
-        except (TypeError, RuntimeError) as e:
-            raise ValueError(f"{name}: expected 'cuda:N' (or 'cpu'), got {d!r}") from e
-        if dev.type == "cuda":
-            if not torch.cuda.is_available():
-                raise ValueError(f"{name}: {d!r} requested but torch sees no CUDA device")
-            index = torch.cuda.current_device() if dev.index is None else dev.index
-            if index >= torch.cuda.device_count():
-                raise ValueError(f"{name}: {d!r} requested but torch sees "
-                                 f"{torch.cuda.device_count()} GPU(s)")
-            dev = torch.device("cuda", index)
-        elif dev.type != "cpu":
-            raise ValueError(f"{name}: expected a cuda device (or 'cpu'), got {d!r}")
+        dev = _torch_device(d, name, none=False)
+        if dev.type == "cuda" and dev.index is None:  # parts on one device compare equal
+            dev = torch.device("cuda", torch.cuda.current_device())
         parsed.append(dev)
     if device is None:
         device = (torch.device("cuda", torch.cuda.current_device())

@@ -109,8 +109,9 @@ print(json.dumps({"flags": os.environ.get("XLA_FLAGS", ""),
 
 @pytest.mark.parametrize("sim_device, match", [
     ("cuda:1", r"sim_device: 'cuda:1' requested but torch sees no CUDA device"),
-    (["cpu", "tpu"], r"sim_device\[1\]: expected 'cuda:N' \(or 'cpu'\), got 'tpu'"),
-    ("mps", r"sim_device: expected a cuda device \(or 'cpu'\), got 'mps'"),
+    (["cpu", "tpu"], r"sim_device\[1\]: expected 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
+    (["cpu", None], r"sim_device\[1\]: expected 'cpu', 'cuda' or 'cuda:N', got None"),
+    ("mps", r"sim_device: expected a cpu or cuda device, got 'mps'"),
     ([], r"sim_device: expected a device or a non-empty sequence"),
 ])
 def test_sim_device_bad_values(sim_device, match):

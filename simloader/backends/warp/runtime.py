@@ -52,11 +52,8 @@ def sim_device(target: Optional[torch.device]) -> torch.device:
     rank's GPU (torchrun's LOCAL_RANK), else the CPU (only with SIMLOADER_WARP_ON_CPU=1)."""
     if not torch.cuda.is_available():
         return torch.device("cpu")
-    if target is not None and target.type == "cuda":
+    if target is not None and target.type == "cuda":  # an index torch sees (build_config)
         index = target.index if target.index is not None else torch.cuda.current_device()
-        if index >= torch.cuda.device_count():
-            raise ValueError(f"device: {target} requested but torch sees "
-                             f"{torch.cuda.device_count()} GPU(s)")
         return torch.device("cuda", index)
     return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0"))
                         % torch.cuda.device_count())
