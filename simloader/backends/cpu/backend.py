@@ -69,9 +69,8 @@ class RolloutBackend(Backend):
         # per model (of the list, or variant): each row as mj_resetData leaves it (user
         # inputs, zero warmstart), the undriven control columns, and with variants the
         # initial states that come from the model; `trajectories.per_trajectory` picks them.
-        # The range
-        # MuJoCo clamps each control column to, per model (the delivered control is what
-        # acted)
+        # The range MuJoCo clamps each control column to, per model (the delivered control is
+        # what acted)
         tables = c.model_tables(layout.INTEGRATION)
         self.reset_rows, self.control_defaults = tables.reset_rows, tables.control_defaults
         self.variant_states, self.ctrl_bounds = tables.variant_states, (tables.low, tables.high)

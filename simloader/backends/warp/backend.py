@@ -131,10 +131,12 @@ class WarpBackend(Backend):
             params = {k: v.clone() for k, v in self.trajectories.params.items()}
             rows_after = e.integration() if c.continue_episodes else None
             self.rows = rows_after
+            # which rows start afresh next batch: on the engine's stream, ordered after the
+            # steps that wrote the flags (a copy: the consumer may edit its own)
+            self.trajectories.finished(outputs["diverged"].clone())
             ready = torch.cuda.Event() if e.gpu else None
             if ready is not None:
                 ready.record()
-        self.trajectories.finished(outputs["diverged"].clone())  # the consumer may edit its own
         produced = _Produced(outputs, params, extras, rows_after, ready, dispatched)
         self.last = produced
         return produced

@@ -150,8 +150,8 @@ class Engine:
 
     def _buffers(self) -> None:
         """What `_step` reads and writes besides MuJoCo Warp's arrays: the step index, clamp
-        bounds and flags, the driver's rows, the inputs' views, the frames (cameras' last:
-        their render context binds to the observations' fields)."""
+        bounds and flags, the driver's rows, the inputs' views, the frames of the
+        observations, then the cameras' render context and their frames."""
         c, like = self.config, self.views["qpos"]
         self.t = torch.zeros(1, dtype=torch.int64, device=like.device)
         self.low = torch.full((c.nbatch, c.ncontrol), -torch.inf, dtype=like.dtype,
