@@ -129,3 +129,47 @@ def test_mujoco_warnings_are_counted_and_summarised_not_printed(tmp_path, checko
     # their own mj_step reaches stderr and MUJOCO_LOG.TXT, once
     assert out.stdout.split() == ["24", "1", "False", "True", "True"], out.stdout
     assert out.stderr.count("Nan, Inf or huge value") == 1, out.stderr
+
+
+# a pendulum whose site sits near the largest float: its position (a derived field no engine's
+# divergence check restarts) overflows to inf once the pole has turned far enough, while the
+# physics, which no site touches, stays finite
+FAR_SITE = """
+<mujoco>
+  <worldbody>
+    <body name="pole">
+      <joint name="hinge" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
+      <site name="far" pos="{pos} 0 {pos}"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="hinge" ctrlrange="-1 1"/></actuator>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("backend, pos", [("cpu", "1.5e308"), ("mjx", "2.6e38"),
+                                          ("warp", "2.6e38")])
+def test_a_trajectory_flagged_for_a_non_finite_record_restarts(backend, pos, monkeypatch):
+    # float64 (CPU) overflows past 1.8e308, float32 (MJX, Warp) past 3.4e38
+    if backend == "warp":
+        pytest.importorskip("warp")
+        monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+    model = mujoco.MjModel.from_xml_string(FAR_SITE.format(pos=pos))
+    angles = np.linspace(-1.2, 1.2, 8)
+    x0 = np.stack([np.zeros(8), angles, np.zeros(8)], axis=1)
+    ds = simloader.SimDataset(model, backend=backend, nbatch=8, nstep=6,
+                              record=("state", "site_xpos"), continue_episodes=True,
+                              num_batches=2, seed=1, control=simloader.controls.Uniform(),
+                              initial_state=x0)
+    first, second = list(ds)
+    flagged = ~torch.isfinite(first["site_xpos"]).flatten(1).all(1).cpu()
+    assert flagged.any() and not flagged.all()
+    assert torch.equal(first["diverged"].cpu(), flagged)
+    assert torch.isfinite(first["state"]).all()
+    start = second["initial_state"].cpu().double()
+    # flagged rows start afresh from x0; the others continue where the first batch ended
+    np.testing.assert_allclose(start[flagged].numpy(), x0[flagged.numpy()], rtol=1e-6)
+    kept = first["state"][:, -1].cpu().double()[~flagged]
+    assert torch.equal(start[~flagged], kept)
+    assert (start[~flagged][:, 0] > 0).all()  # time went on

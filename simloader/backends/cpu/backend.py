@@ -18,7 +18,7 @@ import copy
 import dataclasses
 import threading
 import time
-from typing import Optional, Union
+from typing import Any, Optional, Union
 
 import mujoco
 import numpy as np
@@ -126,7 +126,12 @@ class RolloutBackend(Backend):
         bad_control, extras = run(out)
         self.stats.add(simulate_s=time.perf_counter() - start)
         warned = self.warnings.any(axis=1) | bad_control
-        # a diverged trajectory was reset by MuJoCo: restart it from a fresh initial state
+        if c.continue_episodes:
+            # the rows the next batch continues from: a trajectory restarts there when MuJoCo
+            # reset it (its warning), it got a bad control, or it recorded a non-finite value
+            # (what `deliver` flags too), so this check cannot wait for the hand-off
+            warned |= ~_finite([tensor for tensor, _ in recorded.values()], c.nbatch)
+        # a diverged trajectory restarts from a fresh initial state
         t.finished(warned)
         rows_after = rows.copy() if c.continue_episodes else None
         params = {k: torch.from_numpy(v.copy()) for k, v in t.params.items()}
@@ -194,13 +199,11 @@ class RolloutBackend(Backend):
         c = self.config
         for future in p.rendering:  # rendered while the next batch simulated
             future.result()
-        # MuJoCo's checks catch NaN/Inf/huge in qpos, qvel and qacc; this also covers every
-        # floating record and runs here, overlapped with the next batch's simulation
-        finite = np.ones(c.nbatch, dtype=bool)
-        for recorded in p.recorded.values():
-            if recorded.is_floating_point() and recorded.numel():
-                finite &= np.isfinite(recorded.numpy().reshape(c.nbatch, -1)).all(axis=1)
-        diverged = p.warned | ~finite
+        # MuJoCo's checks catch NaN/Inf/huge in qpos, qvel and qacc; the records' check covers
+        # every floating record and runs here, overlapped with the next batch's simulation
+        # (continuing, `produce` made it already)
+        diverged = (p.warned if c.continue_episodes
+                    else p.warned | ~_finite(p.recorded.values(), c.nbatch))
         if diverged.any():
             mujoco_warnings.summarize(stacklevel=4)
         self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
@@ -238,3 +241,13 @@ class RolloutBackend(Backend):
         self.expanded = {}
         if self.renderer is not None:
             self.renderer.close()
+
+
+def _finite(recorded: Any, nbatch: int) -> np.ndarray:
+    """(nbatch,) bool: every floating value each trajectory recorded (tensors (nbatch, ...))
+    is finite."""
+    finite = np.ones(nbatch, dtype=bool)
+    for tensor in recorded:
+        if tensor.is_floating_point() and tensor.numel():
+            finite &= np.isfinite(tensor.numpy().reshape(nbatch, -1)).all(axis=1)
+    return finite
