@@ -140,6 +140,7 @@ class MjxBackend(Backend):
         runtime.configure_memory(options.memory_fraction)
         runtime.configure_cache(options.compilation_cache)
         device = runtime.jax_device(config.device)
+        self.driver = drivers.driver(config, device, stats)  # the open or the closed loop
         programs = _PROGRAMS.setdefault(config, {})
         self.program = programs.get((device, options))
         if self.program is None:
@@ -159,7 +160,6 @@ class MjxBackend(Backend):
         self.last_ready = 0.0
         self.last_dispatched: Any = None  # outputs of the newest dispatched batch
         self.in_worker = torch.utils.data.get_worker_info() is not None
-        self.driver = drivers.driver(self)  # the open or the closed loop
 
     def batch_args(self, index: int) -> BatchArgs:
         """The batch function's arguments for batch `index` (`program.batch_function`)."""
@@ -176,7 +176,8 @@ class MjxBackend(Backend):
 
     def produce(self, index: int) -> _Produced:
         c = self.config
-        dispatched, outputs, carry, extras = self.driver.dispatch(self.batch_args(index))
+        dispatched, outputs, carry, extras = self.driver.dispatch(self.program,
+                                                                  self.batch_args(index))
         self.last_dispatched = outputs
         if c.continue_episodes:
             # diverged rows restart in the next batch, decided on the device without waiting

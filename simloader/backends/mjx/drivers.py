@@ -35,40 +35,43 @@ Dispatched = tuple[float, dict[str, Any], Any, Optional[dict[str, torch.Tensor]]
 class OpenLoop:
     """Controls drawn inside the batch function (or fixed): one call per batch."""
 
-    def __init__(self, backend: Any):
-        self.backend = backend
+    def __init__(self, config: Any, device: Any, stats: Any):
+        self.stats = stats
 
-    def dispatch(self, args: BatchArgs) -> Dispatched:
-        b = self.backend
-        b.program.compile(args, b.stats)  # once: traced, or loaded from the program store
+    def dispatch(self, program: Program, args: BatchArgs) -> Dispatched:
+        """In: the program and its batch function's arguments. Out: the batch dispatched
+        (compiled first, once: traced, or loaded from the program store), not waited for."""
+        program.compile(args, self.stats)
         dispatched = time.perf_counter()
-        outputs, carry = b.program.run(args)
+        outputs, carry = program.run(args)
         return dispatched, outputs, carry, None
 
 
 class ClosedLoop:
     """A torch policy picks every step's controls; the batch's data is donated to the next."""
 
-    def __init__(self, backend: Any):
-        self.backend = backend
-        self.snapshot = policy.Snapshot(backend.config.policy,
-                                        runtime.torch_device(backend.device))
-        self.loop = _closed_loop(backend.program, backend.config.policy_noise)
+    def __init__(self, config: Any, device: Any, stats: Any):
+        self.config = config
+        self.here = runtime.torch_device(device)  # the policy's rows and observations
+        self.snapshot = policy.Snapshot(config.policy, self.here)
         self.previous: Any = None  # the last batch's data (donated to the next)
 
-    def dispatch(self, args: BatchArgs) -> Dispatched:
-        b = self.backend
+    def dispatch(self, program: Program, args: BatchArgs) -> Dispatched:
+        """In: the program and its batch function's arguments. Out: the batch's steps
+        dispatched, the policy between them (one version of its weights per batch), and the
+        policy's extras."""
         dispatched = time.perf_counter()
-        taken = self.snapshot.take()  # one version of the weights per batch
-        here = runtime.torch_device(b.device)
+        taken = self.snapshot.take()
 
         def drive(first: dict[str, torch.Tensor], step: policy_loop.Step) -> dict:
-            return policy_loop.run(taken, b.config, first, step, here)
+            return policy_loop.run(taken, self.config, first, step, self.here)
 
-        outputs, carry, self.previous, extras = self.loop.run(args, self.previous, drive)
+        loop = _closed_loop(program, self.config.policy_noise)
+        outputs, carry, self.previous, extras = loop.run(args, self.previous, drive)
         return dispatched, outputs, carry, extras
 
 
-def driver(backend: Any) -> Any:
-    """The backend's driver: the closed loop with a policy, else the open loop."""
-    return ClosedLoop(backend) if policy_loop.chosen(backend.config) else OpenLoop(backend)
+def driver(config: Any, device: Any, stats: Any) -> Any:
+    """The driver of `config` on JAX's `device` (compile counts into `stats`): the closed loop
+    with a policy, else the open loop."""
+    return (ClosedLoop if policy_loop.chosen(config) else OpenLoop)(config, device, stats)
