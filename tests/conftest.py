@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import mujoco
+import numpy as np
 import pytest
 
 import simloader
@@ -50,6 +51,25 @@ RICH_XML = """
   </keyframe>
 </mujoco>
 """
+
+# A pendulum whose site sits near the largest float of a precision (`pos`): its position, a
+# derived field no engine's divergence check restarts, overflows to inf once the pole has
+# turned far enough (float32 at 2.6e38: where cos + |sin| > 1.31, 0.43-1.14 rad; float64 at
+# 1.5e308 likewise), while the physics, which no site touches, stays finite. FAR_SITE_X0:
+# eight poles at rest from -1.2 to 1.2 rad (time, qpos, qvel).
+FAR_SITE_XML = """
+<mujoco>
+  <worldbody>
+    <body name="pole">
+      <joint name="hinge" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
+      <site name="far" pos="{pos} 0 {pos}"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="hinge" ctrlrange="-1 1"/></actuator>
+</mujoco>
+"""
+FAR_SITE_X0 = np.stack([np.zeros(8), np.linspace(-1.2, 1.2, 8), np.zeros(8)], axis=1)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

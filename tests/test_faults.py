@@ -12,6 +12,7 @@ import torch
 from mujoco import rollout
 
 import simloader
+from conftest import FAR_SITE_X0, FAR_SITE_XML
 
 S = mujoco.mjtState
 SPEC = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED)
@@ -131,23 +132,6 @@ def test_mujoco_warnings_are_counted_and_summarised_not_printed(tmp_path, checko
     assert out.stderr.count("Nan, Inf or huge value") == 1, out.stderr
 
 
-# a pendulum whose site sits near the largest float: its position (a derived field no engine's
-# divergence check restarts) overflows to inf once the pole has turned far enough, while the
-# physics, which no site touches, stays finite
-FAR_SITE = """
-<mujoco>
-  <worldbody>
-    <body name="pole">
-      <joint name="hinge" type="hinge" axis="0 1 0" damping="0.1"/>
-      <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
-      <site name="far" pos="{pos} 0 {pos}"/>
-    </body>
-  </worldbody>
-  <actuator><motor joint="hinge" ctrlrange="-1 1"/></actuator>
-</mujoco>
-"""
-
-
 @pytest.mark.parametrize("backend, pos", [("cpu", "1.5e308"), ("mjx", "2.6e38"),
                                           ("warp", "2.6e38")])
 def test_a_trajectory_flagged_for_a_non_finite_record_restarts(backend, pos, monkeypatch):
@@ -155,9 +139,8 @@ def test_a_trajectory_flagged_for_a_non_finite_record_restarts(backend, pos, mon
     if backend == "warp":
         pytest.importorskip("warp")
         monkeypatch.setenv("SIMLOADER_WARP_ON_CPU", "1")
-    model = mujoco.MjModel.from_xml_string(FAR_SITE.format(pos=pos))
-    angles = np.linspace(-1.2, 1.2, 8)
-    x0 = np.stack([np.zeros(8), angles, np.zeros(8)], axis=1)
+    model = mujoco.MjModel.from_xml_string(FAR_SITE_XML.format(pos=pos))
+    x0 = FAR_SITE_X0
     ds = simloader.SimDataset(model, backend=backend, nbatch=8, nstep=6,
                               record=("state", "site_xpos"), continue_episodes=True,
                               num_batches=2, seed=1, control=simloader.controls.Uniform(),

@@ -22,7 +22,7 @@ pytest.importorskip("warp")
 import simloader  # noqa: E402
 from simloader import controls  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
-from conftest import RICH_XML  # noqa: E402
+from conftest import FAR_SITE_X0, FAR_SITE_XML, RICH_XML  # noqa: E402
 from test_mjx import CONTACT_FREE_TOL, ONE_STEP_TOL  # noqa: E402
 from test_randomize import pole_variant  # noqa: E402
 
@@ -448,31 +448,13 @@ def test_a_dataset_checked_while_an_engine_queues_waits_for_warps_device(cache_d
     assert done and done[0] >= released, (alone, done, released)
 
 
-# a pendulum whose site sits near the edge of float32: its position overflows to inf in MuJoCo
-# Warp's float32 where the pole has turned 0.43-1.14 rad (cos + |sin| > 1.31), while the
-# physics, which no site touches, stays finite
-FAR_SITE_XML = """
-<mujoco>
-  <worldbody>
-    <body name="pole">
-      <joint name="hinge" type="hinge" axis="0 1 0" damping="0.1"/>
-      <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
-      <site name="far" pos="2.6e38 0 2.6e38"/>
-    </body>
-  </worldbody>
-  <actuator><motor joint="hinge" ctrlrange="-1 1"/></actuator>
-</mujoco>
-"""
-
-
 def test_a_non_finite_recorded_field_is_flagged_while_the_physics_stays_finite(cache_dir):
     # a derived field (site_xpos) is not among what the divergence check restarts: only the
     # check of the delivered frames can flag it
-    model = mujoco.MjModel.from_xml_string(FAR_SITE_XML)
-    angles = np.linspace(-1.2, 1.2, 8)
+    model = mujoco.MjModel.from_xml_string(FAR_SITE_XML.format(pos="2.6e38"))
     ds = dataset(model, cache_dir, nbatch=8, nstep=12, record_every=3,
                  record=("state", "site_xpos"), control=controls.Uniform(), num_batches=1,
-                 seed=4, initial_state=np.stack([np.zeros(8), angles, np.zeros(8)], axis=1))
+                 seed=4, initial_state=FAR_SITE_X0)
     batch = next(iter(ds))
     state = batch["state"]
     assert torch.isfinite(state).all()
