@@ -36,6 +36,7 @@ class Trajectories:
     def __init__(self, config: Any, device: Optional[Any] = None):
         n = config.nbatch
         self.continuing = config.continue_episodes
+        self.listed = config.models is not None  # a model list: one model per trajectory
         self.device = device
         if device is None:
             self.xp = np
@@ -70,6 +71,8 @@ class Trajectories:
         if table.shape[0] == 1:
             return (np.broadcast_to(table, (n, *table.shape[1:])) if self.xp is np
                     else table.expand(n, *table.shape[1:]))
+        if self.listed:  # row i is trajectory i's already: no gather (and no copy) per batch
+            return table
         return table[self.model_index]
 
     def finished(self, diverged: Any) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, mujoco_warnings, seeds, threads
+from simloader import controls, handoff, layout, mujoco_warnings, rules, seeds, threads
 from simloader import randomize as dr
 from simloader.backends.cpu import drivers
 from simloader.backends.cpu import render as cpu_render
@@ -245,9 +245,7 @@ class RolloutBackend(Backend):
 
 def _finite(recorded: Any, nbatch: int) -> np.ndarray:
     """(nbatch,) bool: every floating value each trajectory recorded (tensors (nbatch, ...))
-    is finite."""
-    finite = np.ones(nbatch, dtype=bool)
-    for tensor in recorded:
-        if tensor.is_floating_point() and tensor.numel():
-            finite &= np.isfinite(tensor.numpy().reshape(nbatch, -1)).all(axis=1)
-    return finite
+    is finite (`rules.finite`, the frame check every engine makes)."""
+    finite = rules.finite([t.numpy() for t in recorded if t.is_floating_point() and t.numel()],
+                          np)
+    return np.ones(nbatch, dtype=bool) if finite is None else finite
