@@ -342,7 +342,7 @@ def _close(logs) -> None:
 
 
 def _placement(placement) -> str:
-    """" (GPUs 0,1 | 2,3)": each node's CUDA_VISIBLE_DEVICES, where nodes set them."""
+    """" (GPUs 0,1; 2,3)": each node's CUDA_VISIBLE_DEVICES, where nodes set them."""
     if not placement:
         return ""
     nodes: dict = {}
@@ -350,7 +350,7 @@ def _placement(placement) -> str:
         nodes.setdefault(node, gpus)
     if len(nodes) < 2 or not any(nodes.values()):
         return ""
-    return f" (GPUs {' | '.join(nodes[n] for n in sorted(nodes))})"
+    return f" (GPUs {'; '.join(nodes[n] for n in sorted(nodes))})"
 
 
 def main() -> None:
@@ -404,6 +404,11 @@ def main() -> None:
                 break
             reference = reference or r["steps_per_s"]
             per_rank = r.get("per_rank", [r["steps_per_s"] / nproc])
+            # each rank's own rate beside its place: which node or GPU holds a job back
+            print(f"{engine}/{mode}, {nproc} rank(s), {args.nodes} node(s): per rank "
+                  + ", ".join(f"{rate / 1e6:.3g}M" + (f" (node {p[0]}, {p[1]})" if p else "")
+                              for rate, p in zip(per_rank, r.get("placement") or
+                                                 [None] * len(per_rank))), flush=True)
             distinct = "" if mode == "ddp" else "yes" if r["distinct"] else "NO"
             again = "" if mode == "ddp" else r["again"]
             if mode == "write":
