@@ -289,8 +289,10 @@ def run(nproc: int, args, engine: str, mode: str, workload: str) -> dict:
             if args.deterministic:
                 command.append("--deterministic")
         procs, logs = [], []
+        binding = [f"--numa-binding={args.numa_binding}"] if args.numa_binding else []
         try:
             for i, (options, env) in enumerate(launches(nproc, args.nodes)):
+                options = options + binding
                 out, err = (open(os.path.join(tmp, f"node{i}.{x}"), "w+") for x in "oe")
                 logs.append((out, err))
                 procs.append(subprocess.Popen(
@@ -370,6 +372,10 @@ def main() -> None:
     p.add_argument("--nodes", type=int, default=1,
                    help="local nodes per job (torchrun's static rendezvous on 127.0.0.1, "
                         "each node its share of the GPUs); every --nprocs a multiple of it")
+    p.add_argument("--numa-binding", choices=["node", "socket"],
+                   help="torchrun's --numa-binding: each rank on the CPUs of its GPU's NUMA "
+                        "node (or socket); a closed loop dispatches every step from Python, so "
+                        "its rate follows the cores it lands on")
     p.add_argument("--deterministic", action="store_true",
                    help="SimDataset(deterministic=True): bit-identical batches for a seed, "
                         "or a 'refused' row where the engine cannot (not the ddp example)")
@@ -388,6 +394,9 @@ def main() -> None:
         return child(args)
     if args.nodes < 1 or any(n % args.nodes for n in args.nprocs):
         p.error(f"--nodes {args.nodes}: every --nprocs must be a multiple of it")
+    if args.numa_binding and not _visible_gpus():
+        p.error(f"--numa-binding {args.numa_binding}: binds ranks near their GPUs; this "
+                f"machine shows none")
     sizes = {**(QUICK if args.quick else WORKLOADS),
              **dict(item.split("=", 1) for item in args.workloads)}
 
@@ -430,7 +439,9 @@ def main() -> None:
              f"batch from (seed, rank, 0); \"bit-equal\" is torch.equal on every key, \"draws "
              f"equal\" initial_state and control bit-equal, \"apart by\" the largest "
              f"|difference| of state over the ranks."
-             + (" Datasets built with deterministic=True." if args.deterministic else ""))
+             + (" Datasets built with deterministic=True." if args.deterministic else "")
+             + (f" Ranks bound by torchrun --numa-binding={args.numa_binding}."
+                if args.numa_binding else ""))
     common.report(args, "scale_out", "Scale-out: engines under torchrun",
                   [notes, common.markdown_table(headers, rows)])
 

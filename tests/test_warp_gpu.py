@@ -242,3 +242,26 @@ def test_nothing_warns_on_the_defaults():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         next(iter(warp_dataset(nbatch=64, nstep=5, num_batches=1)))
+
+
+def test_continued_rows_flagged_for_a_non_finite_record_restart_on_the_gpu():
+    """With `continue_episodes`, the next batch's fresh rows are the rows the last batch
+    flagged: the flags must be read after the steps that write them, on the engine's stream.
+    (They were once copied on the producer's stream, unordered against those steps, which
+    would let a flagged row continue.) Large enough that the steps are still queued when the
+    producer reaches the copy: 8192 trajectories of the far-site pendulum, whose recorded site
+    position overflows float32 at some angles while the physics stays finite."""
+    from conftest import FAR_SITE_X0, FAR_SITE_XML
+    model = mujoco.MjModel.from_xml_string(FAR_SITE_XML.format(pos="2.6e38"))
+    x0 = np.tile(FAR_SITE_X0, (1024, 1))
+    batches = list(warp_dataset(model, nbatch=len(x0), nstep=200, num_batches=4, seed=3,
+                                record=("state", "site_xpos"), continue_episodes=True,
+                                initial_state=x0))
+    assert all(b["state"].is_cuda for b in batches)
+    for first, second in zip(batches, batches[1:]):
+        flagged = ~torch.isfinite(first["site_xpos"]).flatten(1).all(1).cpu()
+        assert flagged.any() and not flagged.all()
+        assert torch.equal(first["diverged"].cpu(), flagged)
+        start = second["initial_state"].cpu().double()
+        np.testing.assert_allclose(start[flagged].numpy(), x0[flagged.numpy()], rtol=1e-6)
+        assert torch.equal(start[~flagged], first["state"][:, -1].cpu().double()[~flagged])
