@@ -36,6 +36,10 @@ JAX cart-pole; 4 GPUs at least 3.8x. NVLink multicast stays off in NCCL (shared 
         --tag deterministic --save --results-dir $OUT
     python benchmarks/scale_out.py --quick --engines cpu --nprocs 1 2         # CPU smoke run
     python benchmarks/scale_out.py --quick --engines cpu --nprocs 2 --nodes 2  # 2 CPU "nodes"
+    # one node against two, interleaved three times: a closed loop's rate moves from job to
+    # job (Python dispatches every step), so one job against one cannot resolve 5%
+    python benchmarks/scale_out.py --engines mjx --modes policy --nprocs 4 --nodes 1 2 \
+        --repeats 3 --batches 20 --save --results-dir $OUT
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ import json
 import os
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -270,10 +275,10 @@ def _stop(procs) -> None:
         proc.wait()
 
 
-def run(nproc: int, args, engine: str, mode: str, workload: str) -> dict:
-    """One torchrun job of `nproc` ranks over `--nodes` local nodes; rank 0's figures (or why
+def run(nproc: int, nodes: int, args, engine: str, mode: str, workload: str) -> dict:
+    """One torchrun job of `nproc` ranks over `nodes` local nodes; rank 0's figures (or why
     it was refused)."""
-    what = f"{engine}/{mode} on {nproc} rank(s), {args.nodes} node(s)"
+    what = f"{engine}/{mode} on {nproc} rank(s), {nodes} node(s)"
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "result.json")
         if mode == "ddp":
@@ -291,7 +296,7 @@ def run(nproc: int, args, engine: str, mode: str, workload: str) -> dict:
         procs, logs = [], []
         binding = [f"--numa-binding={args.numa_binding}"] if args.numa_binding else []
         try:
-            for i, (options, env) in enumerate(launches(nproc, args.nodes)):
+            for i, (options, env) in enumerate(launches(nproc, nodes)):
                 options = options + binding
                 out, err = (open(os.path.join(tmp, f"node{i}.{x}"), "w+") for x in "oe")
                 logs.append((out, err))
@@ -355,6 +360,46 @@ def _placement(placement) -> str:
     return f" (GPUs {'; '.join(nodes[n] for n in sorted(nodes))})"
 
 
+def _rows(args, engine: str, mode: str, workload: str, layouts: list) -> list[list]:
+    """The table rows of one engine and mode: every (ranks, nodes) layout `--repeats` times,
+    interleaved, so that a slow spell of the machine falls on all layouts alike."""
+    runs: dict = {layout: [] for layout in layouts}
+    for _ in range(args.repeats):
+        for nproc, nodes in layouts:
+            r = run(nproc, nodes, args, engine, mode, workload)
+            if "refused" in r:
+                return [[engine, mode, workload, nodes, nproc, "refused: " + r["refused"],
+                         *[""] * (6 if args.repeats > 1 else 5)]]
+            r.setdefault("per_rank", [r["steps_per_s"] / nproc])
+            # each rank's own rate beside its place: which node or GPU holds a job back
+            print(f"\n{engine}/{mode}, {nproc} rank(s), {nodes} node(s): per rank "
+                  + ", ".join(f"{rate / 1e6:.3g}M" + (f" (node {p[0]}, {p[1]})" if p else "")
+                              for rate, p in zip(r["per_rank"], r.get("placement") or
+                                                 [None] * len(r["per_rank"]))), flush=True)
+            runs[(nproc, nodes)].append(r)
+    reference = runs[layouts[0]]
+    rows = []
+    for (nproc, nodes), rs in runs.items():
+        rates = [r["steps_per_s"] for r in rs]
+        first = rs[0]
+        distinct = "" if mode == "ddp" else "yes" if all(r["distinct"] for r in rs) else "NO"
+        again = "" if mode == "ddp" else "; ".join(sorted({r["again"] for r in rs}))
+        if mode == "write":
+            again += f"; {first['stored']} stored, ranks {first['ranks_in_store']}"
+        slowest = statistics.median(min(r["per_rank"]) for r in rs)
+        ratio = statistics.median(rates) / statistics.median(r["steps_per_s"] for r in reference)
+        figures = [f"{statistics.median(rates) / 1e6:.3g}M", f"{slowest / 1e6:.3g}M",
+                   f"{ratio:.2f}x"]
+        if args.repeats > 1:
+            figures[0] += f" ({min(rates) / 1e6:.3g}M-{max(rates) / 1e6:.3g}M)"
+            figures.append(", ".join(f"{r['steps_per_s'] / ref['steps_per_s']:.2f}x"
+                                     for r, ref in zip(rs, reference)))
+        rows.append([engine, mode, workload, nodes, nproc,
+                     first["device"] + _placement(first.get("placement")), *figures,
+                     distinct, again])
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -369,9 +414,14 @@ def main() -> None:
     p.add_argument("--nprocs", type=int, nargs="+", default=[1, 2],
                    help="ranks (GPUs) of each job, all nodes together; the first is the "
                         "reference")
-    p.add_argument("--nodes", type=int, default=1,
+    p.add_argument("--nodes", type=int, nargs="+", default=[1],
                    help="local nodes per job (torchrun's static rendezvous on 127.0.0.1, "
-                        "each node its share of the GPUs); every --nprocs a multiple of it")
+                        "each node its share of the GPUs); several: a job for each --nprocs "
+                        "that is a multiple of it")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="runs of every job, interleaved (all jobs once, then again): a row "
+                        "gives the median, the range and each repeat's ratio to the "
+                        "reference job of the same repeat")
     p.add_argument("--numa-binding", choices=["node", "socket"],
                    help="torchrun's --numa-binding: each rank on the CPUs of its GPU's NUMA "
                         "node (or socket); a closed loop dispatches every step from Python, so "
@@ -392,8 +442,14 @@ def main() -> None:
     args = p.parse_args()
     if args.child:
         return child(args)
-    if args.nodes < 1 or any(n % args.nodes for n in args.nprocs):
-        p.error(f"--nodes {args.nodes}: every --nprocs must be a multiple of it")
+    layouts = [(nproc, nodes) for nproc in args.nprocs for nodes in args.nodes
+               if nodes >= 1 and nproc % nodes == 0]
+    if len(layouts) < len(args.nprocs) * len(args.nodes) and len(args.nodes) == 1:
+        p.error(f"--nodes {args.nodes[0]}: every --nprocs must be a multiple of it")
+    if not layouts:
+        p.error(f"--nodes {args.nodes}: no --nprocs {args.nprocs} is a multiple of any")
+    if args.repeats < 1:
+        p.error(f"--repeats {args.repeats}: at least 1")
     if args.numa_binding and not _visible_gpus():
         p.error(f"--numa-binding {args.numa_binding}: binds ranks near their GPUs; this "
                 f"machine shows none")
@@ -403,39 +459,24 @@ def main() -> None:
     rows = []
     jobs = [(e, m) for e in args.engines for m in args.modes if not (m == "ddp" and e == "warp")]
     for engine, mode in common.progress(jobs, desc="engines x modes"):
-        reference = None
-        for nproc in args.nprocs:
-            workload = QUICK_CAMERA if args.quick and mode == "camera" else sizes[engine]
-            r = run(nproc, args, engine, mode, workload)
-            if "refused" in r:
-                rows.append([engine, mode, workload, args.nodes, nproc,
-                             "refused: " + r["refused"], "", "", "", "", ""])
-                break
-            reference = reference or r["steps_per_s"]
-            per_rank = r.get("per_rank", [r["steps_per_s"] / nproc])
-            # each rank's own rate beside its place: which node or GPU holds a job back
-            print(f"{engine}/{mode}, {nproc} rank(s), {args.nodes} node(s): per rank "
-                  + ", ".join(f"{rate / 1e6:.3g}M" + (f" (node {p[0]}, {p[1]})" if p else "")
-                              for rate, p in zip(per_rank, r.get("placement") or
-                                                 [None] * len(per_rank))), flush=True)
-            distinct = "" if mode == "ddp" else "yes" if r["distinct"] else "NO"
-            again = "" if mode == "ddp" else r["again"]
-            if mode == "write":
-                again += f"; {r['stored']} stored, ranks {r['ranks_in_store']}"
-            rows.append([engine, mode, workload, args.nodes, nproc,
-                         r["device"] + _placement(r.get("placement")),
-                         f"{r['steps_per_s'] / 1e6:.3g}M",
-                         f"{min(per_rank) / 1e6:.3g}M", f"{r['steps_per_s'] / reference:.2f}x",
-                         distinct, again])
+        workload = QUICK_CAMERA if args.quick and mode == "camera" else sizes[engine]
+        rows += _rows(args, engine, mode, workload, layouts)
     headers = ["engine", "mode", "per-rank workload", "nodes", "ranks (all nodes)", "device",
-               "steps/s, all ranks", "slowest rank", f"vs {args.nprocs[0]} rank(s)",
+               "steps/s, all ranks", "slowest rank",
+               f"vs {layouts[0][0]} rank(s), {layouts[0][1]} node(s)",
                "ranks' streams distinct", "first batch simulated again"]
-    nodes = (f" over {args.nodes} local nodes (torchrun's static rendezvous, each node its "
-             f"share of the GPUs)" if args.nodes > 1 else "")
-    notes = (f"Each row is one torchrun job{nodes}, one process per GPU (or CPU processes "
-             f"without GPUs), {args.batches} timed batches per rank after a warm-up batch; "
-             f"steps/s is all ranks' steps over the slowest rank's time (`ddp`: the DDP "
-             f"example's own figure, training included). Simulated again: each rank's first "
+    if args.repeats > 1:
+        headers[6:9] = ["steps/s, all ranks: median (range)", "slowest rank, median",
+                        f"vs {layouts[0][0]} rank(s), {layouts[0][1]} node(s): medians",
+                        "the same, each repeat"]
+    nodes = ("; a job over M > 1 local nodes is M torchrun processes of the static rendezvous, "
+             "each node its share of the GPUs" if max(args.nodes) > 1 else "")
+    repeats = (f"; every job {args.repeats} times, interleaved (all jobs, then all again)"
+               if args.repeats > 1 else "")
+    notes = (f"Each row is a torchrun job{nodes}, one process per GPU (or CPU processes "
+             f"without GPUs), {args.batches} timed batches per rank after a warm-up batch"
+             f"{repeats}; steps/s is all ranks' steps over the slowest rank's time (`ddp`: the "
+             f"DDP example's own figure, training included). Simulated again: each rank's first "
              f"batch from (seed, rank, 0); \"bit-equal\" is torch.equal on every key, \"draws "
              f"equal\" initial_state and control bit-equal, \"apart by\" the largest "
              f"|difference| of state over the ranks."

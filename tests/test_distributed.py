@@ -181,3 +181,27 @@ def test_scale_out_script_on_cpu_ranks(checkout_env):
     cells = [[c.strip() for c in row.split("|")] for row in rows]
     assert all("yes" in c and any(x.startswith("bit-equal") for x in c) for c in cells), rows
     assert "256 stored, ranks [0, 1]" in rows[1], rows[1]
+
+
+def test_scale_out_interleaves_layouts_and_repeats(checkout_env):
+    """`--nodes 1 2 --repeats 2`: every layout (one node of 2 ranks, two nodes of 1, and the
+    1-rank reference) runs twice, interleaved; a row gives the median and each repeat's ratio
+    to the reference job of the same repeat."""
+    root = pathlib.Path(__file__).parents[1]
+    out = subprocess.run([sys.executable, str(root / "benchmarks" / "scale_out.py"), "--quick",
+                          "--engines", "cpu", "--modes", "open", "--nprocs", "1", "2",
+                          "--nodes", "1", "2", "--repeats", "2", "--batches", "1"],
+                         capture_output=True, text=True, timeout=400, cwd=root,
+                         env=checkout_env())
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-4000:]
+    # jobs in the order they ran: all layouts, then all again
+    ran = [line.split(":")[0] for line in out.stdout.splitlines() if ": per rank " in line]
+    layouts = ["cpu/open, 1 rank(s), 1 node(s)", "cpu/open, 2 rank(s), 1 node(s)",
+               "cpu/open, 2 rank(s), 2 node(s)"]
+    assert ran == layouts * 2, ran
+    rows = [[c.strip() for c in line.split("|")[1:-1]]
+            for line in out.stdout.splitlines() if line.startswith("| cpu")]
+    assert [(r[3], r[4]) for r in rows] == [("1", "1"), ("1", "2"), ("2", "2")], rows
+    assert rows[0][9] == "1.00x, 1.00x", rows[0]
+    for r in rows:
+        assert len(r[9].split(", ")) == 2 and r[10] == "yes" and r[11] == "bit-equal", r
