@@ -247,8 +247,6 @@ def launches(nproc: int, nodes: int) -> list[tuple[list[str], dict[str, str]]]:
     env = {**os.environ, **SAFE_ENV, "PYTHONPATH": path}
     if nodes == 1:
         return [(["--standalone", f"--nproc_per_node={nproc}"], env)]
-    if nproc % nodes:
-        raise SystemExit(f"--nprocs {nproc} is not a multiple of --nodes {nodes}")
     per, port, gpus = nproc // nodes, _free_port(), _visible_gpus()
     if gpus and len(gpus) < nproc:
         raise SystemExit(f"{nproc} ranks need {nproc} GPUs; {len(gpus)} visible")

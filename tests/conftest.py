@@ -9,6 +9,7 @@ import sys
 import mujoco
 import numpy as np
 import pytest
+import torch
 
 import simloader
 
@@ -70,6 +71,20 @@ FAR_SITE_XML = """
 </mujoco>
 """
 FAR_SITE_X0 = np.stack([np.zeros(8), np.linspace(-1.2, 1.2, 8), np.zeros(8)], axis=1)
+
+
+def assert_far_site_restarts(first: dict, second: dict, x0: np.ndarray) -> torch.Tensor:
+    """Two consecutive continuing batches of the far-site pendulum from initial states `x0`:
+    exactly the trajectories whose recorded `site_xpos` holds a non-finite value are flagged,
+    start the second batch afresh from x0, and the others continue where the first ended.
+    Returns the flags (on the CPU)."""
+    flagged = ~torch.isfinite(first["site_xpos"]).flatten(1).all(1).cpu()
+    assert flagged.any() and not flagged.all()
+    assert torch.equal(first["diverged"].cpu(), flagged)
+    start = second["initial_state"].cpu().double()
+    np.testing.assert_allclose(start[flagged].numpy(), x0[flagged.numpy()], rtol=1e-6)
+    assert torch.equal(start[~flagged], first["state"][:, -1].cpu().double()[~flagged])
+    return flagged
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

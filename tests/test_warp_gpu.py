@@ -17,6 +17,7 @@ import torch
 from mujoco import rollout
 
 import simloader
+from conftest import FAR_SITE_X0, FAR_SITE_XML, assert_far_site_restarts
 from simloader import controls
 
 pytestmark = [pytest.mark.gpu,
@@ -251,7 +252,6 @@ def test_continued_rows_flagged_for_a_non_finite_record_restart_on_the_gpu():
     would let a flagged row continue.) Large enough that the steps are still queued when the
     producer reaches the copy: 8192 trajectories of the far-site pendulum, whose recorded site
     position overflows float32 at some angles while the physics stays finite."""
-    from conftest import FAR_SITE_X0, FAR_SITE_XML
     model = mujoco.MjModel.from_xml_string(FAR_SITE_XML.format(pos="2.6e38"))
     x0 = np.tile(FAR_SITE_X0, (1024, 1))
     batches = list(warp_dataset(model, nbatch=len(x0), nstep=200, num_batches=4, seed=3,
@@ -259,9 +259,4 @@ def test_continued_rows_flagged_for_a_non_finite_record_restart_on_the_gpu():
                                 initial_state=x0))
     assert all(b["state"].is_cuda for b in batches)
     for first, second in zip(batches, batches[1:]):
-        flagged = ~torch.isfinite(first["site_xpos"]).flatten(1).all(1).cpu()
-        assert flagged.any() and not flagged.all()
-        assert torch.equal(first["diverged"].cpu(), flagged)
-        start = second["initial_state"].cpu().double()
-        np.testing.assert_allclose(start[flagged].numpy(), x0[flagged.numpy()], rtol=1e-6)
-        assert torch.equal(start[~flagged], first["state"][:, -1].cpu().double()[~flagged])
+        assert_far_site_restarts(first, second, x0)
