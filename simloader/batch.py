@@ -14,6 +14,8 @@ back, without copies.
     batch.view("xpos", "hand")             # body hand's rows of a recorded "xpos"
     batch.view("sensordata", "ball")       # sensor ball's columns
     batch.view("ctrl", "elbow")            # actuator elbow's column of "control"
+    batch.view("body_mass", "pole")        # body pole's column of batch["params"]["body_mass"]
+    batch.view("geom_friction[floor]", "floor[0]")  # a component of geom floor's friction
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import Any, Optional
 import torch
 from torch.utils.data._utils.collate import default_collate_fn_map
 
-from simloader.layout import BatchLayout
+from simloader.layout import PARAMS, BatchLayout
 
 
 class Batch(dict):
@@ -68,10 +70,13 @@ class Batch(dict):
         Args:
           name: a batch key, a state component ("time", "qpos", "qvel", "act", ...) held in
             "state", a control component ("ctrl", "xfrc_applied", ...) held in "control", or
-            "sensor:NAME" held in "sensordata".
+            "sensor:NAME" held in "sensordata", or a key of batch["params"] (a randomized
+            parameter, also as "params/KEY").
           obj: an object's part of it, by name: a joint of "qpos"/"qvel", a body of "xpos" or
             "xfrc_applied", an actuator of "ctrl" or "actuator_force", a sensor of
-            "sensordata", ...
+            "sensordata", the object or component column of a randomized parameter ("pole"
+            of body_mass, "floor" or "floor[0]" of geom_friction; `ds.describe()` names
+            them), ...
           of: the key to take it from (default: `name` itself if recorded, else the key that
             holds it), e.g. "initial_state".
 
@@ -86,7 +91,10 @@ class Batch(dict):
             raise KeyError("this batch has no layout (made from a plain dict): named views need "
                            "the batch a SimDataset delivers")
         part = self.layout.locate(name, obj, of)
-        tensor = self[part.key]
+        if part.key.startswith(PARAMS) and part.key not in self:  # batch["params"][KEY]
+            tensor = self["params"][part.key[len(PARAMS):]]
+        else:
+            tensor = self[part.key]
         lead = tensor.shape[:tensor.dim() - len(self.layout.keys[part.key])]
         # `view`, not `reshape`: a view or an error, never a silent copy
         flat = tensor.view(*lead, -1) if tensor.dim() > len(lead) else tensor.unsqueeze(-1)

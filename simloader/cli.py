@@ -141,9 +141,36 @@ def quickstart(args: argparse.Namespace) -> None:
               f"over {args.batches - 1} batches")
 
 
+def check_out(out: str) -> None:
+    """Refuses an --out that cannot be a store, before anything is simulated: an empty path, an
+    existing file, or a place this user cannot create it in (the nearest existing folder
+    above it not writable).
+
+    Raises:
+      BadArgument: naming --out, what was expected and what was given.
+    """
+    expected = "--out: expected a folder for the store that can be created or resumed"
+    if not out.strip():
+        raise BadArgument(f"{expected}, got an empty path {out!r}")
+    path = os.path.abspath(out)
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise BadArgument(f"{expected}, got {out!r}, an existing file")
+    ancestor = path
+    while not os.path.exists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    if not os.path.isdir(ancestor):
+        raise BadArgument(f"{expected}, got {out!r}, below the existing file {ancestor!r}")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        where = "a read-only folder" if ancestor == path else f"the read-only folder {ancestor!r}"
+        raise BadArgument(f"{expected}, got {out!r}, {where} (no permission to write there)")
+
+
 def write(args: argparse.Namespace) -> None:
+    check_out(args.out)  # before the dataset: a bad --out fails at once
     ds = stream_dataset(args)
     try:
+        # write's argument checks (a system folder, a non-empty folder that is no store, ...)
+        # raise ValueError/TypeError: a usage error, without a traceback
         with from_arguments():
             path = simloader.write(ds, args.out, batches=args.batches, format=args.format,
                                    num_workers=args.num_workers, replace=args.replace)
@@ -156,19 +183,40 @@ def write(args: argparse.Namespace) -> None:
         print(hint)
 
 
+def randomized_columns(model: mujoco.MjModel, specs: list[str]) -> dict:
+    """{params key: (objects, column names)} of `--randomize FIELD[:OBJ,...]` options, named
+    as a SimDataset with those parameters names them (whatever their distribution)."""
+    params = []
+    for spec in specs:
+        field, _, on = spec.partition(":")
+        objects = [o.strip() for o in on.split(",") if o.strip()]
+        # the distribution does not change the columns: a constant one passes every check
+        params.append(simloader.randomize.set(field.strip(), simloader.randomize.Uniform(0, 0),
+                                              on=objects or None))
+    return simloader.randomize.RandomizationPlan(model, params).columns
+
+
 def info(args: argparse.Namespace) -> None:
     with from_arguments():
         description = simloader.describe(args.model, args.control_spec)
-        if args.record:
+        if args.record or args.randomize:
             model = simloader.load_model(args.model)
+        if args.record:
             names = [name.strip() for name in args.record.split(",")]
             observations = observe.parse(model, names)
             recorded = simloader.layout.BatchLayout(model, args.control_spec,
                                                     observations).describe()
+        if args.randomize:
+            randomized = simloader.layout.describe_params(randomized_columns(model,
+                                                                             args.randomize))
     print(description)
     if args.record:
         print("recorded keys (nbatch, nframes, ...) and their named parts:")
         print(recorded)
+    if args.randomize:
+        print('randomized: batch["params"] keys and the name of each column '
+              '(batch.view(KEY, NAME) finds one):')
+        print(randomized)
 
 
 def bench(args: argparse.Namespace) -> None:
@@ -263,6 +311,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")
     i.add_argument("--record", default="",
                    help="names to record, e.g. 'qpos,xpos,sensor:tip_pos': what each key holds")
+    i.add_argument("--randomize", action="append", default=[], metavar="FIELD[:OBJ,...]",
+                   help="a randomized parameter, e.g. 'body_mass:pole' or 'geom_friction': "
+                        "its batch[\"params\"] key and what each column is (repeatable)")
     i.set_defaults(run=info)
 
     b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")

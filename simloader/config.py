@@ -189,10 +189,14 @@ def _torch_device(device: Any, name: str = "device",
     a cuda device of a GPU torch sees (None stays None where `none`)."""
     if device is None and none:
         return None
+    allowed = "None, 'cpu', 'cuda' or 'cuda:N'" if none else "'cpu', 'cuda' or 'cuda:N'"
+    if isinstance(device, (bytes, bytearray)):
+        # torch.device would take b"cpu" as is; a device is named by a str
+        raise ValueError(f"{name}: expected {allowed} (a str or a torch.device), got bytes "
+                         f"{device!r}; decode it first")
     try:
         dev = torch.device(device)
     except (TypeError, RuntimeError) as e:
-        allowed = "None, 'cpu', 'cuda' or 'cuda:N'" if none else "'cpu', 'cuda' or 'cuda:N'"
         raise ValueError(f"{name}: expected {allowed}, got {device!r}") from e
     if dev.type not in ("cpu", "cuda"):
         raise ValueError(f"{name}: expected a cpu or cuda device, got {device!r}")

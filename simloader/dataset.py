@@ -32,15 +32,6 @@ def _check_keywords(options: dict[str, Any]) -> None:
         raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown}: {said}")
 
 
-def _params_keys(c: SimConfig) -> list[tuple[str, tuple]]:
-    """The keys of `batch["params"]` and their shapes, for describe()."""
-    if c.variants is not None:
-        return [("variant", (c.nbatch,))]
-    if c.randomization is not None:
-        return [(r.param.key, (c.nbatch, len(r.elements))) for r in c.randomization.resolved]
-    return []
-
-
 class SimDataset(torch.utils.data.IterableDataset):
     """Streams batches of `nbatch` trajectories of `nstep` steps, simulated on the fly.
 
@@ -162,8 +153,10 @@ class SimDataset(torch.utils.data.IterableDataset):
             size_check=backends.size_check, refuses_determinism=backends.refuses_determinism,
             options=options, check_options=backends.check_options)
         self.config: SimConfig = config
+        plan = self.config.randomization
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
-                                         self.config.observations)
+                                         self.config.observations,
+                                         plan.columns if plan is not None else None)
         self.source = models.source(model)  # where the model came from, for describe()
         self._stats = Stats.of(backends.engine(self.config.backend).counters)
         # workers do not see the process group: keep the rank of the constructing process
@@ -197,10 +190,13 @@ class SimDataset(torch.utils.data.IterableDataset):
         text = (layout.describe(c.model, c.control_spec, self.source)
                 + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
                   f"{c.record_every} step(s):\n" + self.layout.describe())
-        params = _params_keys(c)
-        if params:
+        if c.variants is not None:
             text += ("\nrandomized: batch[\"params\"] keys, the values each trajectory ran "
-                     "with:\n" + "\n".join(f"  {k} {shape}" for k, shape in params))
+                     f"with:\n  variant ({c.nbatch},): the index of its variant")
+        elif self.layout.params:
+            text += ("\nrandomized: batch[\"params\"] keys (batch.view(KEY, NAME) finds a "
+                     "column), the values each trajectory ran with:\n"
+                     + layout.describe_params(self.layout.params, c.nbatch))
         where = ""
         if c.parts is not None:
             where = (f"; simulated on {', '.join(str(p.device) for p in c.parts)} (trajectories "

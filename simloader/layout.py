@@ -145,7 +145,69 @@ def _objects(model: mujoco.MjModel, kind: str) -> tuple[str, ...]:
             ndof = {0: 6, 1: 3}.get(int(model.jnt_type[j]), 1)
             names.extend([jname] if ndof == 1 else [f"{jname}[{k}]" for k in range(ndof)])
         return tuple(names)
+    if kind in _NAMED_KINDS:
+        count, objtype = _NAMED_KINDS[kind]
+        return tuple(object_name(model, objtype, i, kind) for i in range(getattr(model, count)))
     return tuple(f"userdata#{i}" for i in range(model.nuserdata))
+
+
+# object kinds named by mj_id2name, beyond those above: kind -> (MjModel count, mjtObj)
+_NAMED_KINDS = {
+    "geom": ("ngeom", mujoco.mjtObj.mjOBJ_GEOM),
+    "joint": ("njnt", mujoco.mjtObj.mjOBJ_JOINT),
+    "site": ("nsite", mujoco.mjtObj.mjOBJ_SITE),
+    "tendon": ("ntendon", mujoco.mjtObj.mjOBJ_TENDON),
+    "pair": ("npair", mujoco.mjtObj.mjOBJ_PAIR),
+    "sensor": ("nsensor", mujoco.mjtObj.mjOBJ_SENSOR),
+    "camera": ("ncam", mujoco.mjtObj.mjOBJ_CAMERA),
+    "light": ("nlight", mujoco.mjtObj.mjOBJ_LIGHT),
+    "material": ("nmat", mujoco.mjtObj.mjOBJ_MATERIAL),
+    "mesh": ("nmesh", mujoco.mjtObj.mjOBJ_MESH),
+    "hfield": ("nhfield", mujoco.mjtObj.mjOBJ_HFIELD),
+    "texture": ("ntex", mujoco.mjtObj.mjOBJ_TEXTURE),
+    "flex": ("nflex", mujoco.mjtObj.mjOBJ_FLEX),
+    "skin": ("nskin", mujoco.mjtObj.mjOBJ_SKIN),
+    "numeric": ("nnumeric", mujoco.mjtObj.mjOBJ_NUMERIC),
+    "key": ("nkey", mujoco.mjtObj.mjOBJ_KEY),
+}
+# MjModel field prefix -> the kind of object each row of the field belongs to (a field whose
+# row count is not that kind's count, as mesh_vert, has rows of no object)
+_FIELD_KINDS = (("body_", "body"), ("geom_", "geom"), ("jnt_", "joint"), ("dof_", "dof"),
+                ("actuator_", "actuator"), ("tendon_", "tendon"), ("site_", "site"),
+                ("eq_", "equality"), ("pair_", "pair"), ("sensor_", "sensor"),
+                ("cam_", "camera"), ("light_", "light"), ("mat_", "material"),
+                ("mesh_", "mesh"), ("hfield_", "hfield"), ("tex_", "texture"),
+                ("flex_", "flex"), ("skin_", "skin"), ("numeric_", "numeric"), ("key_", "key"))
+
+
+def param_columns(model: mujoco.MjModel, field: str, rows: Sequence[int], cols: Sequence[int],
+                  width: int) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Names of the values of a randomized MjModel field (`rows` x `cols` of the field seen as
+    rows of `width` values; `opt.*`: one row), as the state and control columns are named:
+    (the object of each value, the name of each value). An object is named as in
+    `state_layout` (a body, geom, joint, actuator, ...; a dof after its joint, with the axis
+    for multi-dof joints; `opt.*` after the option); a field of several values per object
+    adds the component, `floor[0]` for geom_friction's sliding friction of geom floor."""
+    kind = next((k for prefix, k in _FIELD_KINDS if field.startswith(prefix)), None)
+    names = _objects(model, kind) if kind is not None else ()
+    rows = [int(r) for r in rows]
+    if field.startswith("opt."):
+        row_names = [field] * len(rows)
+    elif rows and len(names) > max(rows) and len(names) == getattr(model, field).shape[0]:
+        row_names = [names[r] for r in rows]
+    else:  # rows of no named object
+        row_names = [f"{field}#{r}" for r in rows]
+    objects = tuple(o for o in row_names for _ in cols)
+    if width == 1:
+        return objects, objects
+    return objects, tuple(f"{o}[{int(c)}]" for o in row_names for c in cols)
+
+
+def describe_params(params: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
+                    nbatch: Any = "nbatch") -> str:
+    """One line per `batch["params"]` key: its shape and the name of each column."""
+    return "\n".join(f"  {key} ({nbatch}, {len(columns)}): columns {', '.join(columns)}"
+                     for key, (_, columns) in params.items())
 
 
 def control_layout(model: mujoco.MjModel, control_spec: int) -> tuple[Component, ...]:
@@ -294,6 +356,9 @@ def _field_objects(model: mujoco.MjModel, data: mujoco.MjData,
     return out
 
 
+PARAMS = "params/"  # the layout's key of batch["params"][KEY], as a store names it
+
+
 class BatchLayout:
     """What each column of a batch means, by name: `locate(name, obj)` finds a part of a
     batch key (a state component of `state`, a control component of `control`, a sensor of
@@ -303,7 +368,8 @@ class BatchLayout:
     the recorded observations.
     """
 
-    def __init__(self, model: mujoco.MjModel, control_spec: int, observations: Sequence[Any]):
+    def __init__(self, model: mujoco.MjModel, control_spec: int, observations: Sequence[Any],
+                 params: Optional[dict[str, tuple[tuple[str, ...], tuple[str, ...]]]] = None):
         data = mujoco.MjData(model)
         self.keys = {o.key: tuple(o.shape) for o in observations}
         self.keys["control"] = (mujoco.mj_stateSize(model, control_spec),)
@@ -338,6 +404,20 @@ class BatchLayout:
         self.objects["sensordata"] = {n[len("sensor:"):]: (a, b, (b - a,))
                                       for n, (a, b) in sensors.items()}
         self.objects = {f: o for f, o in self.objects.items() if o}
+        # randomized parameters (`params`: {key: (object, name) of each column}, from
+        # `param_columns`), held in batch["params"][key]: key "params/KEY", one part per
+        # object (its columns) and per component column ("floor[0]")
+        self.params = dict(params or {})
+        for key, (objects, columns) in self.params.items():
+            parts: dict[str, tuple[int, int, tuple[int, ...]]] = {}
+            for i, (obj, column) in enumerate(zip(objects, columns)):
+                parts[column] = (i, i + 1, (1,))
+                if column != obj:  # a component: its object's part spans its columns
+                    a, b, _ = parts.get(obj, (i, i, ()))
+                    if b == i:
+                        parts[obj] = (a, i + 1, (i + 1 - a,))
+            self.keys[PARAMS + key] = (len(columns),)
+            self.objects[PARAMS + key] = parts
 
     def locate(self, name: str, obj: Optional[str] = None, of: Optional[str] = None) -> Part:
         """The part `name` (a batch key, a state or control component, "sensor:NAME"), or
@@ -347,6 +427,8 @@ class BatchLayout:
         Raises:
           KeyError: the batch holds no such part (with the names it holds).
         """
+        if of is None and name not in self.keys and PARAMS + name in self.keys:
+            name = PARAMS + name  # a batch["params"] key, by its own name
         if of is None:
             of = name if name in self.keys else next(iter(self.within.get(name, {})), None)
         if of is None or of not in self.keys:
@@ -373,8 +455,8 @@ class BatchLayout:
         """One line per recorded key and the named parts it holds."""
         lines = []
         for key, shape in self.keys.items():
-            if key in ("control", "initial_state"):
-                continue
+            if key in ("control", "initial_state") or key.startswith(PARAMS):
+                continue  # params: `describe_params`
             parts = [n for n, w in self.within.items() if key in w]
             objects = list(self.objects.get(key, {}))
             what = (f"parts {', '.join(parts)}" if parts else

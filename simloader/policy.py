@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import threading
 import time
 import weakref
 from collections.abc import Callable, Iterator, Mapping
@@ -40,7 +41,10 @@ def version(policy: Any) -> int:
     a one-element integer tensor, e.g. a buffer in shared memory that DataLoader workers
     read) if it has one; else, for a `torch.nn.Module`, the sum of torch's version counters of its
     parameters and buffers, which every in-place update (`optimizer.step()`,
-    `param.copy_()`, ...) increases; else -1 (unknown).
+    `param.copy_()`, ...) increases, plus a process-local offset that moves it past every
+    value it had whenever a parameter or buffer is replaced by another object
+    (`module.weight = nn.Parameter(...)`, `load_state_dict(..., assign=True)`), whose new
+    tensors' counters start again at 0; else -1 (unknown).
     """
     own = getattr(policy, "version", None)
     if isinstance(own, int) and not isinstance(own, bool):
@@ -48,8 +52,47 @@ def version(policy: Any) -> int:
     if isinstance(own, torch.Tensor) and own.numel() == 1 and not own.is_floating_point():
         return int(own)  # a shared counter buffer: what DataLoader workers can see
     if isinstance(policy, torch.nn.Module):
-        return int(sum(t._version for t in _tensors(policy)))
+        return _module_version(policy)
     return -1
+
+
+class _Seen:
+    """A module's tensors when its version was last read (weak references: an identity check
+    that a freed and reused address cannot fool), the offset added to its counters' sum, and
+    the last version returned."""
+
+    __slots__ = ("refs", "offset", "last")
+
+    def __init__(self) -> None:
+        self.refs: Optional[tuple] = None  # None: never read
+        self.offset = 0
+        self.last = -1
+
+
+# per module without a `version` attribute: what `version` saw last (this process only)
+_SEEN: "weakref.WeakKeyDictionary[Any, _Seen]" = weakref.WeakKeyDictionary()
+_SEEN_LOCK = threading.Lock()
+
+
+def _module_version(policy: torch.nn.Module) -> int:
+    """The sum of the counters of the module's tensors, moved past every earlier value when a
+    tensor was replaced by another object since the last call (one identity check per tensor:
+    no copies, no synchronisation)."""
+    tensors = _tensors(policy)
+    total = sum(t._version for t in tensors)
+    with _SEEN_LOCK:
+        seen = _SEEN.get(policy)
+        if seen is None:
+            seen = _SEEN[policy] = _Seen()
+        same = seen.refs is not None and len(seen.refs) == len(tensors) and all(
+            r() is t for r, t in zip(seen.refs, tensors))
+        if not same:
+            if seen.refs is not None:  # replaced or added: one past the last version returned
+                seen.offset = max(seen.offset, seen.last + 1 - total)
+            seen.refs = tuple(weakref.ref(t) for t in tensors)
+        value = int(total + seen.offset)
+        seen.last = max(seen.last, value)
+        return value
 
 
 # modules whose weights a training loop is updating now (`updating`), for those without a
@@ -179,14 +222,15 @@ class Snapshot:
                     from None
             if self.device is not None:
                 self.frozen.to(self.device)  # in place; nothing moves where it already is
-        theirs, mine = _tensors(live), _tensors(self.frozen)
+        mine = _tensors(self.frozen)
         # the reader's side of the sequence lock (`updating`): copy while no update runs, and
-        # keep the copy only if none ran meanwhile
+        # keep the copy only if none ran meanwhile (a tensor replaced by another object moves
+        # the version too, so the tensors are listed again after reading it)
         start = time.monotonic()
         while True:
             before = version(live)
             if not _in_update(live):
-                _copy_in_order(mine, theirs)
+                _copy_in_order(mine, _tensors(live))
                 if version(live) == before and not _in_update(live):
                     return self.frozen, before
             if time.monotonic() - start > UPDATE_WAIT_S:

@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 
 from simloader import draws
-from simloader.layout import did_you_mean
+from simloader.layout import did_you_mean, param_columns
 
 Names = Optional[Union[str, Sequence[str]]]
 
@@ -203,6 +203,10 @@ class Resolved:
     elements: np.ndarray  # flat indices into the field's (per-simulation) values
     base: np.ndarray  # the model's values there
     setconst: bool  # mj_setConst reads the field
+    # of each value (a column of batch["params"][key]): the object it belongs to, and its
+    # name (`simloader.layout.param_columns`: "pole", "floor[0]", "opt.gravity[2]")
+    objects: tuple[str, ...] = ()
+    columns: tuple[str, ...] = ()
 
     @property
     def ndraws(self) -> int:
@@ -298,7 +302,8 @@ def resolve(model: mujoco.MjModel, param: Param) -> Resolved:
             raise ValueError(f"randomize: {param.key}: the draw can make {param.field} negative "
                              f"(lowest value {np.min(smallest)}); bound the distribution")
     setconst = param.field.startswith("opt.") or param.field in mujoco.MjModel._setconst_inputs
-    return Resolved(param, param.field, elements, base, setconst)
+    objects, columns = param_columns(model, param.field, rows, cols, table.shape[1])
+    return Resolved(param, param.field, elements, base, setconst, objects, columns)
 
 
 class RandomizationPlan:
@@ -312,6 +317,11 @@ class RandomizationPlan:
             raise ValueError(f"randomize: parameter names must be unique, {dup} repeat (pass "
                              f"name=...)")
         self.setconst = any(r.setconst for r in self.resolved)
+
+    @property
+    def columns(self) -> dict[str, tuple[tuple[str, ...], tuple[str, ...]]]:
+        """{key of batch["params"]: (the object of each column, the name of each column)}."""
+        return {r.param.key: (r.objects, r.columns) for r in self.resolved}
 
     def sample(self, seed: np.random.SeedSequence, nbatch: int) -> dict[str, np.ndarray]:
         """{key: (nbatch, nvalues)} values each trajectory runs with, one stream per param."""

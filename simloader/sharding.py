@@ -40,8 +40,26 @@ def distributed_rank() -> Optional[tuple[int, int]]:
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         return torch.distributed.get_rank(), torch.distributed.get_world_size()
     if "RANK" in os.environ and "WORLD_SIZE" in os.environ:
-        return int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+        return _environment_rank(os.environ["RANK"], os.environ["WORLD_SIZE"])
     return None
+
+
+def _environment_rank(rank: str, world: str) -> tuple[int, int]:
+    """torchrun's RANK and WORLD_SIZE, checked: a world of at least one rank, a rank in it."""
+    def number(name: str, text: str) -> int:
+        try:
+            return int(text)
+        except ValueError:
+            raise ValueError(f"{name}: expected an int (the environment variable torchrun "
+                             f"sets), got {text!r}") from None
+    r, w = number("RANK", rank), number("WORLD_SIZE", world)
+    if w < 1:
+        raise ValueError(f"WORLD_SIZE: expected an int >= 1 (the number of ranks), got {w}; "
+                         f"start the ranks with torchrun, or unset RANK and WORLD_SIZE")
+    if not 0 <= r < w:
+        raise ValueError(f"RANK: expected an int in [0, WORLD_SIZE={w}), got {r}; start the "
+                         f"ranks with torchrun, or unset RANK and WORLD_SIZE")
+    return r, w
 
 
 def current_shard(constructed_rank: Optional[tuple[int, int]] = None) -> Shard:

@@ -101,7 +101,9 @@ def test_bad_batches(simulated, tmp_path):
     wrong = dict(batches[1], initial_state=batches[1]["initial_state"][:, :2])
     with pytest.raises(ValueError, match=r"batches\[1\]\['initial_state'\]: expected shape"):
         write_minari([batches[0], wrong], tmp_path, dataset_id="bad-v0", total_episodes=6)
-    assert not (tmp_path / "bad-v0").exists()
+    # (only the dataset's lock file stays: a lock file is never removed)
+    assert os.listdir(tmp_path / "bad-v0") == ["simloader.lock"]
+    assert store_minari.status(tmp_path / "bad-v0")["simloader"] is False
     with pytest.raises(ValueError, match="total_episodes.*ended after 3"):
         write_minari(batches[:1], tmp_path, dataset_id="bad-v0", total_episodes=6)
     with pytest.raises(ValueError, match="metadata.*JSON"):
@@ -223,11 +225,14 @@ def test_a_killed_writer_is_marked_incomplete_and_resumes_to_a_clean_write(tmp_p
 
 
 def _extra_episode_and_truncated_metadata(path, written):
-    """What a kill can leave besides: the batch in flight appended to the HDF5 file but not
-    recorded, and Minari's in-place metadata.json cut short."""
-    import h5py
-    with h5py.File(path / "data" / "main_data.hdf5", "a") as f:
-        f.create_group(f"episode_{written}").create_dataset("observations", data=[1.0])
+    """What a kill can leave besides: the batch in flight committed but not recorded, a
+    batch file half written, and metadata.json cut short."""
+    import shutil
+    episodes = path / ".simloader-episodes"
+    last = sorted(episodes.glob("*.hdf5"))[-1]
+    shutil.copy(last, episodes / f"{written:012d}-{written + KILL_NBATCH:012d}.hdf5")
+    (episodes / f"{written + KILL_NBATCH:012d}-{written + 2 * KILL_NBATCH:012d}.hdf5."
+                f"{'0' * 32}.partial").write_bytes(b"\x89HDF torn")
     (path / "data" / "metadata.json").write_text('{"total_episodes": ')
 
 
@@ -251,7 +256,7 @@ def test_resume_drops_unrecorded_episodes_and_restores_truncated_metadata(tmp_pa
     _extra_episode_and_truncated_metadata(path, 2 * KILL_NBATCH)
     found = store_minari.status(path)
     assert (found["complete"], found["episodes_written"], found["episodes_in_file"]) == \
-        (False, 2 * KILL_NBATCH, 2 * KILL_NBATCH + 1)
+        (False, 2 * KILL_NBATCH, 3 * KILL_NBATCH)
     simloader.write(ds, path, batches=4, format="minari", progress=False)
     for got, ref in zip(_episodes_of(path), _episodes_of(clean), strict=True):
         for a, b in zip(got, ref):
@@ -296,3 +301,215 @@ def test_a_foreign_minari_dataset_is_refused(tmp_path, simulated):
     assert store_minari.status(out)["complete"] is None
     with pytest.raises(ValueError, match="without simloader's progress record.*replace=True"):
         simloader.write(_killable(), out, batches=1, format="minari", progress=False)
+
+
+# --- what is never removed, the lock, a full disk, killed creations, per-episode values ---
+
+import errno  # noqa: E402
+import re  # noqa: E402
+
+from simloader.store.lock import StoreLocked, WriterLock  # noqa: E402
+
+
+def _tiny(nbatch=2, nstep=5, **kwargs):
+    kwargs.setdefault("control", simloader.controls.Uniform())
+    return simloader.SimDataset("cartpole", backend="cpu", nbatch=nbatch, nstep=nstep,
+                                nthread=1, seed=3, **kwargs)
+
+
+def _tree(folder):
+    return sorted((str(p.relative_to(folder)), p.read_bytes() if p.is_file() else None)
+                  for p in folder.rglob("*"))
+
+
+def test_replace_refuses_a_folder_that_is_not_a_minari_dataset(tmp_path):
+    project = tmp_path / "project-v0"
+    (project / "src").mkdir(parents=True)
+    (project / "src" / "train.py").write_text("print('train')\n")
+    (project / "notes.txt").write_text("notes\n")
+    before = _tree(project)
+    for replace in (True, False):
+        with pytest.raises(ValueError, match=r"path: '.*project-v0': expected a Minari dataset "
+                                             r".* found a folder holding \['notes.txt', "
+                                             r"'src/'\], which is not a Minari dataset; "
+                                             r"nothing was written or removed"):
+            simloader.write(_tiny(), project, batches=1, format="minari", progress=False,
+                            replace=replace)
+    assert _tree(project) == before  # not even a lock file was put there
+    a_file = tmp_path / "file-v0"
+    a_file.write_text("x")
+    with pytest.raises(ValueError, match="found a file"):
+        simloader.write(_tiny(), a_file, batches=1, format="minari", progress=False,
+                        replace=True)
+    assert a_file.read_text() == "x"
+
+
+def test_a_dataset_id_without_a_version_is_refused_before_anything_is_removed(tmp_path,
+                                                                                simulated):
+    _, batches = simulated
+    out = write_minari(batches, tmp_path, dataset_id="mine-v0", total_episodes=3)
+    unversioned = tmp_path / "mine"
+    os.rename(out, unversioned)  # a Minari dataset's folder, named without -vN
+    before = _tree(unversioned)
+    with pytest.raises(ValueError, match=r"path: expected the last component of '.*mine' to "
+                                         r"be a Minari dataset id ending in a version '-v<N>'"):
+        simloader.write(_tiny(), unversioned, batches=1, format="minari", progress=False,
+                        replace=True)
+    assert _tree(unversioned) == before
+    with pytest.raises(ValueError, match=r"dataset_id: expected dataset_id to be a Minari "
+                                         r"dataset id ending in a version"):
+        write_minari(batches, tmp_path, dataset_id="simloader/nover", total_episodes=3)
+    assert not (tmp_path / "simloader").exists()
+
+
+def test_a_second_writer_is_refused_even_with_replace_and_the_dataset_kept(tmp_path):
+    path = tmp_path / "held-v0"
+    simloader.write(_tiny(), path, batches=1, format="minari", progress=False)
+    episodes = _episodes_of(path)
+    other = WriterLock(str(path), "job-other").acquire()  # another writer holds it
+    try:
+        for replace in (False, True):
+            with pytest.raises(StoreLocked, match=rf"being written by process {os.getpid()}"):
+                simloader.write(_tiny(nstep=3), path, batches=2, format="minari",
+                                progress=False, replace=replace)
+    finally:
+        other.release()
+    fresh = WriterLock(str(tmp_path / "fresh-v0"), "job-other").acquire()
+    try:
+        with pytest.raises(StoreLocked, match="being written by"):
+            write_minari([], tmp_path, dataset_id="fresh-v0", total_episodes=1)
+    finally:
+        fresh.release()
+    for got, ref in zip(_episodes_of(path), episodes, strict=True):
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+    # released: the next writer takes it
+    simloader.write(_tiny(nstep=3), path, batches=2, format="minari", progress=False,
+                    replace=True)
+    assert [e[1].shape for e in _episodes_of(path)] == [(3, 1)] * 4
+
+
+def test_a_lock_file_that_is_a_link_is_refused_and_not_followed(tmp_path):
+    path = tmp_path / "linked-v0"
+    simloader.write(_tiny(), path, batches=1, format="minari", progress=False)
+    outside = tmp_path / "precious.txt"
+    outside.write_text("keep me")
+    os.unlink(path / "simloader.lock")
+    os.symlink(outside, path / "simloader.lock")
+    with pytest.raises(ValueError, match=r"symbolic link\(s\) \['simloader.lock'\]"):
+        simloader.write(_tiny(), path, batches=1, format="minari", progress=False,
+                        replace=True)
+    assert outside.read_text() == "keep me"
+    assert store_minari.status(path)["complete"] is True
+
+
+class _DiskFills:
+    """h5py.File whose `at`-th open for writing hits a full disk: the file is cut where the
+    disk ran out (its end never written) and OSError(ENOSPC) is raised, as HDF5 leaves a file
+    appended to on a full disk."""
+
+    def __init__(self, at):
+        import h5py
+        self.at, self.opens, self.real = at, 0, h5py.File
+        fills = self
+
+        class File(h5py.File):
+            def __init__(self, name, mode="r", *args, **kwargs):
+                super().__init__(name, mode, *args, **kwargs)
+                self._fill_at = None
+                if mode != "r":
+                    fills.opens += 1
+                    if fills.opens == fills.at:
+                        self._fill_at = os.fspath(name)
+
+            def __exit__(self, *exc):
+                super().__exit__(*exc)
+                if self._fill_at is not None:
+                    size = os.path.getsize(self._fill_at)
+                    os.truncate(self._fill_at, size // 2)
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), self._fill_at)
+
+        self.File = File
+
+
+@pytest.mark.parametrize("at", [3, 6], ids=["third-batch", "assembling"])
+def test_a_full_disk_leaves_a_resumable_dataset(tmp_path, monkeypatch, at):
+    import h5py
+    path = tmp_path / "full-v0"
+    fills = _DiskFills(at)
+    monkeypatch.setattr(h5py, "File", fills.File)
+    with pytest.raises(OSError) as raised:
+        simloader.write(_killable(nstep=5), path, batches=4, format="minari", progress=False)
+    assert raised.value.errno == errno.ENOSPC
+    monkeypatch.setattr(h5py, "File", fills.real)
+    found = store_minari.status(path)
+    assert found["complete"] is False and found["episodes_written"] >= KILL_NBATCH
+    simloader.write(_killable(nstep=5), path, batches=4, format="minari", progress=False)
+    # the error said what is left and what to do; the full disk's remains were removed
+    assert re.search(r"No space left on device while writing the Minari dataset .* "
+                     r"resumable .* calling write again", str(raised.value))
+    assert not (path / ".simloader-merging").exists()
+    assert not list(path.rglob("*.partial"))
+    clean = simloader.write(_killable(nstep=5), tmp_path / "room-v0", batches=4,
+                            format="minari", progress=False)
+    for got, ref in zip(_episodes_of(path), _episodes_of(clean), strict=True):
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+    assert store_minari.status(path)["complete"] is True
+    assert sorted(os.listdir(path)) == ["data", "simloader.lock"]
+
+
+def test_a_killed_creations_folder_of_this_dataset_is_removed_and_nothing_else(tmp_path):
+    def staging(where, *inside):
+        where.mkdir(parents=True)
+        for name in inside:
+            (where / name / "data").mkdir(parents=True)
+            (where / name / "data" / "metadata.json").write_text("{}")
+        return where
+
+    # as earlier versions left them, in the datasets root; and in the dataset's folder
+    ours = staging(tmp_path / ".simloader-creating-ab12cd_9", "left-v0")
+    inside = staging(tmp_path / "left-v0" / ".simloader-creating-zz99yy88", "left-v0")
+    keep = [staging(tmp_path / ".simloader-creating-qq11ww22", "other-v0"),  # other dataset
+            staging(tmp_path / ".simloader-creating-ee33rr44", "left-v0", "other-v0"),
+            staging(tmp_path / ".simloader-creating-short", "left-v0"),  # not mkdtemp's
+            staging(tmp_path / ".simloader-creating-tt55yy66x", "left-v0"),
+            staging(tmp_path / "my-folder", "left-v0")]
+    outside = tmp_path / "outside"
+    staging(outside, "left-v0")
+    os.symlink(outside, tmp_path / ".simloader-creating-uu77ii88")  # a link: not followed
+    simloader.write(_tiny(), tmp_path / "left-v0", batches=1, format="minari", progress=False)
+    assert not ours.exists() and not inside.exists()
+    assert all(k.exists() for k in keep) and (outside / "left-v0" / "data").exists()
+    assert store_minari.status(tmp_path / "left-v0")["complete"] is True
+
+
+def test_episodes_hold_their_randomized_values_and_actions_their_control_limits(tmp_path,
+                                                                                 monkeypatch):
+    from simloader import randomize as dr
+    ds = _tiny(nbatch=3, randomize=[dr.scale("body_mass", dr.Uniform(0.5, 2.0))])
+    out = simloader.write(ds, tmp_path / "masses-v0", batches=2, format="minari",
+                          progress=False)
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    dataset = minari.load_dataset("masses-v0")
+    assert dataset.action_space == gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float64)
+    want = [b["params"]["body_mass"][i].numpy()
+            for _, b, _ in ds.stream(ds.make_backend(), range(2)) for i in range(3)]
+    episodes = list(dataset.iterate_episodes())
+    assert len(episodes) == 6
+    for ep, mass in zip(episodes, want):
+        rows = ep.infos["params"]["body_mass"]
+        assert rows.shape == (5 + 1, mass.shape[0])
+        np.testing.assert_array_equal(rows, np.broadcast_to(mass, rows.shape))
+    assert len({tuple(m) for m in want}) == 6  # each episode its own
+    assert str(out).endswith("masses-v0")
+
+    # other control_spec components (qfrc_applied: one column per dof) are unbounded
+    uniform = simloader.controls.Uniform
+    ds = _tiny(control_spec="ctrl|qfrc_applied",
+               control={"ctrl": uniform(), "qfrc_applied": uniform()})
+    simloader.write(ds, tmp_path / "forces-v0", batches=1, format="minari", progress=False)
+    space = minari.load_dataset("forces-v0").action_space
+    np.testing.assert_array_equal(space.low, [-1.0, -np.inf, -np.inf])
+    np.testing.assert_array_equal(space.high, [1.0, np.inf, np.inf])
+    assert minari.load_dataset("forces-v0")[0].infos == {}

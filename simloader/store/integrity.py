@@ -16,9 +16,9 @@ from typing import Any, Optional
 
 import numpy as np
 
-from simloader.atomic import PARTIAL
+from simloader.store.ownership import LEFTOVER, own_folder
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, DamagedStore,
-                                         file_crc, read_json)
+                                         batch_key, file_crc, read_json, recorded)
 from simloader.store.shards import ArrayLayout
 
 _MAX_LISTED = 8  # files named in one message; the rest are counted
@@ -33,7 +33,9 @@ class Survey:
 
 
 def survey(root: str) -> Survey:
-    """One walk of the store's files (links are listed, not followed)."""
+    """One walk of the store's own files (links are listed, not followed): its root's
+    entries, and below them only the store's folders (`ownership.own_folder`), so a folder a
+    user put beside the arrays is neither walked nor cleaned."""
     metas: dict[str, dict] = {}
     sizes: dict[str, dict[int, int]] = {}
     links: list[str] = []
@@ -42,17 +44,21 @@ def survey(root: str) -> Survey:
     def walk(directory: str, relative: str, array: Optional[str]) -> None:
         try:
             entries = list(os.scandir(directory))
+        except FileNotFoundError:
+            return  # removed while walked (a resumed writer's repair): seen as absent
         except OSError as e:
             raise DamagedStore(f"{directory}: cannot be listed ({e.strerror})") from None
         # files first: an array's zarr.json before its chunk folder `c`
-        entries.sort(key=lambda e: e.is_dir(follow_symlinks=False))
+        entries.sort(key=lambda e: _is_dir(e))
         for entry in entries:
             rel = f"{relative}/{entry.name}" if relative else entry.name
             if entry.is_symlink():
                 links.append(entry.path)
-            elif entry.name.endswith(PARTIAL):
+            elif LEFTOVER.search(entry.name):
                 partial.append(entry.path)
-            elif entry.is_dir(follow_symlinks=False):
+            elif _is_dir(entry):
+                if not relative and array is None and not own_folder(entry.path):
+                    continue  # not the store's: left alone
                 if array is not None:  # below ARRAY/c/: SLOT/0/0...
                     walk(entry.path, rel, array)
                 elif entry.name == "c" and relative in metas:
@@ -62,14 +68,47 @@ def survey(root: str) -> Survey:
             elif array is not None:
                 slot = rel.split("/")[0]
                 if slot.isdigit():
-                    sizes.setdefault(array, {})[int(slot)] = entry.stat(
-                        follow_symlinks=False).st_size
+                    try:
+                        size = entry.stat(follow_symlinks=False).st_size
+                    except FileNotFoundError:
+                        continue
+                    sizes.setdefault(array, {})[int(slot)] = size
             elif entry.name == "zarr.json" and relative:
                 meta = read_json(entry.path)
                 if isinstance(meta, dict) and meta.get("node_type") == "array":
                     metas[relative] = meta
     walk(root, "", None)
     return Survey(metas, sizes, links, partial)
+
+
+def _is_dir(entry: os.DirEntry) -> bool:
+    try:
+        return entry.is_dir(follow_symlinks=False)
+    except OSError:
+        return False
+
+
+def marks(root: str) -> dict[int, int]:
+    """{slot: size} of the slots' written marks, listed first of all when a store is opened:
+    every file a mark commits was on the disk before it, and every metadata file read after
+    this listing holds at least the slots it names (a store being grown has grown its
+    arrays, its slots' array and then its root before any new slot is marked), so a reader
+    sees the committed slots of this one moment, whatever a writer does meanwhile."""
+    folder = os.path.join(root, WRITTEN.name, "c")
+    out: dict[int, int] = {}
+    try:
+        entries = list(os.scandir(folder))
+    except FileNotFoundError:
+        return out
+    except OSError as e:
+        raise DamagedStore(f"{folder}: cannot be listed ({e.strerror})") from None
+    for entry in entries:
+        if entry.name.isdigit() and not entry.is_symlink():
+            try:
+                out[int(entry.name)] = entry.stat(follow_symlinks=False).st_size
+            except FileNotFoundError:
+                pass
+    return out
 
 
 def root_info(root: str) -> dict:
@@ -94,10 +133,15 @@ def root_info(root: str) -> dict:
 
 
 class Store:
-    """A store's layout and committed slots, checked against its files at open."""
+    """A store's layout and committed slots at one moment, checked against its files at open.
 
-    def __init__(self, root: str):
+    `problems` names the arrays whose metadata is missing or differs from what the checksums'
+    record kept (`zarr_format.checksum_spec`): a reader is refused them at once (`check`); a
+    resumed writer (`repair=True`) restores them from the record."""
+
+    def __init__(self, root: str, repair: bool = False):
         self.root = root
+        listed = marks(root)  # first: see `marks`
         self.info = root_info(root)
         self.nbatch, self.batches = self.info["nbatch"], self.info["batches"]
         found = survey(root)
@@ -106,24 +150,59 @@ class Store:
                                f"never follows (one could alias another slot or lead outside "
                                f"the store): {_listed(found.links)}")
         self.survey = found
+        self.slots = self._committed(listed)
         self.layouts: dict[str, ArrayLayout] = {}
+        checks = found.metas.get(CHECKSUM)
+        record = (checks.get("attributes") or {}).get("metadata") if checks else None
+        self.record: dict[str, dict] = record if isinstance(record, dict) else {}
+        self.problems: dict[str, str] = {}  # array path -> what is wrong with its metadata
+        if checks is None and len(self.slots):
+            self.problems[CHECKSUM] = (f"{os.path.join(root, CHECKSUM, 'zarr.json')}: "
+                                       f"missing, but slots are committed: the store cannot "
+                                       f"say which arrays it holds")
+        for path, kept in self.record.items():
+            meta = found.metas.get(path)
+            file = os.path.join(root, path, "zarr.json")
+            if meta is None:
+                self.problems[path] = (f"{file}: missing: the store's array {path!r} (batch "
+                                       f"key {batch_key(path, kept)!r}) is gone")
+            elif recorded(meta) != kept:
+                differ = [f"{k} {meta.get(k)!r}, written as {kept.get(k)!r}"
+                          for k in sorted(set(meta) | set(kept))
+                          if k != "shape" and meta.get(k) != kept.get(k)]
+                if recorded(meta)["shape"] != kept.get("shape"):
+                    differ.insert(0, f"trailing shape {meta.get('shape', [None])[1:]}, "
+                                     f"written as {kept.get('shape', [None])[1:]}")
+                self.problems[path] = (f"{file}: edited: {'; '.join(differ)} (the array's "
+                                       f"files hold what was written)")
         for path, meta in found.metas.items():
+            if path in self.problems:
+                continue
             rows = 1 if path in (WRITTEN.name, CHECKSUM) else self.nbatch
             self.layouts[path] = ArrayLayout.parse(root, path, meta, rows)
+        if not repair:
+            self.check()
         written = self.layouts.get(WRITTEN.name)
         if written is None:
             raise DamagedStore(f"{os.path.join(root, WRITTEN.name, 'zarr.json')}: missing; "
                                f"the store cannot say which slots are complete")
-        if written.shape[0] != self.batches:
+        # the slots' array grows before the root does: larger while a writer grows the store
+        if written.shape[0] < self.batches:
             raise DamagedStore(f"{os.path.join(root, 'zarr.json')}: the attribute "
                                f"{ATTRIBUTE}.batches is {self.batches}, but {written.file} "
                                f"has {written.shape[0]} slots")
-        self.slots = self._committed(found.sizes.get(WRITTEN.name, {}))
         for layout in self.layouts.values():
             needed = (int(self.slots[-1]) + 1) * layout.nbatch if len(self.slots) else 0
             if layout.shape[0] < needed:
                 raise DamagedStore(f"{layout.file}: {layout.shape[0]} rows, but slot "
                                    f"{int(self.slots[-1])} is committed and needs {needed}")
+
+    def check(self) -> None:
+        """Refuses a store with `problems` (`DamagedStore`, naming each file)."""
+        if self.problems:
+            raise DamagedStore(f"the store at {self.root!r} is damaged: "
+                               f"{_listed(list(self.problems.values()))}. Calling "
+                               f"simloader.write again with the same dataset restores it")
 
     def _committed(self, sizes: dict[int, int]) -> np.ndarray:
         """The committed slots: a written mark of one byte `1` (zarr's raw shard: the byte,
@@ -136,7 +215,11 @@ class Store:
                                    f"root says it has {self.batches} slots")
             if sizes[slot] != 17:
                 continue  # not a mark simloader wrote: the slot is not committed
-            with open(file, "rb") as f:
+            try:
+                fd = os.open(file, os.O_RDONLY | os.O_NOFOLLOW)
+            except FileNotFoundError:
+                continue  # unmarked since it was listed (a resumed writer's repair)
+            with os.fdopen(fd, "rb") as f:
                 if f.read(1) == b"\x01":
                     out.append(slot)
         return np.asarray(out, dtype=np.int64)

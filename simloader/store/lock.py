@@ -14,11 +14,12 @@ since 2.6.12); a file system without locks raises the OSError that says so.
 
 from __future__ import annotations
 
+import errno
 import fcntl
-import hashlib
 import json
 import os
 import socket
+import stat
 import time
 import uuid
 from typing import Optional
@@ -30,23 +31,19 @@ class StoreLocked(RuntimeError):
     """Another writer holds the store."""
 
 
-def job_id(world: int) -> str:
-    """What the ranks of one torchrun job share and another job does not: the rendezvous
-    (run id, master address and port, world size); a process of its own otherwise."""
-    if world > 1:
-        parts = [os.environ.get(k, "") for k in ("TORCHELASTIC_RUN_ID", "MASTER_ADDR",
-                                                  "MASTER_PORT")] + [str(world)]
-        return "torchrun-" + hashlib.sha256("\0".join(parts).encode()).hexdigest()[:16]
-    return "process-" + uuid.uuid4().hex[:16]
+def new_job_id() -> str:
+    """A writing job's id (its rank 0 draws it and hands it to the other ranks)."""
+    return "job-" + uuid.uuid4().hex[:16]
 
 
 def holder(root: str) -> Optional[dict]:
     """What the lock file says of its holder (None: empty, never held or released)."""
     try:
-        with open(os.path.join(root, FILE), encoding="utf-8") as f:
-            text = f.read()
-    except FileNotFoundError:
+        fd = os.open(os.path.join(root, FILE), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:  # absent, or a link: no holder simloader wrote
         return None
+    with os.fdopen(fd, encoding="utf-8", errors="replace") as f:
+        text = f.read(1 << 16)
     try:
         value = json.loads(text) if text.strip() else None
     except ValueError:
@@ -71,8 +68,20 @@ class WriterLock:
 
     def acquire(self) -> "WriterLock":
         os.makedirs(self.root, exist_ok=True)
-        fd = os.open(os.path.join(self.root, FILE), os.O_RDWR | os.O_CREAT, 0o644)
+        file = os.path.join(self.root, FILE)
         try:
+            # never through a link: a lock linked to a file outside the store would empty it
+            fd = os.open(file, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
+        except OSError as e:
+            if e.errno != errno.ELOOP:
+                raise
+            raise ValueError(f"path: the store's lock {file} is a link, which simloader never "
+                             f"makes (it would write through it to a file outside the store); "
+                             f"remove it") from None
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise ValueError(f"path: the store's lock {file} is not a regular file; "
+                                 f"remove it")
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)

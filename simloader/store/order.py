@@ -12,12 +12,17 @@ page cache cannot hold); `"sequential"` is the stored order.
 of the epoch's order, which is about n/3 for a uniform permutation of n and 1 for the stored
 order. (Each batch is handed over sorted: a batch is a set, and sorted it is read in the
 files' order.)
+
+A `BlockOrder` resumes: `state_dict()` says where the latest epoch stands (its number, the
+batches handed out, the seed) and `load_state_dict()` makes the next `iter()` hand out the rest
+of that epoch, then the epochs after it, as an uninterrupted sampler would (torchdata's
+`StatefulDataLoader` saves and loads it with the loader's state).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
@@ -28,7 +33,11 @@ ORDERS = ("quasi_random", "random", "sequential")
 class BlockOrder(torch.utils.data.Sampler):
     """Batches of `batch_size` indices of `range(n)` in one of `ORDERS`, each batch's indices
     in increasing order; a new order each epoch, drawn from `seed` and the epoch's number
-    (reproducible, as a seeded sampler)."""
+    (reproducible, as a seeded sampler). Each `iter()` starts the next epoch (or the rest of
+    the one `load_state_dict` names)."""
+
+    # what must be equal for a saved position to mean the same batches
+    _SHAPE = ("n", "batch_size", "order", "block", "window", "drop_last")
 
     def __init__(self, n: int, batch_size: int, order: str = "quasi_random", block: int = 1,
                  window: int = 8, drop_last: bool = False, seed: Optional[int] = None,
@@ -44,7 +53,9 @@ class BlockOrder(torch.utils.data.Sampler):
         self.block, self.window, self.drop_last = max(1, int(block)), window, drop_last
         self.seed = int(torch.empty((), dtype=torch.int64).random_().item()) \
             if seed is None else seed
-        self.epoch = 0
+        self.epoch = 0  # the epoch the next iter() reads
+        self._resume = 0  # the batch of it the next iter() starts at (load_state_dict)
+        self._progress: Optional[list[int]] = None  # latest iter(): [epoch, batches out]
         self.ahead = ahead  # ahead(first indices of a window's blocks, block): read them soon
 
     def __len__(self) -> int:
@@ -74,23 +85,63 @@ class BlockOrder(torch.utils.data.Sampler):
             filled += len(window)
         return out, windows
 
+    def state_dict(self) -> dict[str, Any]:
+        """Where the latest epoch stands: its number and the batches handed out of it (or,
+        before any `iter()`, where the next one starts), the seed, and the shape of the
+        order (checked when loaded). Small and JSON-serializable."""
+        epoch, position = self._progress or (self.epoch, self._resume)
+        return {"epoch": epoch, "position": position, "seed": self.seed,
+                **{k: getattr(self, k) for k in self._SHAPE}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """The next `iter()` hands out the batches of `state`'s epoch after its position, in
+        the same order (the saved seed is taken); the one after it, the next epoch. A state
+        taken at the end of an epoch resumes an empty rest of it, as the loader it was saved
+        with: `StatefulDataLoader` knows the epoch was over and starts the next.
+
+        Raises:
+          ValueError: `state` is of another order (another store, batch size, order, ...).
+        """
+        if not isinstance(state, dict) or not {"epoch", "position", "seed", *self._SHAPE} \
+                <= set(state):
+            raise ValueError(f"state: expected a BlockOrder.state_dict(), got {state!r}")
+        differ = [f"{k}: saved {state[k]!r}, now {getattr(self, k)!r}" for k in self._SHAPE
+                  if state[k] != getattr(self, k)]
+        if differ:
+            raise ValueError(f"state: saved by another order of batches ({'; '.join(differ)}): "
+                             f"the saved position would not mean the same batches")
+        self.seed, self.epoch, self._resume = int(state["seed"]), int(state["epoch"]), \
+            int(state["position"])
+        self._progress = None
+
     def __iter__(self) -> Iterator[np.ndarray]:
-        order, windows = self._plan(self.epoch)
-        self.epoch += 1
-        stop = len(self) * self.batch_size
+        # the epoch is taken when the iterator is made, not at its first batch: a loader may
+        # make one and drop it unstarted (StatefulDataLoader does when it resumes), and the
+        # next must read the next epoch, not this one again
+        epoch, start = self.epoch, self._resume
+        self.epoch, self._resume = epoch + 1, 0
+        progress = self._progress = [epoch, start]
+        return self._batches(epoch, start, progress)
+
+    def _batches(self, epoch: int, start: int, progress: list[int]) -> Iterator[np.ndarray]:
+        order, windows = self._plan(epoch)
+        stop = min(len(self) * self.batch_size, self.n)
+        first = start * self.batch_size
         # the reads of a window overlap the work on the one before: when window k begins,
-        # window k + 1 is announced (`ahead`, in the process that samples)
-        announced = 0
-        for start in range(0, min(stop, self.n), self.batch_size):
+        # window k + 1 is announced (`ahead`, in the process that samples); a resumed epoch
+        # starts at the window it stopped in
+        announced = max(0, int(np.searchsorted([w[0] for w in windows], first, "right")) - 1)
+        for begin in range(first, stop, self.batch_size):
             while self.ahead is not None and announced < len(windows) and \
-                    (announced == 0 or windows[announced - 1][0] <= start):
+                    (announced == 0 or windows[announced - 1][0] <= begin):
                 self.ahead(windows[announced][1], self.block)
                 announced += 1
+            progress[1] += 1  # counted as it is handed out: a state taken after it has it
             # a batch is a random set: handed over in increasing order, it is read in the
             # files' order (and `Transitions.gather` needs no reordering); as an array, which
             # crosses to a DataLoader worker faster than a list (0.34M -> 0.43M humanoid
             # transitions/s at batches of 1024 with 2 workers)
-            yield np.sort(order[start:start + self.batch_size])
+            yield np.sort(order[begin:begin + self.batch_size])
 
 
 def mean_jump(sampler: BlockOrder, epoch: int = 0) -> float:

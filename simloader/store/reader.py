@@ -59,6 +59,12 @@ class StoredDataset(torch.utils.data.Dataset):
         self.path = os.fspath(path)
         if not isinstance(verify, bool):
             raise ValueError(f"verify: expected True or False, got {verify!r}")
+        if not os.path.exists(self.path):
+            raise ValueError(f"path: {self.path!r} does not exist; expected a store folder "
+                             f"that simloader.write made")
+        if not os.path.isdir(self.path):
+            raise ValueError(f"path: {self.path!r} is a file, not a store folder (simloader."
+                             f"write makes a folder: a zarr v3 group)")
         self.store = store = integrity.Store(self.path)
         self.info = store.info
         self.layouts = {batch_key(p, store.survey.metas[p]): layout
@@ -120,15 +126,29 @@ class StoredDataset(torch.utils.data.Dataset):
         return {p: int(v) for p, v in self.read(i, ["provenance/" + p for p in PROVENANCE]
                                                 ).items() for p in [p.split("/")[1]]}
 
-    def transitions(self, state: str | Sequence[str] = "state",
-                    diverged: str = "drop") -> "Transitions":
-        """The stored trajectories as transitions `(s_t, a_t, s_t+1)` (see `Transitions`);
-        `diverged="drop"` leaves out the trajectories flagged `diverged` (or `overflow`):
-        what follows an instability is not physics to learn. `"keep"` keeps them."""
+    def transitions(self, state: str | Sequence[str] = "state", diverged: str = "drop",
+                    context: str | Sequence[str] = ()) -> "Transitions":
+        """The stored trajectories as transitions `(s_t, a_t, s_t+1)` (see `Transitions`).
+
+        Args:
+          state: the per-frame keys (arrays `ntrajectories x nframes x ...`) paired frame by
+            frame.
+          diverged: `"drop"` leaves out the trajectories flagged `diverged` (or `overflow`):
+            what follows an instability is not physics to learn. `"keep"` keeps them.
+          context: per-trajectory keys (`params/...`, `initial_state`, `diverged`, ...: one
+            value per trajectory) that each transition carries as its trajectory's constant
+            (`"params"` stands for all of `params/`).
+
+        Raises:
+          KeyError: a key the store lacks, or of the other kind (a per-trajectory key in
+            `state`, a per-frame one in `context`).
+          ValueError: the store has no committed batch slot yet.
+        """
         if diverged not in ("drop", "keep"):
             raise ValueError(f"diverged: expected 'drop' or 'keep', got {diverged!r}")
         return Transitions(self, (state,) if isinstance(state, str) else tuple(state),
-                           drop_flagged=diverged == "drop")
+                           drop_flagged=diverged == "drop",
+                           context=(context,) if isinstance(context, str) else tuple(context))
 
     def flagged(self) -> np.ndarray:
         """Per stored trajectory: flagged `diverged` or `overflow` (bool); read slot by slot
@@ -181,9 +201,51 @@ class StoredDataset(torch.utils.data.Dataset):
 
 
 def _take(rows: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:
-    """`out[:] = rows[at]` (rows of a 2-D view of a shard) with no temporary: the indices
-    are in range by construction, and mode "clip" skips the bounds pass that buffers `out`."""
-    np.take(rows, at, axis=0, out=out.reshape(-1, rows.shape[1]), mode="clip")
+    """`out[:] = rows[at]` (rows of a 2-D view of a shard) with no temporary: mode "clip"
+    skips the bounds pass that buffers `out`. The indices are in range by construction (the
+    keys' frame axes are checked against the store's root when a `Transitions` is made);
+    they are held to it here too (a min and a max), so that a bug raises instead of
+    clipping silently to the last row."""
+    if len(at) and (at.min() < 0 or at.max() >= len(rows)):
+        bad = int(at[(at < 0) | (at >= len(rows))][0])
+        raise IndexError(f"Transitions: row {bad} of a shard of {len(rows)} rows; this is a "
+                         f"bug in simloader, please report it")
+    if rows.shape[1]:  # a key without values (sensordata of a model without sensors)
+        np.take(rows, at, axis=0, out=out.reshape(-1, rows.shape[1]), mode="clip")
+
+
+# batch keys with one value per trajectory (and no frame axis, whatever their width)
+PER_TRAJECTORY = ("initial_state", "diverged", "overflow", "policy/version")
+PER_TRAJECTORY_GROUPS = ("params/", "provenance/")
+
+
+def _steps_and_frames(stored: StoredDataset) -> tuple[int, int]:
+    """(nstep, nframes) of the store, from its root."""
+    nstep, every = stored.info.get("nstep"), int(stored.info["record_every"])
+    if not isinstance(nstep, int) or isinstance(nstep, bool) or nstep < 1 or nstep % every:
+        raise DamagedStore(f"{os.path.join(stored.path, 'zarr.json')}: the attribute "
+                           f"simloader.nstep is {nstep!r}, expected a positive multiple of "
+                           f"record_every={every}")
+    return nstep, nstep // every
+
+
+def key_kinds(stored: StoredDataset) -> tuple[list[str], list[str]]:
+    """(per-frame keys, per-trajectory keys) of a store. Per frame: arrays
+    `ntrajectories x nframes x ...` (`nframes = nstep // record_every`, from the store's
+    root) of a recorded or policy key. Per trajectory: the keys of `PER_TRAJECTORY` and
+    `PER_TRAJECTORY_GROUPS` (`initial_state` is `ntrajectories x nstate`, which may equal
+    `nframes`), and every array without a time axis. `control` is neither: it is every
+    transition's action."""
+    nstep, nframes = _steps_and_frames(stored)
+    frames, constants = [], []
+    for name, meta in stored.metas.items():
+        shape = meta["shape"]
+        if name in PER_TRAJECTORY or name.startswith(PER_TRAJECTORY_GROUPS) or \
+                len(shape) < 2 or shape[1] not in (nstep, nframes):
+            constants.append(name)
+        elif shape[1] == nframes and name != "control":
+            frames.append(name)
+    return sorted(frames), sorted(constants)
 
 
 class Transitions(torch.utils.data.Dataset):
@@ -192,21 +254,52 @@ class Transitions(torch.utils.data.Dataset):
     `record_every = k` the action is the `k` control rows between two frames
     (`k x ncontrol`). The first frame's predecessor is the initial state for the
     key `"state"` (`initial_state`), so a trajectory gives `nframes` transitions; other keys
-    have no stored initial value and give `nframes - 1`.
+    have no stored initial value and give `nframes - 1`. Each `context` key (a per-trajectory
+    value: `params/...`, ...) is in every item too, its trajectory's value.
     """
 
-    def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool):
-        metas = stored.metas
-        per_frame = sorted(n for n, m in metas.items()
-                           if len(m["shape"]) >= 2 and not n.startswith("provenance/"))
+    def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool,
+                 context: tuple[str, ...] = ()):
+        if not len(stored.slots):
+            raise ValueError(
+                f"transitions: the store at {stored.path!r} has no committed batch slot yet "
+                f"(none of its {stored.info['batches']} slot(s) is marked written: its writer "
+                f"was stopped before its first batch was complete, or the marks were "
+                f"removed); there is nothing to pair. Calling simloader.write with the same "
+                f"dataset writes it")
+        per_frame, per_trajectory = key_kinds(stored)
         for key in keys:
-            if key not in per_frame:
-                raise KeyError(f"state: expected a per-frame key of the store, got {key!r}; "
+            if key in per_frame:
+                continue
+            if key in per_trajectory:
+                raise KeyError(f"state: {key!r} is per-trajectory (one value per trajectory, "
+                               f"no frame axis); pass it as context=({key!r},) to have it "
+                               f"with each transition; per-frame keys: {per_frame}")
+            if key == "control":
+                raise KeyError(f"state: 'control' is every transition's action already; "
                                f"per-frame keys: {per_frame}")
+            raise KeyError(f"state: expected a per-frame key of the store (shape "
+                           f"ntrajectories x nframes x ...), got {key!r}"
+                           f"{did_you_mean(key, per_frame)}; per-frame keys: {per_frame}")
+        constants = []
+        for key in context:
+            found = [n for n in per_trajectory if n == key or n.startswith(key + "/")]
+            if not found:
+                where = "is per-frame: pass it in state=" if key in per_frame else \
+                    f"is not a per-trajectory key of the store{did_you_mean(key, per_trajectory)}"
+                raise KeyError(f"context: {key!r} {where}; per-trajectory keys: "
+                               f"{per_trajectory}")
+            constants += [n for n in found if n not in constants]
         self.stored = stored
         self.keys = keys
+        self.context = tuple(constants)
         self.every = int(stored.info["record_every"])
-        self.nframes = int(metas[keys[0]]["shape"][1])
+        nstep, self.nframes = _steps_and_frames(stored)
+        # every index `gather` takes is then in range: frames of `nframes`, controls of nstep
+        if stored.metas["control"]["shape"][1] != nstep:
+            raise DamagedStore(f"{stored.layouts['control'].file}: shape "
+                               f"{stored.metas['control']['shape']}, expected {nstep} control "
+                               f"rows per trajectory (nstep in the store's root)")
         self.first = 0 if keys == ("state",) else 1  # frame 0's predecessor is stored
         self.per = self.nframes - self.first
         self.drop_flagged = drop_flagged
@@ -243,6 +336,17 @@ class Transitions(torch.utils.data.Dataset):
         per key and batch slot (a batch sampler hands the dataset all of a batch's indices,
         `batch_size=None`: no per-item tensors are made or collated).
 
+        Each iteration is one epoch, in a new order drawn from `seed` and the epoch's number.
+        With torchdata installed the loader is its `StatefulDataLoader`, which resumes:
+        `loader.state_dict()` taken after any batch, loaded into a loader made the same way
+        (`load_state_dict`, even in a new process, with `num_workers` as it was), makes the
+        next iteration deliver exactly the rest of that epoch, bit for bit, and the
+        iterations after it the epochs that follow (the order's seed is in the state, so
+        `seed=None` resumes too). The order's own state is `loader.sampler.state_dict()` (a
+        `simloader.store.order.BlockOrder`: the epoch, the batches handed out of it, the
+        seed). Without torchdata it is a plain `torch.utils.data.DataLoader`, which does not
+        resume.
+
         Args:
           order: `"quasi_random"` (default: blocks of one batch slot's transitions in
             shuffled order, `window` blocks shuffled together; an epoch over a store bigger
@@ -263,7 +367,11 @@ class Transitions(torch.utils.data.Dataset):
         view = object.__new__(Transitions)
         view.__dict__.update(self.__dict__)
         view.will_need = order != "random"  # a block is read whole, a random item alone
-        return torch.utils.data.DataLoader(view, batch_size=None, sampler=sampler, **kwargs)
+        try:
+            from torchdata.stateful_dataloader import StatefulDataLoader as Loader
+        except ImportError:
+            Loader = torch.utils.data.DataLoader
+        return Loader(view, batch_size=None, sampler=sampler, **kwargs)
 
     def _read_ahead(self, blocks: np.ndarray, block: int) -> None:
         """The shard files of the blocks of transitions starting at `blocks`, read into the
@@ -274,7 +382,7 @@ class Transitions(torch.utils.data.Dataset):
                                for a, b in zip(firsts, lasts)])
         slots = np.unique(self.stored.slots[rows // self.stored.nbatch])
         arrays = self.stored.arrays()
-        names = [*self.keys, "control", "initial_state"]
+        names = [*self.keys, "control", "initial_state", *self.context]
         shards.read_ahead([arrays[n].layout.shard_file(self.stored.path, int(slot))
                            for slot in slots for n in names if not arrays[n].layout.empty])
 
@@ -319,6 +427,9 @@ class Transitions(torch.utils.data.Dataset):
             flat = control.reshape(control.shape[0] * control.shape[1], -1)
             at = (r * control.shape[1] + f * self.every)[:, None] + steps
             _take(flat, at.reshape(-1), filled["control"][a:b])
+            for key in self.context:  # nbatch x ...: the trajectory's row
+                seq = arrays[key].slot(slot, self.will_need)
+                _take(seq.reshape(seq.shape[0], -1), r, filled[key][a:b])
         if order is not None:  # back to the order asked for
             inverse = np.empty_like(order)
             inverse[order] = np.arange(len(order))
@@ -333,7 +444,8 @@ class Transitions(torch.utils.data.Dataset):
         shapes = {**{k: (arrays[k].trailing[1:], arrays[k].dtype) for k in self.keys},
                   "control": (control if self.every == 1 else (self.every, *control),
                               arrays["control"].dtype),
-                  **{"next/" + k: (arrays[k].trailing[1:], arrays[k].dtype) for k in self.keys}}
+                  **{"next/" + k: (arrays[k].trailing[1:], arrays[k].dtype) for k in self.keys},
+                  **{k: (arrays[k].trailing, arrays[k].dtype) for k in self.context}}
         out = {}
         for dtype in {d for _, d in shapes.values()}:
             names = [k for k, (_, d) in shapes.items() if d == dtype]
@@ -341,5 +453,5 @@ class Transitions(torch.utils.data.Dataset):
             flat = torch.from_numpy(np.empty(sum(sizes), dtype=dtype.newbyteorder("=")))
             for name, part in zip(names, flat.split(sizes)):
                 out[name] = part.view(n, *shapes[name][0])
-        return {k: out[k] for k in shapes}  # the keys in order: states, control, next states
+        return {k: out[k] for k in shapes}  # in order: states, control, next states, context
 

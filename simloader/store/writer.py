@@ -5,9 +5,7 @@ from __future__ import annotations
 import math
 import os
 import re
-import shutil
 import sys
-import time
 from collections.abc import Iterator, Mapping
 from typing import Any, Optional
 
@@ -16,49 +14,63 @@ import torch
 
 from simloader import sharding
 from simloader.atomic import parents, sync_directories
-from simloader.store import formats, integrity, lock
+from simloader.store import formats, integrity, lock, ownership
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, PROVENANCE, WRITTEN,
                                          ArraySpec, checksum_spec, inside, leaves, read_json,
                                          specs_of, store_path, write_json, write_shard, zstd)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
 
-def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int,
+def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int, workers: int,
                       create: bool) -> dict:
     """Creates the store's root, or checks that an existing one holds this configuration and
-    was written by as many ranks, and grows its size to `batches` slots. Only the lock's
-    holder (`create`) writes; the other ranks of its job check what it wrote."""
+    was written by as many ranks (and, for continued episodes, DataLoader workers), and grows
+    its size to `batches` slots. Only the lock's holder (`create`) writes; the other ranks of
+    its job check what it wrote."""
     mine = {**provenance(dataset, batches), "ranks": ranks}
+    continued = bool(dataset.config.continue_episodes)
+    if continued:
+        mine["workers"] = workers
     root = read_json(os.path.join(path, "zarr.json"))
     if root is not None:
         stored = (root.get("attributes") or {}).get(ATTRIBUTE) if isinstance(root, dict) \
             else None
         if not isinstance(stored, dict) or stored.get("format") != FORMAT:
-            raise StoreMismatch(f"path: {path!r} is not a simloader store of format {FORMAT} "
+            raise StoreMismatch(f"{path!r} is not a simloader store of format {FORMAT} "
                                 f"(its root has no {ATTRIBUTE!r} attribute of that format)")
         missing = [k for k in ("fingerprint", "versions", "batches", "describe")
                    if k not in stored]
         if missing:
-            raise StoreMismatch(f"path: the store at {path!r} lacks {missing} in its root's "
+            raise StoreMismatch(f"the store at {path!r} lacks {missing} in its root's "
                                 f"{ATTRIBUTE!r} attribute ({os.path.join(path, 'zarr.json')} "
                                 f"was edited or damaged); write to a new path")
         differ = differences(stored["fingerprint"], mine["fingerprint"])
         if differ:
-            raise StoreMismatch(f"path: the store at {path!r} holds another configuration; "
+            raise StoreMismatch(f"the store at {path!r} holds another configuration; "
                                 f"it cannot be appended to ({'; '.join(differ)})")
         stale = [f"{k} {stored['versions'].get(k)} (now {mine['versions'].get(k)})"
                  for k in SIMULATING if stored["versions"].get(k) != mine["versions"].get(k)]
         if stale:
-            raise StoreMismatch(f"path: the store at {path!r} was simulated by other versions "
+            raise StoreMismatch(f"the store at {path!r} was simulated by other versions "
                                 f"({', '.join(stale)}); its trajectories would not continue "
                                 f"the same stream; write to a new path")
         if stored.get("ranks") != ranks:
             # slot i * ranks + rank: another number of ranks would put batches the store
             # holds already into other slots (a trajectory twice, another never)
-            raise StoreMismatch(f"path: the store at {path!r} is written by "
+            raise StoreMismatch(f"the store at {path!r} is written by "
                                 f"{stored.get('ranks')} rank(s) (torchrun processes); resume "
                                 f"or extend it with {stored.get('ranks')}, not {ranks}, or "
                                 f"write to a new path")
+        if continued and stored.get("workers", workers) != workers:
+            # a continued episode chains a worker's batches: worker w of W continues batch
+            # i - W in batch i, so other workers would continue other trajectories
+            was = stored.get("workers")
+            raise StoreMismatch(f"the store at {path!r} holds continued episodes "
+                                f"(continue_episodes=True) written by {was} DataLoader "
+                                f"worker(s); each worker's batches continue its own earlier "
+                                f"ones, so resume or extend it with num_workers="
+                                f"{'0 or 1' if was == 1 else was}, not {workers} worker(s), "
+                                f"or write to a new path")
         mine["batches"] = max(batches, stored["batches"])
         mine["describe"] = stored["describe"]
     if create and (root is None or mine["batches"] != stored["batches"]):
@@ -69,30 +81,43 @@ def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int,
             durable=True)
         sync_directories([path])
     elif not create and (root is None or stored["batches"] < batches):
-        raise StoreMismatch(f"path: rank 0 did not create the store at {path!r} for "
+        raise StoreMismatch(f"rank 0 did not create the store at {path!r} for "
                             f"{batches} batches")
     return mine
 
 
-def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
-    """Writes the array's metadata (and its groups'), durably, or grows it; refuses another
-    shape or dtype under the same name."""
-    parts = spec.name.split("/")
+def _ensure_groups(path: str, name: str) -> None:
+    """The group `zarr.json`s above array `name`, durably."""
+    parts = name.split("/")
     for depth in range(1, len(parts)):
         group = inside(path, "/".join(parts[:depth] + ["zarr.json"]))
         if not os.path.exists(group):
             write_json(group, {"zarr_format": 3, "node_type": "group", "attributes": {}},
                        durable=True)
+
+
+def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
+    """Writes the array's metadata (and its groups'), durably, or grows it; refuses another
+    shape or dtype under the same name."""
+    _ensure_groups(path, spec.name)
     where = inside(path, spec.name + "/zarr.json")
     wanted = spec.metadata(ntrajectories)
     existing = read_json(where)
     if existing is not None:
         # attributes aside (stores written before the `key` attribute existed are extended
-        # too), but not the checksums' list of arrays
-        ignored = {"shape": None} if spec.name == CHECKSUM else {"shape": None,
-                                                                  "attributes": None}
-        if {**existing, **ignored} != {**wanted, **ignored}:
-            raise StoreMismatch(f"path: the store's array {spec.name!r} ({where}) has shape "
+        # too), but not the checksums' list of arrays (nor their metadata's record, where
+        # the store keeps one)
+        ignored = {"shape": None, "attributes": None}
+        if spec.name == CHECKSUM:
+            keep = ("arrays", "metadata") if "metadata" in (existing.get("attributes") or {}) \
+                else ("arrays",)
+            ignored["attributes"] = None
+            same = all((existing.get("attributes") or {}).get(k) == wanted["attributes"][k]
+                       for k in keep)
+        else:
+            same = True
+        if not same or {**existing, **ignored} != {**wanted, **ignored}:
+            raise StoreMismatch(f"the store's array {spec.name!r} ({where}) has shape "
                                 f"{existing.get('shape')}, dtype {existing.get('data_type')} "
                                 f"and attributes {existing.get('attributes')}; this dataset's "
                                 f"batches give {wanted['shape']}, {wanted['data_type']} and "
@@ -219,27 +244,38 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
 
 def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progress: bool,
                replace: bool) -> str:
-    """`write(format="zarr")`, its arguments checked."""
+    """`write(format="zarr")`, its arguments checked.
+
+    Nothing is opened for writing before the path is known to be the store's to write
+    (`ownership.check_target`: a new or empty folder, a store, a killed creation) and the
+    store holds no link; `replace=True` then removes the store's own entries only."""
     if any(o.rendered for o in dataset.config.observations):
         zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
-    rank = sharding.distributed_rank() or (0, 1)
-    job = lock.job_id(rank[1])
+    rank = _writer_rank()
+    job = _job_id(rank)
+    workers = max(1, num_workers)
     held = lock.WriterLock(path, job) if rank[0] == 0 else None
     try:
         if held is not None:
             try:
+                ownership.check_target(path, replace)  # reads only
                 held.acquire()
+                found = integrity.survey(path)
+                if found.links:
+                    ownership.refuse_links(path, [os.path.relpath(p, path)
+                                                  for p in found.links])
                 if replace:
-                    _clear(path)
-                info = _open_for_writing(path, dataset, batches, rank[1], create=True)
-                integrity.remove_partial(integrity.survey(path))  # no writer runs now
+                    ownership.clear(path)
+                info = _open_for_writing(path, dataset, batches, rank[1], workers, create=True)
+                _restore_metadata(path, dataset.config.nbatch)
+                integrity.remove_partial(found)  # no writer runs now
             except Exception as e:
-                _rank_zero_ready(path, job, rank, error=e)  # the other ranks stop too
+                _rank_zero_ready(path, rank, error=e)  # the other ranks stop too
                 raise
-        _rank_zero_ready(path, job, rank, error=None)
+        _rank_zero_ready(path, rank, error=None)
         if held is None:
             lock.check_joined(path, job, rank[0])
-            info = _open_for_writing(path, dataset, batches, rank[1], create=False)
+            info = _open_for_writing(path, dataset, batches, rank[1], workers, create=False)
         batches = info["batches"]
         total = slots_of(rank[0], rank[1], batches)
         mine = [i * rank[1] + rank[0] for i in range(total)]
@@ -257,7 +293,7 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
                     bar.set_postfix(diverged=diverged, refresh=False)
         finally:
             bar.close()
-        if torch.distributed.is_available() and torch.distributed.is_initialized():
+        if rank[1] > 1:
             torch.distributed.barrier()  # complete when every rank's part is; rank 0 unlocks
     except OSError as e:
         number, reason, filename = _os_error(e)
@@ -268,6 +304,35 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
         if held is not None:
             held.release()
     return path
+
+
+def _writer_rank() -> tuple[int, int]:
+    """(rank, world size) of this writer. Ranks of one store must agree on who they are and
+    wait for each other before rank 0 releases the lock: several ranks write through a
+    torch.distributed process group; torchrun's variables without one are refused (each
+    rank would finish alone, and rank 0 report success while others' slots are missing)."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    found = sharding.distributed_rank()  # the variables, checked
+    if found is None or found[1] == 1:
+        return found or (0, 1)
+    raise ValueError(f"RANK={found[0]} and WORLD_SIZE={found[1]} are set, but no "
+                     f"torch.distributed process group is initialized: the ranks writing one "
+                     f"store must agree on it through one. Call "
+                     f"torch.distributed.init_process_group() before simloader.write in every "
+                     f"rank (start them with torchrun), or unset RANK and WORLD_SIZE to write "
+                     f"from one process")
+
+
+def _job_id(rank: tuple[int, int]) -> str:
+    """The writing job's id, which the lock file names: rank 0's, handed to the other ranks
+    through the process group (no two jobs ever share one)."""
+    job = lock.new_job_id()
+    if rank[1] > 1:
+        box = [job]
+        torch.distributed.broadcast_object_list(box, src=0)
+        job = box[0]
+    return job
 
 
 def _os_error(e: OSError) -> tuple[Optional[int], str, Optional[str]]:
@@ -284,20 +349,39 @@ def _os_error(e: OSError) -> tuple[Optional[int], str, Optional[str]]:
     return e.errno, said.strip().splitlines()[-1] if said.strip() else type(e).__name__, None
 
 
+def _restore_metadata(path: str, nbatch: int) -> None:
+    """Rank 0, holding the lock: an array whose metadata was removed or edited gets it back
+    from the checksums' record (its slots' files are then checked as any other's)."""
+    store = integrity.Store(path, repair=True)
+    for name in store.problems:
+        if name == CHECKSUM:
+            continue  # no record to restore from: `_committed` redoes every slot
+        _ensure_groups(path, name)
+        where = inside(path, name + "/zarr.json")
+        kept = store.record[name]
+        write_json(where, {**kept, "shape": [store.batches * nbatch, *kept["shape"][1:]]},
+                   durable=True)
+        sync_directories(parents(where, path))
+
+
 def _committed(path: str, mine: list[int], progress: bool) -> np.ndarray:
     """Per slot of the store, whether it is committed and intact: this rank's committed
     slots are checked (sizes and every checksum); a damaged one loses its mark, durably, so
-    that it is written again and no reader takes it meanwhile."""
-    store = integrity.Store(path)
+    that it is written again and no reader takes it meanwhile. Without the checksums'
+    record (its metadata removed) no committed slot can be trusted: all are redone."""
+    store = integrity.Store(path, repair=True)
     done = np.zeros(store.batches, dtype=bool)
     done[store.slots] = True
     check = [s for s in mine if done[s]]
     if not check:
         return done
-    from tqdm import tqdm
-    with tqdm(total=len(check), unit="slot", desc=f"check {path}", disable=not progress,
-              file=sys.stderr, leave=False) as bar:
-        damaged = store.damaged(check, verify=True, progress=bar.update)
+    if store.problems:
+        damaged: dict[int, list[str]] = {slot: [] for slot in check}
+    else:
+        from tqdm import tqdm
+        with tqdm(total=len(check), unit="slot", desc=f"check {path}", disable=not progress,
+                  file=sys.stderr, leave=False) as bar:
+            damaged = store.damaged(check, verify=True, progress=bar.update)
     for slot in damaged:
         marker = os.path.join(path, WRITTEN.shard_key(slot))
         os.unlink(marker)
@@ -306,47 +390,20 @@ def _committed(path: str, mine: list[int], progress: bool) -> np.ndarray:
     return done
 
 
-def _clear(path: str) -> None:
-    """`replace=True`: everything in the store but its lock (which this process holds)."""
-    for entry in os.scandir(path):
-        if entry.name == lock.FILE:
-            continue
-        if entry.is_dir(follow_symlinks=False):
-            shutil.rmtree(entry.path)
-        else:
-            os.unlink(entry.path)
-    sync_directories([path])
-
-
-def _rank_zero_ready(path: str, job: str, rank: tuple[int, int],
+def _rank_zero_ready(path: str, rank: tuple[int, int],
                      error: Optional[BaseException]) -> None:
-    """The other ranks of a job write once rank 0 holds the lock and made the root: with a
-    process group, rank 0 says so (or that it failed) by a broadcast; without one, they wait
-    for the lock file to name their job."""
+    """The other ranks of a job write once rank 0 holds the lock and made the root: rank 0
+    says so (or that it failed) by a broadcast over the process group."""
     if rank[1] == 1:
         return
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        backend = torch.distributed.get_backend()
-        device = (torch.device("cuda", torch.cuda.current_device()) if "nccl" in str(backend)
-                  else torch.device("cpu"))
-        flag = torch.tensor([0 if error is not None else 1], device=device)
-        torch.distributed.broadcast(flag, src=0)
-        if rank[0] != 0 and not int(flag.item()):
-            raise lock.StoreLocked(f"path: rank 0 could not open the store at {path!r} for "
-                                   f"writing (it says why); held by "
-                                   f"{lock.describe(lock.holder(path))}")
-        return
-    if rank[0] != 0:
-        deadline = time.monotonic() + 600
-        while time.monotonic() < deadline:
-            info = lock.holder(path)
-            if info and info.get("job") == job and \
-                    read_json(os.path.join(path, "zarr.json")) is not None:
-                return
-            time.sleep(0.2)
-        raise lock.StoreLocked(f"path: rank {rank[0]} waited 600 s for its rank 0 to lock the "
-                               f"store at {path!r}; it is held by "
-                               f"{lock.describe(lock.holder(path))}")
+    backend = torch.distributed.get_backend()
+    device = (torch.device("cuda", torch.cuda.current_device()) if "nccl" in str(backend)
+              else torch.device("cpu"))
+    flag = torch.tensor([0 if error is not None else 1], device=device)
+    torch.distributed.broadcast(flag, src=0)
+    if rank[0] != 0 and not int(flag.item()):
+        raise lock.StoreLocked(f"rank 0 could not open the store at {path!r} for writing (it "
+                               f"says why); held by {lock.describe(lock.holder(path))}")
 
 
 def _worker_start(dataset: Any) -> Optional[str]:

@@ -207,10 +207,23 @@ def specs_of(batch: Mapping[str, Any], nbatch: int) -> list[ArraySpec]:
 
 def checksum_spec(specs: list[ArraySpec]) -> ArraySpec:
     """`provenance/checksum`: per batch slot, the (bytes, CRC-32) of each array's shard, in
-    the order its attribute `arrays` names them (0, 0 for an array without values)."""
+    the order its attribute `arrays` names them (0, 0 for an array without values). Its
+    attribute `metadata` keeps each array's `zarr.json` as written (`recorded`): a removed
+    array or an edited dtype or shape is then named at open, and restored by a resumed
+    write."""
     names = sorted(s.name for s in specs)
+    metadata = {s.name: recorded(s.metadata(0)) for s in specs}
     return ArraySpec(CHECKSUM, np.dtype(np.uint64), (len(names), 2), 1,
-                     attributes=(("arrays", names),))
+                     attributes=(("arrays", names), ("metadata", metadata)))
+
+
+def recorded(meta: Mapping[str, Any]) -> dict:
+    """An array's metadata as the checksums' record keeps it: all of it but the number of
+    trajectories, which grows with the store."""
+    out = dict(meta)
+    shape = out.get("shape")
+    out["shape"] = [0, *shape[1:]] if isinstance(shape, list) and shape else shape
+    return out
 
 
 def largest_divisor(n: int, most: int) -> int:
