@@ -371,9 +371,7 @@ def _locked(dataset_dir: str, dataset_id: str) -> Iterator[store_lock.WriterLock
     """Holds the dataset's lock (``<dataset dir>/simloader.lock``) while inside, after
     removing what killed writers of this dataset left (they cannot be running now)."""
     os.makedirs(dataset_dir, exist_ok=True)
-    new_job = getattr(store_lock, "new_job_id", None)  # lock.job_id(1) in earlier versions
-    job = new_job() if new_job is not None else store_lock.job_id(1)
-    held = store_lock.WriterLock(dataset_dir, job).acquire()
+    held = store_lock.WriterLock(dataset_dir, store_lock.new_job_id()).acquire()
     try:
         _remove_leftovers(dataset_dir, dataset_id)
         yield held
