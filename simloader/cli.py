@@ -16,22 +16,24 @@ from tqdm import tqdm
 
 import simloader
 from simloader.store import StoreLocked, formats
-from simloader import observe, threads
+from simloader import backends, observe, threads
 
 DEFAULT_MODEL = "cartpole"
-# "rollout": the older spelling of "cpu", still accepted (the library warns once)
-BACKEND_CHOICES = ("auto", "cpu", "mjx", "warp", "rollout")
+# the registry's words, and its older spellings (still accepted; the library warns once)
+BACKEND_CHOICES = backends.backends() + tuple(backends.OLD_BACKENDS)
 
 
 def engines_here() -> list[str]:
-    """The engines `bench` times by default: the CPU engine, and the GPU engines where their
-    packages and a GPU are (MJX on JAX's CPU only when asked: `--backends mjx`)."""
-    from simloader import backends
+    """The engines `bench` times by default: those that simulate on the CPU, and those that
+    simulate on a GPU where their packages and a GPU are (MJX on JAX's CPU only when asked:
+    `--backends mjx`)."""
     from simloader.backends import auto
+    gpu = backends.on_devices()
+    here = [name for name in backends.ENGINES if name not in gpu]
     if not backends.gpu_visible():
-        return ["cpu"]
+        return here
     can = auto.candidates()
-    return ["cpu"] + [name for name in ("mjx", "warp") if not can.get(name)]
+    return here + [name for name in gpu if not can.get(name)]
 DEFAULT_OUT = "simloader-results"
 
 
@@ -108,8 +110,8 @@ def quickstart_nbatch(args: argparse.Namespace) -> tuple[int, str]:
     that run here."""
     if args.nbatch is not None:
         return args.nbatch, "as given"
-    gpu = [name for name in engines_here() if name != "cpu"]
-    if args.backend in ("mjx", "warp") or (args.backend == "auto" and gpu):
+    gpu = [name for name in engines_here() if name in backends.on_devices()]
+    if args.backend in backends.on_devices() or (args.backend == "auto" and gpu):
         return GPU_NBATCH, "sized for a GPU; --nbatch to change"
     return CPU_NBATCH, "sized for the CPU; --nbatch to change"
 
@@ -337,7 +339,7 @@ def main(argv: list[str] | None = None) -> None:
 
     w = sub.add_parser("warmup", help="compile a GPU engine for a model ahead of time")
     add_model_argument(w)
-    w.add_argument("--backend", default="auto", choices=("auto", "mjx", "warp"),
+    w.add_argument("--backend", default="auto", choices=("auto", *backends.on_devices()),
                    help="the GPU engine to compile (default: the one auto picks)")
     w.add_argument("--nbatch", type=int, default=1024,
                    help="trajectories per batch, as the training run will use them")

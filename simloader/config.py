@@ -8,8 +8,7 @@ thread, worker or compilation starts.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
-from types import SimpleNamespace
+from collections.abc import Sequence
 from typing import Any, Optional
 
 import mujoco
@@ -20,21 +19,16 @@ from simloader import controls, initial, layout, models, observe, threads
 from simloader import policy as simloader_policy
 from simloader import randomize as dr
 
-@dataclasses.dataclass(frozen=True)
-class SimConfig:
-    """Everything a backend needs to simulate one batch, validated.
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Settings:
+    """`SimDataset`'s arguments, validated without any engine (`validate`): everything an
+    engine is chosen for and checks, and then simulates from.
 
     Attributes:
       model: the model (the first of `models` when a list was given).
       models: one MjModel per trajectory (`randomize` as a list), or None.
       randomization: per-trajectory model parameters drawn every batch, or None.
       variants: the pool of compiled structural variants sampled per trajectory, or None.
-      backend: the engine that simulates: "cpu", "mjx" or "warp" ("auto" resolved by the
-        `choose` argument of `build_config`); `backend_reason`: why ("asked", or what
-        "auto" estimated).
-      options: the engine's own options, resolved by `backends.check_options` (`CpuOptions`,
-        `MjxOptions`, `WarpOptions`: buffer sizes, caches, and `simulated_by()`); None only
-        inside `build_config`, and in configurations saved before engines had options.
       nbatch, nstep, nstate, ncontrol, nsensordata: sizes, MuJoCo's words.
       control_spec: the mjtState bits of the control vector.
       control: how each batch's controls are made.
@@ -51,17 +45,12 @@ class SimConfig:
       policy: closed loop: the callable that picks every step's controls, or None.
       policy_noise: closed loop: exploration noise added to the policy's controls, drawn as
         `control` generators draw (a plan whose undriven columns are 0), or None.
-      deterministic: the same seed gives bit-identical batches (the engine promised it for
-        this model, `Engine.refuses_determinism`).
-      parts: when the batch is simulated on other devices than `device` (`sim_device=`): one
-        configuration per simulation device, each with its share of the trajectories in
-        order (`nbatch`) and that device as its `device`; None: simulated where delivered.
+      deterministic: the same seed must give bit-identical batches (the engine bound to it
+        promised it for this model, `Engine.refuses_determinism`).
     """
 
     model: mujoco.MjModel
     models: Optional[tuple[mujoco.MjModel, ...]]
-    backend: str
-    backend_reason: str
     nbatch: int
     nstep: int
     nstate: int
@@ -81,12 +70,10 @@ class SimConfig:
     dtype: Optional[torch.dtype]
     nthread: Optional[int]
     prefetch: int
-    options: Any = None
     torch_threads: int = 1  # torch's intra-op threads where the dataset was made (the trainer)
     policy: Any = None
     policy_noise: Optional[controls.ControlPlan] = None
     deterministic: bool = False
-    parts: Optional[tuple["SimConfig", ...]] = None
 
     @property
     def pool(self) -> tuple[mujoco.MjModel, ...]:
@@ -112,6 +99,34 @@ class SimConfig:
                             else self.control.default_rows)
         return ModelTables(layout.reset_rows(self.pool, spec), control_defaults,
                            variant_states, low, high)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SimConfig(Settings):
+    """Everything a backend needs to simulate one batch: the `Settings` and the engine bound
+    to them (`simloader.backends.binding.bind`), complete when it is built.
+
+    Attributes:
+      backend: the engine that simulates (a registered engine's name; "auto" resolved);
+        `backend_reason`: why ("asked", or what "auto" estimated).
+      options: the engine's own options as it resolved them (buffer sizes, caches, and
+        `simulated_by()`).
+      parts: when the batch is simulated on other devices than `device` (`sim_device=`): one
+        configuration per simulation device, each with its share of the trajectories in
+        order (`nbatch`) and that device as its `device`; None: simulated where delivered.
+    """
+
+    backend: str
+    backend_reason: str
+    options: Any
+    parts: Optional[tuple["SimConfig", ...]] = None
+
+    @classmethod
+    def bound(cls, settings: Settings, **engine: Any) -> "SimConfig":
+        """`settings` with the engine's fields (`backend`, `backend_reason`, `options`,
+        `parts`)."""
+        return cls(**{f.name: getattr(settings, f.name)
+                      for f in dataclasses.fields(Settings)}, **engine)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -320,36 +335,48 @@ def _part_of(value: Any, nbatch: int, start: int, stop: int, ndim: int) -> Any:
     return value
 
 
-def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep: Any,
-                 control: Any, control_spec: Any, initial_state: Any, randomize: Any,
-                 continue_episodes: Any,
-                 num_batches: Any, seed: Any, device: Any, dtype: Any, nthread: Any,
-                 prefetch: Any, record: Any, record_every: Any, policy: Any = None,
-                 policy_noise: Any = None, deterministic: Any = False, sim_device: Any = None,
-                 size_check: Callable[[str], Optional[Callable[[Any], None]]] = lambda _: None,
-                 refuses_determinism: Callable[[str, mujoco.MjModel], Optional[str]] = (
-                     lambda name, model: None),
-                 options: Optional[dict[str, Any]] = None,
-                 check_options: Callable[[SimConfig, str, dict[str, Any]], Any] = (
-                     lambda config, reason, options: None)
-                 ) -> SimConfig:
-    """Validates `SimDataset`'s arguments (see its docstring) into a complete `SimConfig`,
-    the chosen engine's `options` validated and resolved by the engine.
+def validate(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec: Any,
+             initial_state: Any, randomize: Any, continue_episodes: Any, num_batches: Any,
+             seed: Any, device: Any, dtype: Any, nthread: Any, prefetch: Any, record: Any,
+             record_every: Any, policy: Any = None, policy_noise: Any = None,
+             deterministic: Any = False, sim_device: Any = None
+             ) -> tuple[Settings, Optional[tuple[Settings, ...]]]:
+    """Validates `SimDataset`'s arguments (see its docstring), engine-free and in one pass,
+    into `Settings`; with `sim_device`, also one `Settings` per simulation device (each its
+    share of the trajectories, in order, the same arguments over its rows of the
+    per-trajectory ones, that device as its `device`); None otherwise. The engine is bound to
+    them afterwards (`simloader.backends.binding.bind`)."""
+    arguments = dict(nstep=nstep, control_spec=control_spec, continue_episodes=continue_episodes,
+                     num_batches=num_batches, seed=seed, dtype=dtype, nthread=nthread,
+                     prefetch=prefetch, record=record, record_every=record_every,
+                     policy=policy, policy_noise=policy_noise, deterministic=deterministic)
+    whole = _settings(model, nbatch=nbatch, control=control, initial_state=initial_state,
+                      randomize=randomize, device=_torch_device(device), **arguments)
+    target, simulated_on = sim_devices(sim_device, whole.device)
+    if simulated_on is None:
+        return whole, None
+    if len(simulated_on) > whole.nbatch:
+        raise ValueError(f"sim_device: {len(simulated_on)} simulation devices for nbatch="
+                         f"{whole.nbatch} trajectories; each device needs at least one")
+    whole = dataclasses.replace(whole, device=target)
+    parts, start = [], 0
+    for dev, n in zip(simulated_on, split_sizes(whole.nbatch, len(simulated_on))):
+        stop = start + n
+        parts.append(_settings(
+            model, nbatch=n, control=_part_of(control, whole.nbatch, start, stop, 3),
+            initial_state=_part_of(initial_state, whole.nbatch, start, stop, 2),
+            randomize=_part_of(randomize, whole.nbatch, start, stop, 1), device=dev,
+            **arguments))
+        start = stop
+    return whole, tuple(parts)
 
-    `choose`: the engine for the model and sizes (`backends.auto.choose` with the `backend`
-    argument bound): called with a namespace of the base `model`, `nbatch`, `nstep`,
-    `num_batches`, `observations`, `policy` and `deterministic`, returns a `Choice`
-    (`backend`, `reason`).
-    `size_check`: the chosen engine's refusal of a batch too large for it, from the sizes
-    alone (`backends.size_check`; the namespace holds `SimConfig`'s size fields and
-    `prefetch`), called before the (nbatch x ...) tables are built: seconds of work, and
-    memory, for an nbatch that is refused anyway.
-    `refuses_determinism`: why engine `name` cannot give bit-identical batches for a model
-    (`backends.refuses_determinism`), or None.
-    `check_options`: the chosen engine's validation of the configuration and of its keyword
-    `options` (`backends.check_options`), returning the resolved options.
-    With `sim_device`, one configuration per simulation device is built from the same
-    arguments (each with its share of the trajectories) into `parts`."""
+
+def _settings(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec: Any,
+              initial_state: Any, randomize: Any, continue_episodes: Any, num_batches: Any,
+              seed: Any, device: Optional[torch.device], dtype: Any, nthread: Any,
+              prefetch: Any, record: Any, record_every: Any, policy: Any, policy_noise: Any,
+              deterministic: Any) -> Settings:
+    """The arguments of one batch (or one simulation device's part of it), validated."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
     # 0 batches would be a dataset that silently yields nothing
@@ -380,61 +407,16 @@ def build_config(model: Any, *, choose: Callable[[Any], Any], nbatch: Any, nstep
         base = variants[0]
     observations, record_every = _record(base, record, record_every, nstep)
     deterministic = _deterministic(deterministic)
-    target, simulated_on = sim_devices(sim_device, _torch_device(device))
-    if simulated_on is not None and len(simulated_on) > nbatch:
-        raise ValueError(f"sim_device: {len(simulated_on)} simulation devices for nbatch="
-                         f"{nbatch} trajectories; each device needs at least one")
-    choice = choose(SimpleNamespace(model=base, nbatch=nbatch, nstep=nstep,
-                                    num_batches=num_batches, observations=observations,
-                                    policy=policy, deterministic=deterministic))
-    if deterministic:
-        refusal = refuses_determinism(choice.backend, base)
-        if refusal is not None:
-            raise ValueError(f"deterministic: backend={choice.backend!r} cannot give "
-                             f"bit-identical batches for this model: {refusal}")
-    if simulated_on is not None and choice.backend == "cpu":
-        raise ValueError(f"sim_device: the CPU engine simulates on the CPU's threads "
-                         f"(nthread=), got sim_device={sim_device!r}; sim_device is for the "
-                         f"GPU engines (backend='mjx' or 'warp')")
-    check_sizes = size_check(choice.backend)
-    if check_sizes is not None:
-        check_sizes(SimpleNamespace(
-            observations=observations, nbatch=nbatch, nstep=nstep,
-            nframes=nstep // record_every, record_every=record_every, prefetch=prefetch,
-            ncontrol=mujoco.mj_stateSize(base, control_spec),
-            nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS)))
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
     noise = _policy(policy, policy_noise, control, base, control_spec, nbatch, nstep)
-    config = SimConfig(
-        model=base, models=models_, backend=choice.backend, backend_reason=choice.reason,
-        nbatch=nbatch, nstep=nstep,
+    return Settings(
+        model=base, models=models_, nbatch=nbatch, nstep=nstep,
         nstate=mujoco.mj_stateSize(base, layout.FULLPHYSICS), ncontrol=plan.ncontrol,
         nsensordata=base.nsensordata, control_spec=control_spec, randomization=randomization,
         variants=variants, control=plan, initial=init, observations=observations,
         record_every=record_every, continue_episodes=continue_episodes,
-        num_batches=num_batches, seed=seed, device=target,
+        num_batches=num_batches, seed=seed, device=device,
         dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch,
         torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise,
         deterministic=deterministic)
-    options = options or {}
-    if simulated_on is None:
-        return dataclasses.replace(config, options=check_options(config, choice.reason, options))
-    # each part: the same arguments over its rows of the per-trajectory ones, simulated and
-    # delivered on its device, the engine already chosen
-    parts, start = [], 0
-    for dev, n in zip(simulated_on, split_sizes(nbatch, len(simulated_on))):
-        stop = start + n
-        parts.append(build_config(
-            model, choose=lambda _probe: choice, nbatch=n, nstep=nstep,
-            control=_part_of(control, nbatch, start, stop, 3), control_spec=control_spec,
-            initial_state=_part_of(initial_state, nbatch, start, stop, 2),
-            randomize=_part_of(randomize, nbatch, start, stop, 1),
-            continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
-            device=dev, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
-            record_every=record_every, policy=policy, policy_noise=policy_noise,
-            deterministic=deterministic, size_check=size_check, options=options,
-            check_options=check_options))
-        start = stop
-    # the engine's options as each part resolved them on its device (the first one's reported)
-    return dataclasses.replace(config, parts=tuple(parts), options=parts[0].options)

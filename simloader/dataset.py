@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import inspect
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any, Optional
@@ -10,26 +9,13 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import backends, identity, layout, models, observe, resume, sharding
+from simloader import identity, layout, models, observe, resume, sharding
 from simloader import policy as simloader_policy
-from simloader.backends import auto
+from simloader.backends import binding
 from simloader.backends.base import Backend, Stats
 from simloader.batch import Batch
-from simloader.config import SimConfig, build_config
+from simloader.config import SimConfig, validate
 from simloader.prefetch import Prefetcher
-
-
-def _check_keywords(options: dict[str, Any]) -> None:
-    """Refuses an unknown keyword that is a typo of SimDataset's own (they would end in
-    `**backend_options`), with a did-you-mean; other unknown ones the backend refuses, listing
-    its options."""
-    names = [n for n, p in inspect.signature(SimDataset.__init__).parameters.items()
-             if p.kind == inspect.Parameter.KEYWORD_ONLY] + list(backends.all_options())
-    unknown = sorted(k for k in options if k not in backends.all_options())
-    hints = {k: layout.did_you_mean(k, names) for k in unknown}
-    if any(hints.values()):
-        said = "; ".join(f"{k!r}{h or ' (no close match)'}" for k, h in hints.items())
-        raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown}: {said}")
 
 
 class SimDataset(torch.utils.data.IterableDataset):
@@ -138,27 +124,23 @@ class SimDataset(torch.utils.data.IterableDataset):
                  deterministic: Optional[bool] = None, sim_device: Any = None,
                  **backend_options: Any):
         super().__init__()
-        _check_keywords(backend_options)
-        backend, options, gpu_only = backends.spelled(backend, backend_options)
-        backends.prepare(backend, options)
-        config = build_config(
-            model, choose=functools.partial(auto.choose, backend,
-                                            gpu_only or sim_device is not None),
-            nbatch=nbatch, nstep=nstep, control=control, control_spec=control_spec,
+        binding.check_keywords(backend_options, _KEYWORDS)
+        settings, parts = validate(
+            model, nbatch=nbatch, nstep=nstep, control=control, control_spec=control_spec,
             initial_state=initial_state, randomize=randomize,
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
             device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
             record_every=record_every, policy=policy, policy_noise=policy_noise,
-            deterministic=deterministic, sim_device=sim_device,
-            size_check=backends.size_check, refuses_determinism=backends.refuses_determinism,
-            options=options, check_options=backends.check_options)
-        self.config: SimConfig = config
+            deterministic=deterministic, sim_device=sim_device)
+        self.engine: binding.BoundEngine = binding.bind(backend, backend_options, settings,
+                                                        parts)
+        self.config: SimConfig = self.engine.config
         plan = self.config.randomization
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations,
                                          plan.columns if plan is not None else None)
         self.source = models.source(model)  # where the model came from, for describe()
-        self._stats = Stats.of(backends.engine(self.config.backend).counters)
+        self._stats = Stats.of(self.engine.counters)
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
         self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
@@ -214,7 +196,7 @@ class SimDataset(torch.utils.data.IterableDataset):
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
         shard = shard or sharding.current_shard(self._rank)
-        return backends.create(self.config, shard, self._stats)
+        return self.engine.create(shard, self._stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Where this iterator (this DataLoader worker, or this process) is in the stream.
@@ -285,3 +267,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         finally:
             prefetcher.close()
             backend.close()
+
+
+# SimDataset's own keywords: an unknown keyword close to one of them is a typo
+_KEYWORDS = tuple(n for n, p in inspect.signature(SimDataset.__init__).parameters.items()
+                  if p.kind == inspect.Parameter.KEYWORD_ONLY)

@@ -1,9 +1,7 @@
-"""Handing simulator buffers to torch without copies.
-
-CPU backend: MuJoCo writes into NumPy views of freshly allocated torch tensors (pinned when the
-target is a CUDA device, so that the host-to-device copy is asynchronous). MJX backend: JAX
-arrays reach torch through DLPack, sharing device memory.
-"""
+"""Handing simulator buffers to torch without copies: host buffers as NumPy views of
+freshly allocated torch tensors (pinned when the target is a CUDA device, so that the
+host-to-device copy is asynchronous), and delivered tensors moved to their target device and
+dtype. (Each engine hands its own device arrays over: MJX's through DLPack.)"""
 
 from __future__ import annotations
 
@@ -53,8 +51,3 @@ def used_here(batch: dict) -> None:
     for value in tensors(batch):
         if value.is_cuda:
             value.record_stream(torch.cuda.current_stream(value.device))
-
-
-def from_jax(array: Any) -> torch.Tensor:
-    """A torch tensor over a JAX array's memory, through DLPack (no copy, same device)."""
-    return torch.from_dlpack(array)

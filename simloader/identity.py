@@ -12,27 +12,24 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from simloader import backends
 from simloader.config import SimConfig
 
 
-# backend options that do not change the stream (where JAX caches, how much memory it takes)
-_SETUP_OPTIONS = ("compilation_cache", "memory_fraction")
-
-
-# the engines' names before one vocabulary: backend "rollout", and "mjx" with an `impl` option
-_OLD_ENGINES = {("rollout", None): "cpu", ("mjx", "jax"): "mjx", ("mjx", "warp"): "warp"}
+# an engine's option field that does not change the stream (where JAX caches, how much memory
+# it takes) says so in its metadata: dataclasses.field(metadata={STREAM_UNCHANGED[0]: False})
+STREAM_UNCHANGED = ("stream", False)
 
 
 def upgraded(saved: Any) -> Any:
     """A fingerprint saved before the engines had one vocabulary (a state_dict or a store's
-    provenance), in today's words: `backend` "rollout" is "cpu", and "mjx" with the option
-    `impl` "jax" or "warp" is "mjx" or "warp"; the same stream, so it resumes. Others as
-    they are."""
+    provenance), in today's words (`backends.old_spelling`: the same stream, so it
+    resumes). Others as they are."""
     if not isinstance(saved, dict):
         return saved
     options = saved.get("backend_options")
     impl = options.get("impl") if isinstance(options, dict) else None
-    new = _OLD_ENGINES.get((saved.get("backend"), impl))
+    new = backends.old_spelling(saved.get("backend"), impl)
     if new is None:
         return saved
     out = dict(saved, backend=new)
@@ -87,8 +84,7 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
             {"generator": _describe(d.generator), "columns": _describe(d.columns)}
             for d in config.policy_noise.drivers],
         "dtype": None if config.dtype is None else str(config.dtype),
-        "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())
-                            if k not in _SETUP_OPTIONS},
+        "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())},
     }
 
 
@@ -100,8 +96,9 @@ def _options(options: Any) -> dict[str, Any]:
     if dataclasses.is_dataclass(options):
         # a field left out of comparisons is not part of what the options are (e.g. models
         # already put on a device, kept for reuse)
+        key, unchanged = STREAM_UNCHANGED
         return {f.name: getattr(options, f.name) for f in dataclasses.fields(options)
-                if f.compare}
+                if f.compare and f.metadata.get(key, True) is not unchanged}
     return dict(vars(options))
 
 

@@ -39,15 +39,6 @@ _PHYSICS_COMPONENTS = (
     ("plugin_state", S.mjSTATE_PLUGIN),
     ("plastic", S.mjSTATE_PLASTIC),
 )
-# The mjSTATE_FULLPHYSICS components the GPU engines (MJX, Warp) do not simulate: each engine
-# refuses a model where one is not empty, so that its FULLPHYSICS row is time, qpos, qvel, act.
-# Each: (bit, what it is, the MjModel size that counts it).
-GPU_UNSIMULATED = (
-    (S.mjSTATE_HISTORY, "actuator and sensor delays", "nhistory"),
-    (S.mjSTATE_PLUGIN, "plugins with state", "npluginstate"),
-    (S.mjSTATE_PLASTIC, "plasticity", "nplastic"),
-)
-
 # MjData fields that are components of the state (mjtState), each set by mj_setState
 STATE_FIELDS = (*(c[0] for c in _PHYSICS_COMPONENTS), "qacc_warmstart",
                 *(c[0] for c in _USER_COMPONENTS))

@@ -36,3 +36,62 @@ def test_every_engine_lives_in_its_folder_alone():
                       for e in ENGINES if (t == e or t.startswith(e + "."))
                       and not (m == e or m.startswith(e + ".")))
     assert reaching == [("simloader.tools.bench", "simloader.backends.mjx.runtime")]
+
+
+def test_no_circle_through_lazy_imports_either():
+    # an import inside a function is still an arrow: a module that imports one that imports
+    # it back, at load time or later, is one concern split in two
+    top, lazy = house.graph()
+    both = {m: set(top.get(m, ())) | set(lazy.get(m, ())) for m in set(top) | set(lazy)}
+    house.floors(both)  # raises on a circle, naming it
+
+
+# engine words as values: only the registry and the engines' folders hold them. tools/ is
+# `simloader bench`'s raw baselines, which drive each engine's raw library by name (the CLI's
+# `bench --backends` choices are those baselines)
+ENGINE_WORDS = {"cpu", "mjx", "warp", "rollout"}
+ALLOWED = ("simloader/backends/", "simloader/tools/")
+
+
+def _engine_words(path):
+    """(line, word) of every engine word used as a value in `path`'s code: a string equal to
+    "mjx", "warp" or "rollout" anywhere, "cpu" where compared with or given as a backend."""
+    import ast
+    tree = ast.parse(path.read_text())
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            sides = [node.left, *node.comparators]
+            names = ast.unparse(node).lower()
+            for side in sides:
+                if isinstance(side, ast.Constant) and side.value == "cpu" and "backend" in names \
+                        and "device" not in names:
+                    found.append((node.lineno, "cpu"))
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and \
+                node.value in ENGINE_WORDS - {"cpu"}:
+            found.append((node.lineno, node.value))
+        if isinstance(node, ast.keyword) and node.arg == "backend" and \
+                isinstance(node.value, ast.Constant) and node.value.value in ENGINE_WORDS:
+            found.append((node.lineno, node.value.value))
+    return found
+
+
+def test_no_engine_name_outside_the_registry_and_the_engines():
+    package = ROOT / "simloader"
+    words = {str(p.relative_to(ROOT)): _engine_words(p) for p in package.rglob("*.py")
+             if not str(p.relative_to(ROOT)).startswith(ALLOWED)}
+    # the CLI's `bench --backends`: the raw baselines tools/bench.py times
+    bench = [n for n, line in enumerate((package / "cli.py").read_text().splitlines(), 1)
+             if "--backends" in line]
+    words["simloader/cli.py"] = [(n, w) for n, w in words["simloader/cli.py"]
+                                 if n not in bench]
+    assert {p: w for p, w in words.items() if w} == {}
+
+
+def test_the_engine_word_check_finds_them():
+    import tempfile
+    with tempfile.TemporaryDirectory() as folder:
+        code = pathlib.Path(folder) / "m.py"
+        code.write_text("def f(c):\n    if c.backend == 'cpu':\n        return 'mjx'\n"
+                        "    return g(backend='warp', device='cpu')\n")
+        assert sorted(_engine_words(code)) == [(2, "cpu"), (3, "mjx"), (4, "warp"), (4, "warp")]

@@ -392,6 +392,19 @@ def test_models_differing_in_a_compiled_in_field_are_refused(cartpole):
         "the simulation; only numeric parameters may differ across the models")
 
 
+def test_cameras_are_refused(cache_dir):
+    with pytest.raises(ValueError, match="backend='mjx' cannot render"):
+        simloader.SimDataset("cartpole", backend="mjx", nbatch=2, nstep=2,
+                             compilation_cache=cache_dir, record=(simloader.Camera("front"),))
+
+
+def test_auto_never_takes_mjx_for_cameras(cache_dir):
+    ds = simloader.SimDataset("cartpole", backend="auto", nbatch=8192, nstep=2,
+                              compilation_cache=cache_dir, record=(simloader.Camera("front"),))
+    assert ds.stats["backend"] in ("warp", "cpu")
+    assert "mjx ~" not in ds.config.backend_reason  # never among the estimates
+
+
 # --- DataLoader workers ---
 
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # JAX warns on any fork

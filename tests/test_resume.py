@@ -185,11 +185,13 @@ def test_fingerprint_covers_stream_changing_backend_options_only():
     import dataclasses
     from simloader import identity, resume
 
+    unchanged = dict([identity.STREAM_UNCHANGED])  # an engine marks what keeps the stream
+
     @dataclasses.dataclass(frozen=True)
     class Options:  # as an engine resolves its options (MJX's and Warp's together)
         njmax: int
-        compilation_cache: str = "/a"
-        memory_fraction: float = None
+        compilation_cache: str = dataclasses.field(default="/a", metadata=unchanged)
+        memory_fraction: float = dataclasses.field(default=None, metadata=unchanged)
 
     config = configured().config
     state = {"version": resume.VERSION,

@@ -286,8 +286,7 @@ def test_an_incomplete_dataset_of_another_configuration_is_refused_unless_replac
         simloader.write(_killable(nstep=3), path, batches=2, format="minari", progress=False)
     assert store_minari.status(path)["episodes_written"] == found["episodes_written"]
     ds = _killable(nstep=3)
-    store_minari.write(ds, str(path), batches=2, metadata=provenance(ds, 2), progress=False,
-                       replace=True)
+    store_minari.write(ds, str(path), batches=2, num_workers=0, progress=False, replace=True)
     assert store_minari.status(path)["complete"] is True
     assert [e[1].shape for e in _episodes_of(path)] == [(3, 1)] * 4
 

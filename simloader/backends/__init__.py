@@ -3,8 +3,8 @@
 `backend="cpu"` is MuJoCo on CPU threads (`cpu/`), `backend="mjx"` MJX on JAX (`mjx/`),
 `backend="warp"` MuJoCo Warp driven from torch, without JAX (`warp/`), and `backend="auto"`
 the fastest of those that can run here for the model, the sizes and the machine (`auto.py`).
-The dataset talks to engines only through this registry: name the engine, validate its
-options, create one for a shard. Engine packages are imported when first needed, so that a
+Construction meets the registry once: `binding.bind` chooses the engine and binds it to the
+validated settings; the dataset then holds the `BoundEngine` and calls it directly. Engine packages are imported when first needed, so that a
 CPU-only user never imports JAX, and a Warp dataset never imports JAX either.
 
 The older spellings (`backend="rollout"`; `backend="mjx", impl="jax"|"warp"|"auto"`) keep
@@ -16,20 +16,18 @@ from __future__ import annotations
 import glob
 import importlib
 import warnings
-from collections.abc import Callable
-from typing import Any, Optional
+from typing import Any
 
-from simloader import sharding
-from simloader.backends.base import Backend, Stats
 from simloader.backends.contract import Engine
-from simloader.config import SimConfig
 
 # each engine's light entry module (its `ENGINE`, an `Engine` of `contract.py`), imported when
 # first needed; engines from outside simloader join with `register_engine`
 ENGINES: dict[str, Any] = {"cpu": "simloader.backends.cpu.entry",
                            "mjx": "simloader.backends.mjx.entry",
                            "warp": "simloader.backends.warp.entry"}
-# the older spellings: backend="rollout", and backend="mjx" with impl=
+# the older spellings, the one table of them: backend="rollout", and backend="mjx" (or
+# "auto") with impl= (`spelled` for new datasets, `old_spelling` for saved fingerprints)
+OLD_BACKENDS = {"rollout": "cpu"}
 _OLD_IMPLS = {"jax": "mjx", "warp": "warp", "auto": "auto"}
 _warned: set[str] = set()
 
@@ -54,7 +52,7 @@ def register_engine(new: Engine) -> None:
         raise TypeError(f"engine: expected an object with the Engine protocol's attributes "
                         f"(simloader.backends.contract.Engine), got {type(new).__name__}")
     if not isinstance(new.name, str) or not new.name.isidentifier() or new.name in (
-            "auto", "rollout") or new.name in ENGINES:
+            "auto", *OLD_BACKENDS) or new.name in ENGINES:
         raise ValueError(f"engine: name {new.name!r} is taken or not a plain word (taken: "
                          f"{backends()})")
     ENGINES[new.name] = new
@@ -86,9 +84,10 @@ def all_options() -> tuple[str, ...]:
 def _warn_once(old: str, new: str) -> None:
     if old not in _warned:
         _warned.add(old)
-        # stacklevel: the user's line (SimDataset.__init__, here)
+        # stacklevel: the user's line (_warn_once, spelled, binding.bind, SimDataset.__init__,
+        # the user)
         warnings.warn(f"{old} is the older spelling of {new}; it still works for now and will "
-                      f"be removed", FutureWarning, stacklevel=4)
+                      f"be removed", FutureWarning, stacklevel=5)
 
 
 def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any], bool]:
@@ -103,9 +102,9 @@ def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any],
     if not isinstance(backend, str):
         raise TypeError(f"backend: expected one of {backends()}, got {type(backend).__name__} "
                         f"{backend!r}")
-    if backend == "rollout":
-        _warn_once("backend='rollout'", "backend='cpu'")
-        backend = "cpu"
+    if backend in OLD_BACKENDS:
+        _warn_once(f"backend={backend!r}", f"backend={OLD_BACKENDS[backend]!r}")
+        backend = OLD_BACKENDS[backend]
     if backend not in backends():
         raise ValueError(f"backend: expected one of {backends()}, got {backend!r}")
     if "impl" not in options:
@@ -123,6 +122,22 @@ def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any],
     return new, options, impl == "auto"
 
 
+def old_spelling(backend: Any, impl: Any) -> Any:
+    """Today's word for a saved `backend` and its `impl` option, where they are an older
+    spelling of one engine ("rollout"; "mjx" with `impl` "jax" or "warp"); None otherwise."""
+    if impl is None:
+        return OLD_BACKENDS.get(backend) if isinstance(backend, str) else None
+    if backend == "mjx" and isinstance(impl, str) and _OLD_IMPLS.get(impl) not in (None, "auto"):
+        return _OLD_IMPLS[impl]
+    return None
+
+
+def on_devices() -> tuple[str, ...]:
+    """The registered engines that simulate on a device of their own (a GPU: those
+    `sim_device=` may place; `simloader warmup` compiles them)."""
+    return tuple(name for name in ENGINES if engine(name).refuses_sim_device() is None)
+
+
 def gpu_visible() -> bool:
     """Whether this machine may have a GPU, decided without starting JAX or CUDA: an NVIDIA
     device node, or torch seeing CUDA."""
@@ -137,49 +152,3 @@ def prepare(backend: str, options: dict[str, Any]) -> None:
     (`auto` may ask JAX for its GPUs): each engine that may run this dataset sets its own."""
     for name in (ENGINES if backend == "auto" else [backend]):
         engine(name).prepare(options)
-
-
-def size_check(backend: str) -> Callable[[Any], None]:
-    """The engine's refusal of a batch too large for it, from its sizes alone
-    (`config.build_config` calls it before building tables): the CPU engine's check of host
-    memory; the GPU engines check their device's memory once they have the device."""
-    return engine(backend).check_sizes
-
-
-def check_options(config: SimConfig, reason: str, options: dict[str, Any]) -> Any:
-    """Validates engine-specific keyword options at construction; returns them resolved by
-    the engine `config.backend` (chosen for `reason`), for `SimConfig.options`.
-
-    Raises:
-      TypeError: an option of another engine, or none at all, naming this engine's options.
-    """
-    mine = engine(config.backend).options
-    unknown = sorted(set(options) - set(mine))
-    if unknown:
-        # with backend="auto" an option of an engine that was not chosen is left unused
-        # (the user may not know which engine runs); asked by name, it is a mistake
-        asked = "auto" not in reason
-        if asked or any(name not in all_options() for name in unknown):
-            owners = [f"{n!r} is an option of backend={e!r}" for n in unknown
-                      for e, names in engine_options().items() if n in names]
-            raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown} for "
-                            f"backend={config.backend!r} (its options are {list(mine)})"
-                            + "".join(f"; {o}" for o in owners))
-        options = {k: v for k, v in options.items() if k in mine}
-    return engine(config.backend).check_options(config, options, reason)
-
-
-def refuses_determinism(name: str, model: Any) -> Optional[str]:
-    """Why engine `name` cannot give bit-identical batches for `model`, or None
-    (`Engine.refuses_determinism`; for `deterministic=True`)."""
-    return engine(name).refuses_determinism(model)
-
-
-def create(config: SimConfig, shard: sharding.Shard, stats: Stats) -> Backend:
-    """The engine of `config` for one shard (simulating on other devices than it delivers
-    to: `split.SplitBackend`)."""
-    make = engine(config.backend).create
-    if config.parts is not None:
-        from simloader.backends.split import SplitBackend
-        return SplitBackend(config, shard, stats, make)
-    return make(config, shard, stats)

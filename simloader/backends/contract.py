@@ -59,6 +59,12 @@ class Engine(Protocol):
     @property
     def counters(self) -> tuple[str, ...]: ...
 
+
+    @property
+    def forks_safely(self) -> bool:
+        """Whether a DataLoader worker forked from the constructing process may run it (no
+        GPU runtime, no JAX, no OpenGL in its state); else workers are spawned."""
+
     def missing(self) -> Optional[str]:
         """Why it cannot run in this process (what to install, what hardware), or None; fast,
         starts nothing (no JAX, no CUDA context)."""
@@ -82,16 +88,22 @@ class Engine(Protocol):
     def check_sizes(self, sizes: Any) -> None:
         """Refuses a batch too large for it from its sizes alone (before tables are built)."""
 
+    def refuses_sim_device(self) -> Optional[str]:
+        """Why `sim_device=` cannot name devices for it (it simulates on no torch device of
+        its own), or None where it can."""
+
     def refuses_determinism(self, model: Any) -> Optional[str]:
         """Why it cannot give bit-identical batches for `model` from the same seed (with what
-        to use instead), or None when it can. Asked only for `deterministic=True`, before
-        its runtime starts: it may make the process-wide settings that make it deterministic
-        (MJX: XLA's deterministic GPU ops)."""
+        to use instead), or None when it can. A question, asked for `deterministic=True`
+        before its runtime starts, with no side effect: what makes it deterministic (MJX:
+        XLA's deterministic GPU ops) is set where its runtime starts (`check_options`, for a
+        configuration with `deterministic`)."""
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
-        """Validates the configuration and its options at construction; returns its resolved
-        options (a frozen dataclass with `simulated_by() -> str`; its compared fields enter
-        the configuration's identity, `identity.fingerprint`)."""
+        """Validates the settings (`config.Settings`: everything but the engine's own fields)
+        and its options at construction; returns its resolved options (a frozen dataclass
+        with `simulated_by() -> str`; its compared fields enter the configuration's identity,
+        `identity.fingerprint`)."""
 
     def create(self, config: Any, shard: Any, stats: Any) -> Any:
         """Its `Backend` (`backends.base`) for one shard, in the process that iterates."""
@@ -105,6 +117,7 @@ class EngineEntry:
     name: str = ""
     options: tuple[str, ...] = ()
     counters: tuple[str, ...] = ()
+    forks_safely: bool = False
 
     def missing(self) -> Optional[str]:
         return None
@@ -123,6 +136,9 @@ class EngineEntry:
 
     def check_sizes(self, sizes: Any) -> None:
         return None
+
+    def refuses_sim_device(self) -> Optional[str]:
+        return f"backend={self.name!r} simulates on no device of its own"
 
     def refuses_determinism(self, model: Any) -> Optional[str]:
         return (f"backend={self.name!r} does not promise bit-identical batches; "

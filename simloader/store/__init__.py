@@ -1,21 +1,30 @@
 """Keeping the stream: `write` a dataset's batches into a zarr v3 store, `StoredDataset` to
 read them back, and the regeneration of any stored trajectory from its provenance.
 
-    zarr_format.py the store on disk: its arrays, names, shard files, checksums and marks
-    shards.py      reading shard files: layouts checked, a bounded table of open shards
-    integrity.py   one walk of a store's files; committed slots checked against their sizes
-                   and checksums; leftovers of killed writers
-    lock.py        one writer job per store
-    order.py       the orders an epoch reads a store in (quasi-random, random, sequential)
-    provenance.py  what made a store (configuration, seed, versions), and what may extend it
-    writer.py      `write`: workers and ranks fill their own batch slots under one lock
-    reader.py      `StoredDataset`, `Transitions`, `StoredDataset.regenerate`
-    minari.py      `write(format="minari")`: a Minari dataset instead
+    zarr_format.py      the store on disk: its arrays, names, shard files, checksums and marks
+    shards.py           reading shard files: layouts checked, a bounded table of open shards
+    integrity.py        one walk of a store's files; committed slots checked against their sizes
+                        and checksums; leftovers of killed writers
+    lock.py             one writer job per store
+    order.py            the orders an epoch reads a store in (quasi-random, random, sequential)
+    provenance.py       what made a store (configuration, seed, versions), and what may extend it
+    front.py            `write`: its arguments checked, handed to the format's writer
+    formats.py          the table of formats: each one's name, writer and how to read it back
+    writer.py           `write(format="zarr")`: workers and ranks fill their own batch slots under
+                        one lock
+    reader.py           `StoredDataset`, `Transitions`, `StoredDataset.regenerate`
+    minari.py           `write(format="minari")`: a Minari dataset instead; `write_minari`, `status`
+    minari_episodes.py  a batch's trajectories as Minari episodes, the action space
+    minari_folder.py    a Minari dataset's directory: what is there, its lock, what killed
+                        writers left, its removal
+    minari_metadata.py  Minari's metadata.json and simloader's progress record in it
+    minari_hdf5.py      its HDF5 files, never modified in place: creation, batch files,
+                        resuming, the assembly of main_data.hdf5
 """
 
 from simloader.store.zarr_format import DamagedStore
 from simloader.store.lock import StoreLocked
 from simloader.store.reader import StoredDataset, Transitions
-from simloader.store.writer import write
+from simloader.store.front import write
 
 __all__ = ["DamagedStore", "StoreLocked", "StoredDataset", "Transitions", "write"]

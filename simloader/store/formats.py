@@ -2,8 +2,9 @@
 what it is, its writer and how to read it back. A new format is one more entry here.
 
 Each writer is called as `write(dataset, path, batches=, num_workers=, progress=, replace=)`
-after `simloader.store.write` has checked those arguments; it is imported only when its
-format is written (Minari is an extra).
+after `simloader.store.front.write` has checked those arguments. The zarr writer is imported
+with this table; Minari's only when its format is written (Minari is an extra). No writer
+imports this table or the front back.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
+
+from simloader.store import writer
 
 
 @dataclass(frozen=True)
@@ -21,23 +24,14 @@ class Format:
     read_hint: Optional[str] = None  # how to read it back, "{path!r}" filled in, if simloader can
 
 
-def _write_zarr(dataset: Any, path: str, **kwargs: Any) -> str:
-    from simloader.store import writer
-    return writer.write_zarr(dataset, path, **kwargs)
-
-
-def _write_minari(dataset: Any, path: str, *, batches: int, num_workers: int,
-                  progress: bool, replace: bool) -> str:
+def _write_minari(dataset: Any, path: str, **kwargs: Any) -> str:
     from simloader.store import minari
-    from simloader.store.provenance import provenance
-    # minari.write streams the dataset in this process: num_workers is not used
-    return minari.write(dataset, path, batches=batches, progress=progress,
-                        metadata=provenance(dataset, batches), replace=replace)
+    return minari.write(dataset, path, **kwargs)
 
 
 FORMATS: dict[str, Format] = {f.name: f for f in (
     Format("zarr", "a zarr v3 group (`simloader.store.zarr_format`), read by StoredDataset",
-           _write_zarr,
+           writer.write_zarr,
            read_hint="read them with simloader.StoredDataset({path!r}) or any zarr v3 reader"),
     Format("minari", "a Minari dataset (`simloader.store.minari`, extra `minari`)",
            _write_minari),

@@ -25,6 +25,7 @@ class CpuEngine(EngineEntry):
 
     name = "cpu"
     options = ()
+    forks_safely = True  # MuJoCo's threads start in the process that iterates
 
     def estimate(self, job: Job) -> Optional[float]:
         if job.cameras:
@@ -35,6 +36,10 @@ class CpuEngine(EngineEntry):
                 return None  # no OpenGL here: it cannot render
         rate = min(job.nbatch, job.cores) / job.step_s * EFFICIENCY
         return rate * (POLICY if job.policy else 1.0) * (CAMERAS if job.cameras else 1.0)
+
+    def refuses_sim_device(self) -> Optional[str]:
+        return ("the CPU engine simulates on the CPU's threads (nthread=); sim_device is for "
+                "the GPU engines (backend='mjx' or 'warp')")
 
     def refuses_determinism(self, model: Any) -> Optional[str]:
         return None  # each trajectory on one thread, in MuJoCo's fixed order: always

@@ -7,9 +7,9 @@ shared with JAX: treat them as read-only (clone before editing in place). In a (
 DataLoader worker, GPU tensors are copied once into torch's memory, the only GPU memory torch
 can pass to the main process; `num_workers=0` needs no worker and no copy.
 
-Process-wide JAX settings (`runtime.py`): unless told otherwise, JAX does not preallocate GPU
-memory (so that a torch model can train on the same GPU) and compilations are kept in a
-persistent cache.
+The options and checks at construction are `options.py`'s. Process-wide JAX settings
+(`runtime.py`): unless told otherwise, JAX does not preallocate GPU memory (so that a torch
+model can train on the same GPU) and compilations are kept in a persistent cache.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-import warnings
 import weakref
 from collections.abc import Callable
 from typing import Any, Optional
@@ -28,81 +27,13 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import handoff, layout, memory, observe, resume, seeds, sharding
+from simloader import handoff, layout, resume, seeds, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
-from simloader.backends.mjx import randomize as mjx_randomize
 from simloader.backends.mjx import drivers, runtime
-from simloader.backends.mjx import observe as mjx_observe
-from simloader.backends.mjx.program import BatchArgs, Placed, Program
+from simloader.backends.mjx.options import MjxOptions
+from simloader.backends.mjx.program import BatchArgs, Program
 from simloader.config import SimConfig
-
-@dataclasses.dataclass(frozen=True)
-class MjxOptions:
-    """MJX's options, validated and resolved at construction.
-
-    Attributes:
-      compilation_cache: JAX's persistent compilation cache directory, or False.
-      memory_fraction: GPU memory JAX preallocates, or None.
-    """
-
-    compilation_cache: Any
-    memory_fraction: Optional[float]
-    # what the checks put on the device, for the constructing process's first program to
-    # reuse (not part of what the options are; not sent to workers)
-    placed: Optional[Placed] = dataclasses.field(default=None, compare=False, repr=False)
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "placed": None}
-
-    def simulated_by(self) -> str:
-        return "MJX on JAX"
-
-
-def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> MjxOptions:
-    """Validates the options of MJX on JAX (`backend="mjx"`, chosen for `reason`) and the
-    model(s), in the constructing process.
-
-    Args:
-      config: the validated dataset configuration.
-      options: keyword options of `SimDataset` beyond its own:
-        compilation_cache: directory of JAX's persistent compilation cache; None (default):
-          JAX's configured one, else `~/.cache/simloader/jax`; False: leave JAX's setting.
-        memory_fraction: fraction of GPU memory JAX preallocates; None (default): none, JAX
-          allocates as it goes (effective only if JAX has not started yet).
-      reason: why MJX simulates (asked, or what `backend="auto"` estimated).
-
-    Returns:
-      The options, defaults resolved.
-
-    Raises:
-      TypeError: a value of the wrong type.
-      ValueError: a bad option value, a model MJX cannot simulate, models or variants that
-        differ in what MJX compiles in, a parameter MJX cannot randomize (`randomize.py`),
-        cameras (MJX-JAX does not render).
-    """
-    if config.dtype == torch.float64 and not jax.config.jax_enable_x64:
-        # stacklevel: the user's line (SimDataset, the registry, here)
-        warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
-                      "(JAX without jax_enable_x64), so the tensors are float32 values "
-                      "up-cast to float64", UserWarning, stacklevel=4)
-    cache = runtime.cache_dir(options.get("compilation_cache"))
-    fraction = runtime.configure_memory(options.get("memory_fraction"))
-    runtime.configure_cache(cache)
-    device = runtime.jax_device(config.device)
-    images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
-    placed = Placed.put(config, device)
-    mjx_observe.check(config.observations, placed.data0)
-    if images:
-        raise ValueError(f"record: backend='mjx' cannot render {[o.key for o in images]}: "
-                         f"MJX does not render; use backend='warp' on a CUDA GPU, or "
-                         f"backend='cpu'")
-    # the batches in flight (prefetched, being simulated, being consumed), float32 outputs
-    memory.check_batch_fits(config, runtime.memory_available(device), f"{device.platform} "
-                             f"memory", count=config.prefetch + 2, itemsize=4)
-    if config.randomization is not None:
-        mjx_randomize.check(config.model, placed.model, config.randomization)
-    return MjxOptions(cache, fraction, placed)
 
 
 # programs by configuration and device; each epoch's iterator reuses its dataset's program,
@@ -150,7 +81,6 @@ class MjxBackend(Backend):
                 config, device, options.compilation_cache, placed)
         self.options = options
         self.device = device
-        self.first = True  # the first batch may compile (Warp's kernels, on first use)
         self.carry: Any = None
         self.restart: Any = None
         if config.continue_episodes:
@@ -188,7 +118,6 @@ class MjxBackend(Backend):
         c = self.config
         # waiting here also orders the hand-off before any torch stream reads the buffers
         outputs = jax.block_until_ready(produced.outputs)
-        self.first = False
         ready = time.perf_counter()
         # the device runs batches in order: this one started at its dispatch or when the
         # previous one was ready, whichever is later (when the consumer is slower than the
@@ -212,7 +141,7 @@ class MjxBackend(Backend):
         return batch
 
     def _tensor(self, array: jax.Array, dtype: Optional[torch.dtype]) -> torch.Tensor:
-        tensor = handoff.to_target(handoff.from_jax(array), self.config.device, dtype)
+        tensor = handoff.to_target(torch.from_dlpack(array), self.config.device, dtype)  # JAX memory, no copy
         if (self.in_worker and tensor.is_cuda
                 and tensor.data_ptr() == array.unsafe_buffer_pointer()):
             # CUDA IPC, which carries a worker's tensors to the main process, shares only

@@ -10,9 +10,8 @@ back.
 
 The loop's buffers (the batch of `mjx.Data`, the frames recorded so far, the applied
 controls) are donated to every call: each step writes them in place, at the same addresses,
-which also lets MuJoCo Warp replay the CUDA graph it captured on the first step instead of
-capturing a new one (Warp keys its graphs on buffer addresses). The data's buffers are donated
-on from batch to batch as well.
+instead of allocating a new batch of them per step. The data's buffers are donated on from
+batch to batch as well.
 """
 
 from __future__ import annotations

@@ -97,20 +97,27 @@ class MjxEngine(EngineEntry):
     def prepare(self, options: dict[str, Any]) -> None:
         from simloader.backends import gpu_visible
         if installed() and gpu_visible():
-            from simloader.backends.mjx import runtime
-            runtime.configure_memory(options.get("memory_fraction"))
+            from simloader.backends.mjx import options as mjx_options, runtime
+            runtime.configure_memory(
+                mjx_options.memory_fraction(options.get("memory_fraction")))
+
+    def refuses_sim_device(self) -> Optional[str]:
+        return None  # its GPUs: each part of a batch on its own
 
     def refuses_determinism(self, model: Any) -> Optional[str]:
-        """XLA's deterministic GPU ops, set before JAX starts (1.25-1.7x slower on an H200,
-        benchmarks/results/determinism-*); refused, saying how, if JAX started without them."""
+        """XLA's deterministic GPU ops, which `check_options` sets before JAX starts
+        (1.25-1.7x slower on an H200, benchmarks/results/determinism-*): refused, saying how,
+        only where JAX started without them."""
         if not installed():
             return None  # `missing` says why it cannot run at all
         from simloader.backends.mjx import runtime
-        return runtime.configure_determinism()
+        return runtime.determinism_refusal()
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
-        from simloader.backends.mjx import backend
-        return backend.check_options(config, options, reason)
+        from simloader.backends.mjx import options as mjx_options, runtime
+        if config.deterministic:  # before anything below starts JAX
+            runtime.configure_determinism()
+        return mjx_options.check_options(config, options, reason)
 
     def create(self, config: Any, shard: Any, stats: Any) -> Any:
         from simloader.backends.mjx.backend import MjxBackend

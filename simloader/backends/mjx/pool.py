@@ -13,6 +13,7 @@ import mujoco
 import numpy as np
 
 from simloader import layout
+from simloader.backends import gpu_state
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
 
@@ -20,7 +21,7 @@ S = mujoco.mjtState
 # The mjSTATE_FULLPHYSICS components MJX simulates. The others must be empty (checked at
 # construction), so this spec's layout is FULLPHYSICS's, column for column.
 PHYSICS = int(S.mjSTATE_TIME | S.mjSTATE_QPOS | S.mjSTATE_QVEL | S.mjSTATE_ACT)
-_UNSIMULATED = layout.GPU_UNSIMULATED
+_UNSIMULATED = gpu_state.GPU_UNSIMULATED
 
 
 def put_model(model: mujoco.MjModel, device: jax.Device) -> Any:
@@ -88,8 +89,6 @@ def put_models(config: SimConfig, device: jax.Device) -> tuple[Any, Any]:
     return jax.device_put(treedef.unflatten(batched), device), treedef.unflatten(axes)
 
 
-
-
 def pooled(config: SimConfig) -> bool:
     """Whether trajectories pick their model from a pool (per-model inputs, one row each)."""
     return config.models is not None or config.variants is not None
@@ -111,9 +110,3 @@ def static_difference(a: Any, b: Any, path: str) -> str:
         if found:
             return found
     return ""
-
-
-def field_name(path: tuple) -> str:
-    """A model leaf's field as users name it (`body_mass`, `opt.gravity`); private fields of
-    the implementation keep their `_impl.` prefix."""
-    return ".".join(str(getattr(k, "name", k)) for k in path)

@@ -288,7 +288,7 @@ class Program:
     device and the compiled batch function, shared by every iterator of the dataset.
 
     Args:
-      config, impl, device: what to simulate, how and where.
+      config, device: what to simulate, and where.
       cache: JAX's persistent compilation cache directory, beside which the batch function is
         stored for later processes (`stored_program.py`); False: neither.
       placed: the models already on `device`, or None to put them.
@@ -301,7 +301,7 @@ class Program:
         placed = placed or Placed.put(c, device)
         self.model, pool_axes, self.data0 = placed.model, placed.pool_axes, placed.data0
         self.store = stored_program.store_for(cache)
-        self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64 (and not Warp)
+        self.dtype = self.data0.qpos.dtype  # float32 unless JAX runs with x64
         # per model of the pool (variants too): the inputs and states mj_resetData leaves,
         # the range each control column is clamped to
         tables = c.model_tables(MODEL_INPUTS)

@@ -42,7 +42,8 @@ _ACTUATION = ("actuator_gainprm", "actuator_biasprm", "actuator_dynprm", "actuat
               "jnt_actfrcrange", "tendon_actfrcrange")
 _OPTIONS = ("opt.gravity", "opt.timestep", "opt.impratio", "opt.tolerance", "opt.ls_tolerance",
             "opt.magnetic", "opt.density", "opt.viscosity", "opt.wind")
-# what cameras see (MuJoCo Warp's renderer reads them per world; no effect on the physics)
+# what cameras see: no effect on the physics (MJX does not render); their values are
+# delivered in `params` as on the other engines
 _LOOKS = ("geom_rgba", "mat_rgba", "mat_emission", "mat_specular", "mat_shininess",
           "light_ambient", "light_diffuse", "light_specular", "light_attenuation", "cam_fovy")
 FIELDS = (_CONTACT + _CONSTRAINTS + _PASSIVE + _ACTUATION + mjx_setconst.INPUTS + _OPTIONS

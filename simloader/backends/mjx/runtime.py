@@ -1,5 +1,5 @@
 """Process-wide concerns of MJX on JAX: importing MJX, JAX's GPU memory and compilation
-cache, the device to simulate on, and the fork guard.
+cache (as `options.py` checked them), the device to simulate on, and the fork guard.
 
 MJX is imported here, once, without its own optional Warp support, which simloader does not use
 (its Warp engine drives the public `mujoco-warp` package from torch): where Warp is installed
@@ -19,7 +19,6 @@ import warnings
 from typing import Any, Optional
 
 import jax
-import numpy as np
 import torch
 from jax._src import xla_bridge  # private: whether JAX has started (no public query)
 
@@ -51,15 +50,13 @@ _FRACTION_DEPRECATED = "XLA_PYTHON_CLIENT_MEM_FRACTION"  # jaxlib rejects both b
 DETERMINISTIC_OPS = "--xla_gpu_deterministic_ops=true"
 
 
-def configure_determinism() -> Optional[str]:
-    """Makes XLA's GPU ops deterministic where JAX has not started yet (XLA_FLAGS, for this
-    process and its children); returns why MJX cannot be deterministic in this process, or
-    None."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if DETERMINISTIC_OPS in flags.split():
+def determinism_refusal() -> Optional[str]:
+    """Why MJX cannot be deterministic in this process, or None: XLA's deterministic GPU ops
+    are set, or can still be set (JAX has not started), or JAX runs on the CPU only. A
+    question: it changes nothing."""
+    if DETERMINISTIC_OPS in os.environ.get("XLA_FLAGS", "").split():
         return None
     if not xla_bridge.backends_are_initialized():
-        os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_OPS}".strip()
         return None
     if all(d.platform == "cpu" for d in jax.devices()):
         return None  # XLA on the CPU sums in a fixed order
@@ -68,26 +65,22 @@ def configure_determinism() -> Optional[str]:
             f"your first jax call, does it), or use backend='cpu'")
 
 
-def configure_memory(memory_fraction: Any) -> Optional[float]:
-    """Sets how JAX takes GPU memory; effective only before JAX starts its backends.
+def configure_determinism() -> None:
+    """Makes XLA's GPU ops deterministic where JAX has not started yet (XLA_FLAGS, for this
+    process and its children); where it has, `determinism_refusal` said so at binding."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if DETERMINISTIC_OPS not in flags.split() and not xla_bridge.backends_are_initialized():
+        os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_OPS}".strip()
+
+
+def configure_memory(fraction: Optional[float]) -> None:
+    """Sets how JAX takes GPU memory; effective only before JAX starts its backends (said
+    where it has).
 
     Args:
-      memory_fraction: None: no preallocation; a number in (0, 1]: preallocate that fraction.
-
-    Returns:
-      The validated fraction.
-
-    Raises:
-      TypeError, ValueError: `memory_fraction` is not None or a number in (0, 1].
+      fraction: as `options.memory_fraction` checks it: None, no preallocation; a number in
+        (0, 1], preallocate that fraction.
     """
-    if memory_fraction is not None and (isinstance(memory_fraction, bool) or not isinstance(
-            memory_fraction, (int, float, np.floating, np.integer))):
-        raise TypeError(f"memory_fraction: expected None or a number in (0, 1], got "
-                        f"{type(memory_fraction).__name__} {memory_fraction!r}")
-    if memory_fraction is not None and not 0 < memory_fraction <= 1:
-        raise ValueError(f"memory_fraction: expected None or a number in (0, 1], got "
-                         f"{memory_fraction}")
-    fraction = None if memory_fraction is None else float(memory_fraction)
     if not xla_bridge.backends_are_initialized():  # JAX has no public "started" query
         if fraction is None:
             os.environ.setdefault(_PREALLOCATE, "false")  # a user's explicit choice stands
@@ -95,9 +88,9 @@ def configure_memory(memory_fraction: Any) -> Optional[float]:
             os.environ[_PREALLOCATE] = "true"
             os.environ.pop(_FRACTION_DEPRECATED, None)
             os.environ[_FRACTION] = str(fraction)
-        return fraction
+        return
     if not any(d.platform == "gpu" for d in jax.devices()):
-        return fraction
+        return
     # the same test jaxlib applies when it creates the GPU client
     preallocating = os.environ.get(_PREALLOCATE, "true") not in ("false", "False", "0")
     current = os.environ.get(_FRACTION) or os.environ.get(_FRACTION_DEPRECATED)
@@ -112,22 +105,11 @@ def configure_memory(memory_fraction: Any) -> Optional[float]:
             f"simloader: memory_fraction={fraction} has no effect: JAX was already started "
             f"(with {_FRACTION}={current}). Create the SimDataset before anything starts JAX, "
             f"or set {_FRACTION} yourself.", RuntimeWarning, stacklevel=3)
-    return fraction
-
-
-def cache_dir(value: Any) -> Any:
-    if value is False:
-        return False
-    if value is None:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
-        return jax.config.jax_compilation_cache_dir or os.path.join(base, "simloader", "jax")
-    if isinstance(value, (str, os.PathLike)):
-        return os.fspath(value)
-    raise TypeError(f"compilation_cache: expected a directory path, None (default cache) or "
-                    f"False (leave JAX's setting), got {type(value).__name__} {value!r}")
 
 
 def configure_cache(path: Any) -> None:
+    """Points JAX's persistent compilation cache at `path` (`options.compilation_cache`;
+    False: left alone)."""
     # JAX reads these at its first compilation in the process; later changes are ignored
     if path is not False:
         jax.config.update("jax_compilation_cache_dir", path)
@@ -164,9 +146,6 @@ def torch_device(device: jax.Device) -> torch.device:
     if device.platform == "gpu":
         return torch.device("cuda", device.local_hardware_id)
     return torch.device("cpu")
-
-
-slow_notice = base.slow_notice
 
 
 def memory_available(device: jax.Device) -> int:

@@ -22,8 +22,6 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-import mujoco
-
 from simloader import handoff, policy, seeds, sharding
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
@@ -82,8 +80,6 @@ class WarpBackend(Backend):
         self.last_ready = 0.0
         self.warned_overflow = False
         self.last: Optional[_Produced] = None
-        self.randomized_ctrlrange = config.randomization is not None and any(
-            r.field == "actuator_ctrlrange" for r in config.randomization.resolved)
 
     # -- host draws ------------------------------------------------------------------------
 
@@ -115,10 +111,8 @@ class WarpBackend(Backend):
             self._start_trajectories({k: self.upload(v) for k, v in drawn.items()},
                                      self.upload(x0))
             initial_state = e.physics()
-            e.low.copy_(self.trajectories.per_trajectory(tables.low))
-            e.high.copy_(self.trajectories.per_trajectory(tables.high))
-            if self.randomized_ctrlrange:
-                self._randomized_bounds()
+            e.set_bounds(self.trajectories.per_trajectory(tables.low),
+                         self.trajectories.per_trajectory(tables.high))
             e.loop.prepare(self.seed(index, seeds.CONTROL),
                            self.trajectories.per_trajectory(tables.control_defaults))
             e.start()
@@ -147,14 +141,13 @@ class WarpBackend(Backend):
         theirs."""
         c, e, tables, t = self.config, self.engine, self.tables, self.trajectories
         fresh = t.fresh
-        if self.restored is None and c.continue_episodes and e.owner is not self.token:
+        if e.claim(self.token) and self.restored is None and c.continue_episodes:
             # another iterator of this dataset ran on the engine's data since: take back
             # this one's trajectories (the rows it left, warmstart included)
             self.restored = self.rows
         if self.restored is not None:  # resumed or taken back: the rows, before any restart
             e.reset(self.restored, torch.ones_like(fresh))
             self.restored = None
-        e.owner = self.token
         t.take(drawn)
         e.set_model(t.model_index, t.params)
         rows = t.per_trajectory(tables.reset_rows).clone()
@@ -162,18 +155,6 @@ class WarpBackend(Backend):
             x0 = t.per_trajectory(tables.variant_states)
         rows[:, tables.physics_cols] = x0
         e.reset(rows, fresh)
-
-    def _randomized_bounds(self) -> None:
-        """Clamp bounds of `ctrl` columns from each trajectory's own (randomized)
-        `actuator_ctrlrange`, where MuJoCo clamps."""
-        c, e = self.config, self.engine
-        if not c.control_spec & int(mujoco.mjtState.mjSTATE_CTRL) or (
-                c.model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)):
-            return
-        ranges = e.model_views["actuator_ctrlrange"].reshape(c.nbatch, c.model.nu, 2)
-        limited = self.tables.clamped
-        e.low[:, :c.model.nu] = torch.where(limited, ranges[..., 0], -torch.inf)
-        e.high[:, :c.model.nu] = torch.where(limited, ranges[..., 1], torch.inf)
 
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config

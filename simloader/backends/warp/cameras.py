@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from simloader import observe
+from simloader.backends.warp import runtime
 
 _TORCH_DTYPES = {np.dtype(np.uint8): torch.uint8, np.dtype(np.float32): torch.float32,
                  np.dtype(np.int32): torch.int32}
@@ -43,19 +44,25 @@ class Cameras:
     """The cameras of an engine: MuJoCo Warp's render context and torch views of its images.
 
     Args:
-      engine: the `Engine` (its MuJoCo Warp model and data).
+      config: the engine's configuration (read here only).
       images: the camera images `record` asks for.
+      m, d: the engine's MuJoCo Warp model and data (a render brings the data's poses to its
+        state).
+      wdevice: Warp's name of the engine's device.
     """
 
-    def __init__(self, engine: Any, images: Sequence[observe.CameraImage]):
-        self.engine, self.images = engine, tuple(images)
-        c = engine.config
+    def __init__(self, config: Any, images: Sequence[observe.CameraImage], m: Any, d: Any,
+                 wdevice: str):
+        import mujoco_warp as mjw
+        self.mjw, self.wp, self.m, self.d = mjw, runtime.warp(), m, d
+        self.images = tuple(images)
+        c = config
         cams = sorted({o.camera_id for o in images})
         asked = {cam: {o.kind for o in images if o.camera_id == cam} for cam in cams}
         size = {o.camera_id: (o.camera.width, o.camera.height) for o in images}
         randomized = {r.field for r in c.randomization.resolved} if c.randomization else set()
-        with engine.wp.ScopedDevice(engine.wdevice):
-            self.context = engine.mjw.create_render_context(
+        with self.wp.ScopedDevice(wdevice):
+            self.context = mjw.create_render_context(
                 mjm=c.model, nworld=c.nbatch, cam_active=cams,
                 cam_res=[size[cam] for cam in cams],
                 render_rgb=["rgb" in asked[cam] for cam in cams],
@@ -66,7 +73,7 @@ class Cameras:
         com = (L.mjCAMLIGHT_TRACKCOM, L.mjCAMLIGHT_TARGETBODYCOM)
         self.needs_com = bool(np.isin(c.model.cam_mode, com).any()
                               or np.isin(c.model.light_mode, com).any())
-        wp = engine.wp
+        wp = self.wp
         buffers = {"rgb": wp.to_torch(self.context.rgb_data).view(torch.int32),
                    "depth": wp.to_torch(self.context.depth_data),
                    "segmentation": wp.to_torch(self.context.seg_data)}
@@ -92,8 +99,7 @@ class Cameras:
         `frames`; with `want`, also this step's images, {key: (nbatch, *shape)}, for the
         policy. RGB is unpacked by one kernel from Warp's packed pixels straight into its
         frame (one pass over the images)."""
-        e = self.engine
-        mjw, m, d = e.mjw, e.m, e.d
+        mjw, m, d = self.mjw, self.m, self.d
         mjw.kinematics(m, d)
         if self.needs_com:
             mjw.com_pos(m, d)
@@ -105,7 +111,7 @@ class Cameras:
             n = pixels.shape[0]
             if kind == "rgb":
                 stored = frames[o.key]
-                _unpack_rgb(e.wp, self.packed[o.key], frame, stored)
+                _unpack_rgb(self.wp, self.packed[o.key], frame, stored)
                 if want:
                     out[o.key] = stored.index_select(1, frame)[:, 0]
                 continue
@@ -126,8 +132,7 @@ _KERNELS: dict = {}
 
 def _unpack_rgb(wp: Any, packed: Any, frame: torch.Tensor, stored: torch.Tensor) -> None:
     """Warp's packed pixels (`packed`, (nworld, npixel) uint32: red in bits 16-23, blue in
-    0-7, as MJX's get_rgb reads them) as uint8 RGB into frame `frame[0]` of `stored`
-    ((nworld, nframes, height, width, 3)).
+    0-7) as uint8 RGB into frame `frame[0]` of `stored` ((nworld, nframes, height, width, 3)).
 
     Where an image's bytes are whole 32-bit words (npixel a multiple of 4, every usual size)
     a thread turns 4 pixels into 3 words (4 loads, 3 stores: a twelfth of the threads and

@@ -4,16 +4,21 @@ the whole batch at once; one graph replay per step) and the closed loop (a torch
 each step's rows; the step graph adds the policy's noise, checks and clamps the rows and keeps
 them as they acted).
 
-Each driver has two sides, and each method says what it reads (in) and writes (out), as MuJoCo
-Warp marks its kernels' arrays. The engine's side is fixed when the engine is built (its graph
-reads the buffers the driver allocates): `row` (inside the graph), `start`, `applied`. The
-batch's side is called by the backend inside `Engine.queued`: `prepare` with the batch's seed
-and defaults, `run` with the weights its `policy.Snapshot` took before, outside the lock (a copy
-of the weights may wait for a training update).
+A driver is given what it reads and calls, never the engine: the configuration, a tensor its
+buffers take the dtype and device of, the generators' parameters, and the engine's `advance`
+(one step; returns the observations after it), with a policy also `observe_now` (the first
+observations), the engine's stream and device. Each driver has two sides, and each method says
+what it reads (in) and writes (out), as MuJoCo Warp marks its kernels' arrays. The engine's side
+is fixed when the engine is built (its graph reads the buffers the driver allocates): `row`
+(inside the graph), `start`, `applied`. The batch's side is called by the backend inside
+`Engine.queued`: `prepare` with the batch's seed and defaults, `run` with the weights its
+`policy.Snapshot` took before, outside the lock (a copy of the weights may wait for a training
+update).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Optional
 
 import numpy as np
@@ -28,10 +33,10 @@ class OpenLoop:
 
     observes = False  # no policy reads the step's observations
 
-    def __init__(self, engine: Any):
-        c = engine.config
-        like = engine.views["qpos"]
-        self.engine, self.nstep = engine, c.nstep
+    def __init__(self, config: Any, like: torch.Tensor, params: list,
+                 advance: Callable[[], Any]):
+        c = config
+        self.advance, self.nstep = advance, c.nstep
         f = dict(dtype=like.dtype, device=like.device)
         self.controls = torch.zeros((c.nbatch, c.nstep, c.ncontrol), **f)
         # an explicit control array, on the device once; else the generators and their
@@ -39,7 +44,7 @@ class OpenLoop:
         self.fixed = (torch.as_tensor(c.control.fixed, **f)
                       if c.control.fixed is not None else None)
         self.plan = c.control if c.control.random else None
-        self.params = engine.tables.control_params
+        self.params = params
 
     # -- the engine's side (fixed buffers, read by the graph) --------------------------------
 
@@ -80,7 +85,7 @@ class OpenLoop:
         """In: nothing (`taken`: None, no policy). Out: the batch's steps, one replay each;
         no extras."""
         for _ in range(self.nstep):
-            self.engine.advance()
+            self.advance()
         return {}
 
 
@@ -90,10 +95,14 @@ class ClosedLoop:
 
     observes = True  # the policy reads each step's observations, images included
 
-    def __init__(self, engine: Any):
-        c = engine.config
-        like = engine.views["qpos"]
-        self.engine = engine
+    def __init__(self, config: Any, like: torch.Tensor, noise_params: list,
+                 advance: Callable[[], dict[str, torch.Tensor]],
+                 observe_now: Callable[[], dict[str, torch.Tensor]],
+                 stream: Optional[torch.cuda.Stream], device: torch.device):
+        c = config
+        self.config, self.noise_params = config, noise_params
+        self.advance, self.observe_now = advance, observe_now
+        self.stream, self.device = stream, device
         f = dict(dtype=like.dtype, device=like.device)
         self.u = torch.zeros((c.nbatch, c.ncontrol), **f)  # the policy's rows of this step
         self.noise = (torch.zeros((c.nbatch, c.nstep, c.ncontrol), **f)
@@ -128,29 +137,40 @@ class ClosedLoop:
         """In: the batch's control `seed` (`defaults` unused: the noise's undriven columns
         are 0). Out: the batch's policy noise, drawn as controls are. The stream waits for
         the weights' copy, which `policy.Snapshot.take` queued on the default stream."""
-        e, c = self.engine, self.engine.config
-        if e.gpu:
-            e.stream.wait_stream(torch.cuda.default_stream(e.device))
+        if self.stream is not None:  # a GPU's
+            self.stream.wait_stream(torch.cuda.default_stream(self.device))
         if self.noise is not None:
             self.noise.zero_()
-            c.policy_noise.sample_torch(seed, self.noise, e.tables.noise_params)
+            self.config.policy_noise.sample_torch(seed, self.noise, self.noise_params)
 
     def run(self, taken: tuple[Any, int]) -> dict[str, torch.Tensor]:
         """In: `taken`, the weights' copy and their version. Out: the batch's steps
         (`policy_loop.run`): the policy's rows into the graph's input, one replay each,
         nothing waiting on the host; returns the policy's extras."""
-        e = self.engine
 
         def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
             self.u.copy_(rows)
-            e.advance()
+            obs = self.advance()
             # the observations are views of MuJoCo Warp's arrays (or the graph's outputs),
             # which the next step rewrites: the policy keeps copies of its own
-            return {k: v.clone() for k, v in e.obs.items()}
+            return {k: v.clone() for k, v in obs.items()}
 
-        return policy_loop.run(taken, e.config, e.observe_now(), step, e.device)
+        return policy_loop.run(taken, self.config, self.observe_now(), step, self.device)
 
 
-def driver(engine: Any) -> Any:
-    """The engine's driver: the closed loop with a policy, else the open loop."""
-    return ClosedLoop(engine) if policy_loop.chosen(engine.config) else OpenLoop(engine)
+def driver(config: Any, like: torch.Tensor, tables: Any, advance: Callable[[], Any],
+           observe_now: Callable[[], dict[str, torch.Tensor]],
+           stream: Optional[torch.cuda.Stream], device: torch.device) -> Any:
+    """An engine's driver: the closed loop with a policy, else the open loop.
+
+    Args:
+      config: the engine's configuration (a weak proxy: a driver must not keep it alive).
+      like: a tensor whose dtype and device the driver's buffers take.
+      tables: the engine's `DeviceTables` (the generators' parameters).
+      advance, observe_now: the engine's one step and first observations.
+      stream, device: the engine's stream (None on the CPU) and torch device.
+    """
+    if policy_loop.chosen(config):
+        return ClosedLoop(config, like, tables.noise_params, advance, observe_now, stream,
+                          device)
+    return OpenLoop(config, like, tables.control_params, advance)

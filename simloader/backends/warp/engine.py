@@ -27,13 +27,14 @@ import gc
 import weakref
 from typing import Any, Optional
 
+import mujoco
 import numpy as np
 import torch
 
 from simloader import rules
-from simloader.backends.warp import cameras, drivers, runtime
+from simloader.backends.warp import cameras, drivers, model_arrays, runtime
 from simloader.backends.warp import observe as warp_observe
-from simloader.backends.warp import options as warp_options
+from simloader.backends.warp.options import WarpOptions
 from simloader.backends.warp.tables import STATE_ARRAYS, DeviceTables
 
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
@@ -66,7 +67,7 @@ class Engine:
       on_capture: called after each graph capture (counts them in the dataset's stats).
     """
 
-    def __init__(self, config: Any, options: warp_options.WarpOptions, device: torch.device,
+    def __init__(self, config: Any, options: WarpOptions, device: torch.device,
                  on_capture: Any = None):
         import mujoco_warp as mjw
         self.mjw, self.wp = mjw, runtime.warp()
@@ -75,6 +76,12 @@ class Engine:
         self.config = weakref.proxy(config)
         self.options, self.device = options, device
         self.owner: Any = None  # the token of the iterator whose trajectories the data holds
+        # MuJoCo clamps `ctrl` columns to each trajectory's own (randomized) ctrlrange
+        self.clamps_randomized_ctrlrange = (
+            config.randomization is not None
+            and any(r.field == "actuator_ctrlrange" for r in config.randomization.resolved)
+            and bool(config.control_spec & int(mujoco.mjtState.mjSTATE_CTRL))
+            and not config.model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL))
         self.gpu = device.type == "cuda"
         self.wdevice = runtime.warp_device(device)
         # Warp's current device and stream are the process's (`runtime.WARP_LOCK`)
@@ -95,9 +102,9 @@ class Engine:
                      *(name for o in self.observations for name in o.fields()))
             self.views = {name: self._data(name) for name in dict.fromkeys(names)}
             self.model_views = {k: self.wp.to_torch(v)
-                                for k, v in warp_options.arrays(self.m).items()}
+                                for k, v in model_arrays.arrays(self.m).items()}
             # per-model values and tables every batch gathers from, on the device once
-            self.pool_tables = warp_options.pool_tables(c, options, device)
+            self.pool_tables = model_arrays.pool_tables(c, options.pooled, device)
             self.tables = DeviceTables(c, device)
             # randomized elements, on the device once (not uploaded every batch)
             self.elements = ({} if c.randomization is None else {
@@ -158,7 +165,9 @@ class Engine:
                               device=like.device)
         self.high = torch.full_like(self.low, torch.inf)
         self.diverged = torch.zeros(c.nbatch, dtype=torch.bool, device=like.device)
-        self.loop = drivers.driver(self)  # the open or closed loop's buffers and rows
+        # the open or closed loop's buffers and rows
+        self.loop = drivers.driver(c, like, self.tables, self.advance, self.observe_now,
+                                   self.stream, self.device)
         # (columns of a control row, MuJoCo Warp's array, boolean)
         self.inputs = [(columns, self.views[name], boolean)
                        for columns, name, boolean in self.tables.inputs]
@@ -168,7 +177,8 @@ class Engine:
             self.frames[o.key] = torch.empty((c.nbatch, c.nframes, *value.shape[1:]),
                                              dtype=value.dtype, device=value.device)
         images = [o for o in c.observations if o.rendered]
-        self.cameras = cameras.Cameras(self, images) if images else None
+        self.cameras = (cameras.Cameras(c, images, self.m, self.d, self.wdevice) if images
+                        else None)
         if self.cameras is not None:
             self.frames.update(self.cameras.frames(c.nbatch, c.nframes))
         self.obs: dict[str, torch.Tensor] = {}
@@ -227,13 +237,33 @@ class Engine:
         if plan is None:
             return
         for r in plan.resolved:
-            field, convert = warp_options.CONVERTED.get(r.field, (r.field, None))
+            field, convert = model_arrays.CONVERTED.get(r.field, (r.field, None))
             value = values[r.param.key]
             flat = self.model_views[field].view(self.config.nbatch, -1)
             flat[:, self.elements[r.param.key]] = (
                 convert(value) if convert else value).to(flat.dtype)
         if plan.setconst:
             self.mjw.set_const(self.m, self.d)
+
+    def set_bounds(self, low: torch.Tensor, high: torch.Tensor) -> None:
+        """The batch's clamp bounds, (nbatch, ncontrol) each: each trajectory's model's
+        (`low`, `high`), and with a randomized `actuator_ctrlrange` each trajectory's own
+        range on the `ctrl` columns MuJoCo clamps (after `set_model`). Inside `queued`."""
+        self.low.copy_(low)
+        self.high.copy_(high)
+        if self.clamps_randomized_ctrlrange:
+            nu = self.config.model.nu
+            ranges = self.model_views["actuator_ctrlrange"].reshape(self.config.nbatch, nu, 2)
+            limited = self.tables.clamped
+            self.low[:, :nu] = torch.where(limited, ranges[..., 0], -torch.inf)
+            self.high[:, :nu] = torch.where(limited, ranges[..., 1], torch.inf)
+
+    def claim(self, token: Any) -> bool:
+        """The data is the trajectories of the iterator named by `token` from now on; returns
+        whether another iterator's were there (this one's are to be taken back)."""
+        other = self.owner is not token
+        self.owner = token
+        return other
 
     def reset(self, rows: torch.Tensor, fresh: torch.Tensor) -> None:
         """Trajectories `fresh` ((nbatch,) bool) start from their mjSTATE_INTEGRATION `rows`
@@ -291,12 +321,15 @@ class Engine:
         """(nbatch, nstep, ncontrol): the control rows as they acted (a new tensor)."""
         return self.loop.applied()
 
-    def advance(self) -> None:
-        """One step, as captured (the graph) or eagerly (the CPU)."""
+    def advance(self) -> dict[str, torch.Tensor]:
+        """One step, as captured (the graph) or eagerly (the CPU); returns the observations
+        after it, {key: (nbatch, *shape)}: views of MuJoCo Warp's arrays or the graph's
+        outputs, which the next step rewrites."""
         if self.graph is not None:
             self.graph.replay()
         else:
             self._step()
+        return self.obs
 
     def _step(self, capturing: bool = False) -> None:
         """Everything between two control rows, on the row of step `t` (the driver's

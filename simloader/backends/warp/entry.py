@@ -52,6 +52,9 @@ class WarpEngine(EngineEntry):
         captured (later runs load the kernels in seconds: `simloader warmup`)."""
         return STARTUP
 
+    def refuses_sim_device(self) -> Optional[str]:
+        return None  # its GPUs: each part of a batch on its own
+
     def refuses_determinism(self, model: Any) -> Optional[str]:
         """Only models whose steps no GPU atomics can reorder (`warp/determinism.py`)."""
         from simloader.backends.warp import determinism

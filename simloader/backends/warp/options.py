@@ -1,9 +1,9 @@
-"""The Warp engine's options and its checks at construction: can it run, which model fields
+"""The Warp engine's options and its checks at construction: can it run, which model arrays
 differ per trajectory (model lists, variants, randomization), and MuJoCo Warp's buffer sizes.
 
 Everything is decided on the host, in the constructing process, before any thread or worker
-starts: models are put on Warp's CPU device (no kernel runs, no GPU is touched) to learn what
-MuJoCo Warp supports and which of its arrays differ between the models of a pool.
+starts, on the models' arrays on Warp's CPU device (`model_arrays.py`): what MuJoCo Warp
+supports and which of its arrays differ between the models of a pool.
 """
 
 from __future__ import annotations
@@ -17,13 +17,14 @@ import numpy as np
 import torch
 
 from simloader import layout, memory, observe
-from simloader.backends.warp import cameras, runtime
+from simloader.backends import gpu_state
+from simloader.backends.warp import cameras, model_arrays, runtime
 from simloader.config import SimConfig
 
 S = mujoco.mjtState
 # The mjSTATE_FULLPHYSICS components the engine simulates. The others must be empty (checked
 # here), so that a FULLPHYSICS row is time, qpos, qvel, act.
-_UNSIMULATED = layout.GPU_UNSIMULATED
+_UNSIMULATED = gpu_state.GPU_UNSIMULATED
 # MuJoCo Warp's OverflowType bits: the solver stopping at its iteration limits (which MuJoCo C's
 # does silently) is counted; every other bit means a buffer overflowed and something (contacts,
 # constraint rows, collision detail) was dropped
@@ -31,8 +32,6 @@ _NEFC, _NJMAX_NNZ, _BROADPHASE, _NARROWPHASE, _CCD, _HFIELD = (1 << i for i in r
 SOLVER_LIMIT = (1 << 9) | (1 << 10)  # ITERATIONS, LS_ITERATIONS
 # calibration of the buffers: trajectories and steps of MuJoCo C, margin over what they used
 _CALIBRATION_TRAJECTORIES, _CALIBRATION_STEPS, _MARGIN = 16, 300, 2.0
-# model fields MuJoCo Warp keeps in another form: field -> (its array, value -> stored value)
-CONVERTED = {"opt.impratio": ("opt.impratio_invsqrt", lambda v: v ** -0.5)}
 # what mj_setConst derives (MuJoCo Warp's `set_const` writes these per world when they are
 # per-world arrays); batched whenever a randomized field is one of its inputs
 SETCONST_OUTPUTS = ("body_subtreemass", "body_invweight0", "dof_invweight0", "tendon_invweight0",
@@ -93,7 +92,10 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
     names = (["model"] if len(models) == 1 else
              [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
              [f"randomize: variant[{i}]" for i in range(len(models))])
-    puts = [_put(name, model) for name, model in zip(names, models)]
+    puts = []
+    for name, model in zip(names, models):
+        _check_simulated(name, model)
+        puts.append(model_arrays.put(name, model))
     pooled = set(_differing(puts, names))
     randomized = _randomized(config, puts[0]) if config.randomization is not None else set()
     _check_records(config)
@@ -125,76 +127,28 @@ def _positive(name: str, value: Any) -> Optional[int]:
     return int(value)
 
 
-def _put(name: str, model: mujoco.MjModel) -> Any:
-    """MuJoCo Warp's model of `model` on Warp's CPU device (arrays only, no kernels)."""
-    import mujoco_warp as mjw
-    wp = runtime.warp()
+def _check_simulated(name: str, model: mujoco.MjModel) -> None:
+    """Refuses a model with state the Warp engine does not simulate (`_UNSIMULATED`)."""
     for bit, what, size in _UNSIMULATED:
         if mujoco.mj_stateSize(model, int(bit)):
             raise ValueError(f"{name}: the Warp engine does not simulate {what} ({size}="
                              f"{mujoco.mj_stateSize(model, int(bit))}); use backend='cpu'")
-    try:
-        # Warp's current device is the process's: scoped under the engines' lock, or another
-        # thread's engine would launch its kernels on the CPU meanwhile
-        with runtime.WARP_LOCK, wp.ScopedDevice("cpu"):
-            return mjw.put_model(model)
-    except NotImplementedError as e:
-        raise ValueError(f"{name}: MuJoCo Warp does not support a feature of this model: {e}; "
-                         f"use backend='mjx' or backend='cpu'") from None
-
-
-def arrays(warp_model: Any) -> dict[str, Any]:
-    """MuJoCo Warp's model arrays by name (`opt.` for the options'), non-empty ones only."""
-    import warp as wp
-    out = {}
-    for prefix, obj in (("", warp_model), ("opt.", warp_model.opt)):
-        for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name, None)
-            if isinstance(value, wp.array) and value.size:
-                out[prefix + f.name] = value
-    return out
-
-
-def pool_tables(config: SimConfig, options: WarpOptions,
-                device: torch.device) -> dict[str, torch.Tensor]:
-    """For each array of `options.pooled`: the values of every model of the pool (a model
-    list or variants), (nmodels, ...) on `device`, gathered per batch by model index."""
-    if not options.pooled:
-        return {}
-    tables: dict[str, list] = {f: [] for f in options.pooled}
-    wp = runtime.warp()
-    for i, model in enumerate(config.pool):
-        held = arrays(_put(f"model {i} of the pool", model))
-        for f in options.pooled:
-            tables[f].append(wp.to_torch(held[f])[0])
-    return {f: torch.stack(rows).to(device) for f, rows in tables.items()}
-
-
-def batchable(name: str) -> bool:
-    """Whether MuJoCo Warp can hold model array `name` per world (its spec starts with `*`)."""
-    # private: MuJoCo Warp's public API does not say which arrays `put_model(batch_sizes=)`
-    # can batch; the `*` of each field's array spec in its type definitions is the record
-    from mujoco_warp._src import types, warp_util
-    cls, field = (types.Option, name[4:]) if name.startswith("opt.") else (types.Model, name)
-    spec = {f.name: f.type for f in dataclasses.fields(cls)}.get(field)
-    return (spec is not None and warp_util.is_array_spec(spec)
-            and getattr(spec, "shape", ())[:1] == ("*",))
 
 
 def _differing(puts: list, names: list[str]) -> list[str]:
     """The arrays where the models of a pool differ (each must be batchable)."""
     if len(puts) == 1:
         return []
-    first = {k: v.numpy() for k, v in arrays(puts[0]).items()}
+    first = {k: v.numpy() for k, v in model_arrays.arrays(puts[0]).items()}
     out = []
     for name, put in zip(names[1:], puts[1:]):
-        for field, array in arrays(put).items():
+        for field, array in model_arrays.arrays(put).items():
             if field in out:
                 continue
             value = array.numpy()
             if value.shape == first[field].shape and np.array_equal(value, first[field]):
                 continue
-            if not batchable(field) or value.shape[1:] != first[field].shape[1:]:
+            if not model_arrays.batchable(field) or value.shape[1:] != first[field].shape[1:]:
                 raise ValueError(
                     f"{name}: {field} differs from {names[0]}, but with backend='warp' it cannot "
                     f"differ per trajectory (MuJoCo Warp shares it across all trajectories of "
@@ -206,15 +160,15 @@ def _differing(puts: list, names: list[str]) -> list[str]:
 def _randomized(config: SimConfig, put: Any) -> set[str]:
     """The arrays randomization writes per trajectory (and what `set_const` derives from
     them); refuses by name what MuJoCo Warp cannot hold per trajectory."""
-    held = arrays(put)
-    can = sorted(f for f in held if batchable(f) and held[f].dtype.__name__.startswith(
+    held = model_arrays.arrays(put)
+    can = sorted(f for f in held if model_arrays.batchable(f) and held[f].dtype.__name__.startswith(
         ("float", "vec", "quat", "mat", "spatial")))
     out = set()
     for r in config.randomization.resolved:
-        field = CONVERTED.get(r.field, (r.field,))[0]
+        field = model_arrays.CONVERTED.get(r.field, (r.field,))[0]
         size = np.asarray(_mujoco_field(config.model, r.field)).size
         why = None
-        if field not in held or not batchable(field):
+        if field not in held or not model_arrays.batchable(field):
             why = "MuJoCo Warp shares it across all trajectories of a batch"
         elif _per_world_size(held[field]) != size:
             why = f"MuJoCo Warp stores it in another layout ({held[field].shape})"
@@ -224,7 +178,7 @@ def _randomized(config: SimConfig, put: Any) -> set[str]:
                              f"(backend='cpu' any floating-point field)")
         out.add(field)
     if config.randomization.setconst:
-        out |= {f for f in SETCONST_OUTPUTS if f in held and batchable(f)}
+        out |= {f for f in SETCONST_OUTPUTS if f in held and model_arrays.batchable(f)}
     return out
 
 

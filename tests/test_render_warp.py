@@ -8,14 +8,12 @@ at silhouette edges, hence the named tolerances.
 """
 
 import math
-import os
 
 import mujoco
 import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("mujoco.mjx")
 pytest.importorskip("warp")
 
 import simloader  # noqa: E402
@@ -53,13 +51,10 @@ CAMERAS_XML = """
 
 @pytest.fixture(scope="module", autouse=True)
 def warp_on_cpu(cache_dir):
-    before = os.environ.get("SIMLOADER_WARP_ON_CPU")
-    os.environ["SIMLOADER_WARP_ON_CPU"] = "1"
-    yield
-    if before is None:
-        del os.environ["SIMLOADER_WARP_ON_CPU"]
-    else:
-        os.environ["SIMLOADER_WARP_ON_CPU"] = before
+    """MuJoCo Warp on the CPU where no GPU is, for this module (as in test_warp.py)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("SIMLOADER_WARP_ON_CPU", "1")
+        yield
 
 
 @pytest.fixture(scope="module")
@@ -68,10 +63,7 @@ def cameras_model():
 
 
 def dataset(model, cache_dir, **kwargs):
-    kwargs = {"backend": "warp", **kwargs}
-    if kwargs["backend"] == "mjx":
-        kwargs["compilation_cache"] = cache_dir
-    return simloader.SimDataset(model, **kwargs)
+    return simloader.SimDataset(model, **{"backend": "warp", **kwargs})
 
 
 def first(ds):
@@ -176,21 +168,11 @@ def test_randomized_colours_show_per_trajectory(cache_dir):
 
 
 def test_refusals(cache_dir):
-    with pytest.raises(ValueError, match="backend='mjx' cannot render"):
-        dataset("cartpole", cache_dir, backend="mjx", nbatch=2, nstep=2,
-                record=(simloader.Camera("front"),))
     with pytest.raises(ValueError, match="free camera"):
         dataset("cartpole", cache_dir, nbatch=2, nstep=2, record=(simloader.Camera(-1),))
     with pytest.raises(ValueError, match="one size"):
         dataset("cartpole", cache_dir, nbatch=2, nstep=2, record=(
             simloader.Camera("front"), simloader.Camera("front", 32, 32, rgb=False, depth=True)))
-
-
-def test_auto_never_takes_mjx_for_cameras(cache_dir):
-    ds = simloader.SimDataset("cartpole", backend="auto", nbatch=8192, nstep=2,
-                              compilation_cache=cache_dir, record=(simloader.Camera("front"),))
-    assert ds.stats["backend"] in ("warp", "cpu")
-    assert "mjx ~" not in ds.config.backend_reason  # never among the estimates
 
 
 def test_a_batch_of_frames_too_large_for_memory_is_refused(cache_dir):
