@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-from typing import Any
+from typing import Any, Optional
 
 import mujoco
 import numpy as np
 
-from simloader import backends
 from simloader.config import SimConfig
 
 
@@ -21,15 +20,22 @@ from simloader.config import SimConfig
 STREAM_UNCHANGED = ("stream", False)
 
 
+# (backend, impl) saved before the engines had one vocabulary -> today's word: the registry
+# (backends/__init__.py, which holds the older spellings) fills it when it loads
+OLD_SPELLINGS: dict[tuple[str, Optional[str]], str] = {}
+
+
 def upgraded(saved: Any) -> Any:
     """A fingerprint saved before the engines had one vocabulary (a state_dict or a store's
-    provenance), in today's words (`backends.old_spelling`: the same stream, so it
-    resumes). Others as they are."""
+    provenance), in today's words (`OLD_SPELLINGS`: the same stream, so it resumes). Others
+    as they are."""
     if not isinstance(saved, dict):
         return saved
     options = saved.get("backend_options")
     impl = options.get("impl") if isinstance(options, dict) else None
-    new = backends.old_spelling(saved.get("backend"), impl)
+    key = (saved.get("backend"), impl)
+    new = OLD_SPELLINGS.get(key) if all(isinstance(k, (str, type(None))) for k in key) \
+        else None
     if new is None:
         return saved
     out = dict(saved, backend=new)

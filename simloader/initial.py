@@ -110,16 +110,32 @@ class InitialPlan:
         # the states come from the model (defaults or this keyframe), so each model has its own
         self.from_model = initial_state is None or isinstance(initial_state, str)
         self.keyframe = initial_state if isinstance(initial_state, str) else None
+        self._from_rows: Optional[tuple[np.ndarray, int]] = None
         if self.from_model:
-            # per model: each trajectory starts from its own model's defaults or keyframe
-            rows = default_states(models or [model], initial_state)
-            self.fixed = np.broadcast_to(rows, (nbatch, self.nstate)).copy()
+            # per model: each trajectory starts from its own model's defaults or keyframe;
+            # the nbatch x nstate table is made at its first use, once an engine has accepted
+            # the batch's size (a refused nbatch of 10^7 must not build it first)
+            self._from_rows = (default_states(models or [model], initial_state), nbatch)
+            self._fixed: Optional[np.ndarray] = None
         elif isinstance(initial_state, InitialStateGenerator):
             initial_state.check(model)
             self.generator = initial_state
             self.fixed = None
         else:
             self.fixed = _fixed_initial(initial_state, nbatch, self.nstate)
+
+    @property
+    def fixed(self) -> Optional[np.ndarray]:
+        """The (nbatch, nstate) initial states every batch starts from, or None (a generator
+        draws them)."""
+        if self._from_rows is not None and self._fixed is None:
+            rows, nbatch = self._from_rows
+            self._fixed = np.broadcast_to(rows, (nbatch, self.nstate)).copy()
+        return self._fixed
+
+    @fixed.setter
+    def fixed(self, value: Optional[np.ndarray]) -> None:
+        self._fixed = value
 
     def sample(self, seed: np.random.SeedSequence, nbatch: int) -> np.ndarray:
         """The (nbatch, nstate) initial states of one batch (fixed ones are returned as is)."""

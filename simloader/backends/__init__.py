@@ -18,6 +18,7 @@ import importlib
 import warnings
 from typing import Any
 
+from simloader import identity
 from simloader.backends.contract import Engine
 
 # each engine's light entry module (its `ENGINE`, an `Engine` of `contract.py`), imported when
@@ -29,6 +30,11 @@ ENGINES: dict[str, Any] = {"cpu": "simloader.backends.cpu.entry",
 # "auto") with impl= (`spelled` for new datasets, `old_spelling` for saved fingerprints)
 OLD_BACKENDS = {"rollout": "cpu"}
 _OLD_IMPLS = {"jax": "mjx", "warp": "warp", "auto": "auto"}
+# saved fingerprints (a state_dict, a store's provenance) in those spellings are the same
+# streams: `identity.upgraded` reads them in today's words
+identity.OLD_SPELLINGS.update({(old, None): new for old, new in OLD_BACKENDS.items()})
+identity.OLD_SPELLINGS.update({("mjx", impl): new for impl, new in _OLD_IMPLS.items()
+                               if new != "auto"})
 _warned: set[str] = set()
 
 
@@ -120,16 +126,6 @@ def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any],
     new = _OLD_IMPLS[impl]
     _warn_once(f"backend={backend!r}, impl={impl!r}", f"backend={new!r}")
     return new, options, impl == "auto"
-
-
-def old_spelling(backend: Any, impl: Any) -> Any:
-    """Today's word for a saved `backend` and its `impl` option, where they are an older
-    spelling of one engine ("rollout"; "mjx" with `impl` "jax" or "warp"); None otherwise."""
-    if impl is None:
-        return OLD_BACKENDS.get(backend) if isinstance(backend, str) else None
-    if backend == "mjx" and isinstance(impl, str) and _OLD_IMPLS.get(impl) not in (None, "auto"):
-        return _OLD_IMPLS[impl]
-    return None
 
 
 def on_devices() -> tuple[str, ...]:

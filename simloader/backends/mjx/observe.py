@@ -1,39 +1,37 @@
-"""MJX's reading of the recorded values (`simloader.observe`'s observations): one frame of each
-from one trajectory's `mjx.Model`/`mjx.Data`, inside the jitted scan, and the refusal of what
-MJX cannot record."""
+"""MJX's reading of the recorded values (`simloader.records`): one frame of each from one
+trajectory's `mjx.Model`/`mjx.Data`, inside the jitted scan, by each kind's default reading over
+`jax.numpy`, and the refusal of what MJX cannot record. MJX's data differ from MuJoCo's in where
+a field lives (`field`: public, or under `_impl`) and in the shape of rotation matrices
+(`(n, 3, 3)` for MuJoCo's `(n, 9)`, the same values), which the default reading takes;
+`READINGS` overrides a kind where more differs (none does today)."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Optional
 
 import jax
-import mujoco
 import numpy as np
-from simloader import observe
-from simloader.backends.mjx.runtime import mjx
+from simloader import records
 
-# the components of mjSTATE_FULLPHYSICS that MJX simulates (the others must be empty there)
-_PHYSICS = int(mujoco.mjtState.mjSTATE_TIME | mujoco.mjtState.mjSTATE_QPOS
-               | mujoco.mjtState.mjSTATE_QVEL | mujoco.mjtState.mjSTATE_ACT)
+# kind -> reading(record, m, d) -> record.shape, where MJX's data differ
+READINGS: dict[type, Callable[[records.Record, Any, Any], Any]] = {}
 
 
-def value(o: observe.Observation, m: Any, d: Any) -> Any:
+def value(o: records.Record, m: Any, d: Any) -> Any:
     """The value of one frame of `o`, `o.shape`, from one trajectory's `mjx.Model` and
     `mjx.Data` (pure; called inside `vmap` inside the scan body). MJX's dtype (float32
     unless JAX runs with x64; integer and bool fields keep theirs)."""
-    if isinstance(o, observe.State):
-        return mjx.get_state(m, d, _PHYSICS)
-    if isinstance(o, observe.Sensor):
-        return d.sensordata[o.columns[0]:o.columns[1]]
-    if isinstance(o, observe.Field):
-        # rotation matrices are (n, 3, 3) in MJX, (n, 9) in MuJoCo: the same values, row-major
-        return field(d, o.key).reshape(o.shape)
-    raise TypeError(f"MJX computes no {type(o).__name__} ({o.key})")
+    reading = records.override(o, READINGS)
+    if reading is not None:
+        return reading(o, m, d)
+    if o.rendered:
+        raise TypeError(f"MJX reads no {type(o).__name__} ({o.key}) from its fields")
+    return o.value(jax.numpy, {name: field(d, name) for name in o.fields()}, ())
 
 
-def frame(observations: Sequence[observe.Observation], model_axes: Any, m: Any,
+def frame(observations: Sequence[records.Record], model_axes: Any, m: Any,
           d: Any) -> dict[str, Any]:
     """One frame of every observation, `{key: (nbatch, *shape)}`, from the batched `mjx.Data`
     `d` and its `mjx.Model` `m` (batched along `model_axes`); pure, for the scan body, whose
@@ -54,27 +52,26 @@ def field(d: Any, name: str) -> Any:
     return None
 
 
-def refusal(o: observe.Observation, data: Any) -> Optional[str]:
+def refusal(o: records.Record, data: Any) -> Optional[str]:
     """Why MJX (whose `make_data` gives `data`) cannot record `o`, or None."""
-    if not isinstance(o, observe.Field):
-        return None
-    held = field(data, o.key)
-    if held is None:
-        return f"MJX has no field {o.key}"
-    if not isinstance(held, jax.Array):
-        return (f"MJX holds {o.key} as a constant of the compiled "
-                f"model (a size fixed at compilation), not per trajectory")
-    if tuple(held.shape) != o.shape and not (
-            o.key.endswith("mat") and held.size == math.prod(o.shape)):
-        return (f"MJX stores {o.key} with shape {tuple(held.shape)}, "
-                f"MuJoCo with shape {o.shape} (another layout, e.g. dense instead of "
-                f"sparse)")
-    if np.dtype(held.dtype).kind != o.dtype.kind:
-        return f"MJX stores {o.key} as {held.dtype}, MuJoCo as {o.dtype}"
+    for name, shape in o.made_of:
+        held = field(data, name)
+        if held is None:
+            return f"MJX has no field {name}"
+        if not isinstance(held, jax.Array):
+            return (f"MJX holds {name} as a constant of the compiled "
+                    f"model (a size fixed at compilation), not per trajectory")
+        if tuple(held.shape) != shape and not (
+                name.endswith("mat") and held.size == math.prod(shape)):
+            return (f"MJX stores {name} with shape {tuple(held.shape)}, "
+                    f"MuJoCo with shape {shape} (another layout, e.g. dense instead of "
+                    f"sparse)")
+        if np.dtype(held.dtype).kind != o.dtype.kind:
+            return f"MJX stores {name} as {held.dtype}, MuJoCo as {o.dtype}"
     return None
 
 
-def check(observations: Sequence[observe.Observation], data: Any) -> None:
+def check(observations: Sequence[records.Record], data: Any) -> None:
     """Refuses, by name and with the reason, what MJX cannot record.
 
     Field names are checked against `data`, one trajectory's `mjx.Data` (public fields, and
