@@ -44,4 +44,4 @@ def check_nthread(nthread: Optional[int]) -> None:
         warnings.warn(
             f"nthread={nthread} asks for more simulation threads than the {cores} cores of this "
             f"machine (per process: DataLoader workers and torchrun ranks each start as many); "
-            f"nthread=None splits the cores", RuntimeWarning, stacklevel=4)
+            f"nthread=None splits the cores", RuntimeWarning, stacklevel=5)

@@ -71,10 +71,10 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Mj
         cameras (MJX-JAX does not render).
     """
     if config.dtype == torch.float64 and not jax.config.jax_enable_x64:
-        # stacklevel: the user's line (SimDataset, the registry, here)
+        # stacklevel: the user's line (here, the entry, binding.bind, SimDataset, the user)
         warnings.warn("dtype=torch.float64 with backend='mjx': MJX simulates in float32 "
                       "(JAX without jax_enable_x64), so the tensors are float32 values "
-                      "up-cast to float64", UserWarning, stacklevel=4)
+                      "up-cast to float64", UserWarning, stacklevel=5)
     cache = compilation_cache(options.get("compilation_cache"))
     fraction = memory_fraction(options.get("memory_fraction"))
     runtime.configure_memory(fraction)

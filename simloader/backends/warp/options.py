@@ -84,10 +84,10 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
         raise ValueError(f"backend: 'warp' cannot run here: {why}; use backend='cpu', 'mjx' "
                          f"or 'auto'")
     if config.dtype == torch.float64:
-        # stacklevel: the user's line (SimDataset, the registry, here)
+        # stacklevel: the user's line (here, the entry, binding.bind, SimDataset, the user)
         warnings.warn("dtype=torch.float64 with backend='warp': MuJoCo Warp simulates in "
                       "float32, so the tensors are float32 values up-cast to float64",
-                      UserWarning, stacklevel=4)
+                      UserWarning, stacklevel=5)
     models = config.pool
     names = (["model"] if len(models) == 1 else
              [f"randomize[{i}]" for i in range(len(models))] if config.models is not None else
