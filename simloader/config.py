@@ -183,7 +183,7 @@ def _randomization(model_arg: Any, model: mujoco.MjModel, randomize: Any, nbatch
     """(model list, RandomizationPlan, variant pool) from the `randomize` argument."""
     if randomize is None:
         return None, None, None
-    models_, plan, variants = dr.parse(model, randomize, nbatch)
+    models_, plan, variants = dr.parse_randomize(model, randomize, nbatch)
     if models_ is not None:
         if len(models_) != nbatch:
             raise ValueError(f"randomize: expected nbatch={nbatch} models (one per trajectory), "

@@ -334,7 +334,7 @@ class FromArray(_Given):
 
 
 @dataclasses.dataclass(frozen=True)
-class Driver:
+class ColumnDriver:
     """A generator bound to its columns of the control vector, with its parameters."""
 
     generator: Generator
@@ -358,7 +358,7 @@ class ControlPlan:
         # (nbatch or 1, ncontrol): per model, since mocap poses come from each model's body_pos
         self.default_rows = layout.reset_rows(models or [model], control_spec)
         self.fixed: Optional[np.ndarray] = None
-        self.drivers: tuple[Driver, ...] = ()
+        self.drivers: tuple[ColumnDriver, ...] = ()
         if control is None:
             return
         if isinstance(control, Generator):
@@ -378,7 +378,7 @@ class ControlPlan:
     def random(self) -> bool:
         return bool(self.drivers)
 
-    def _bind(self, model, control: Mapping) -> tuple[Driver, ...]:
+    def _bind(self, model, control: Mapping) -> tuple[ColumnDriver, ...]:
         by_name = {c.name: c for c in self.components}
         drivers, taken = [], {}
         for name, gens in control.items():
@@ -400,7 +400,7 @@ class ControlPlan:
                     taken[name].add(c)
                 if len(cols):
                     gen.check_shape((self.nbatch, self.nstep, len(cols)))
-                    drivers.append(Driver(gen, comp.start + cols,
+                    drivers.append(ColumnDriver(gen, comp.start + cols,
                                           gen.params(model, comp, cols)))
         return tuple(drivers)
 
@@ -441,8 +441,8 @@ class ControlPlan:
             out[..., torch.as_tensor(driver.columns, device=out.device)] = draw
 
 
-def sample_jax(drivers: Sequence[Driver], defaults: Any, key: Any, shape: tuple[int, int, int],
-               dtype: Any) -> Any:
+def sample_jax(drivers: Sequence[ColumnDriver], defaults: Any, key: Any,
+               shape: tuple[int, int, int], dtype: Any) -> Any:
     """One draw of `ControlPlan.drivers` in JAX (inside a jitted function; `sample_numpy` and
     `sample_torch` are the other engines'): (nbatch, nstep, ncontrol) `defaults` rows
     ([nbatch or 1] x ncontrol) with the drivers' columns drawn, each driver from its own

@@ -347,7 +347,7 @@ class RandomizationPlan:
         return out
 
 
-def parse(model: mujoco.MjModel, randomize: Any, nbatch: int):
+def parse_randomize(model: mujoco.MjModel, randomize: Any, nbatch: int):
     """Splits the `randomize` argument into (model list, RandomizationPlan, Variants)."""
     if isinstance(randomize, (Param, Variants)):
         randomize = [randomize]

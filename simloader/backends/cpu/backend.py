@@ -46,7 +46,7 @@ class _Produced:
     rendering: list = dataclasses.field(default_factory=list)  # futures filling `images`
 
 
-class RolloutBackend(Backend):
+class CpuBackend(Backend):
     """`backend="cpu"`."""
 
     counting_warnings = False  # MuJoCo's warnings counted for this backend (see __init__)

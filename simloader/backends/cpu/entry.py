@@ -53,8 +53,8 @@ class CpuEngine(EngineEntry):
         return cpu_options.check_options(config, options, reason)
 
     def create(self, config: Any, shard: Any, stats: Any) -> Any:
-        from simloader.backends.cpu.backend import RolloutBackend
-        return RolloutBackend(config, shard, stats)
+        from simloader.backends.cpu.backend import CpuBackend
+        return CpuBackend(config, shard, stats)
 
 
 # annotated: a type checker holds the entry to the protocol (tests/test_engines.py runs mypy)

@@ -26,7 +26,7 @@ from simloader import handoff, policy, seeds, sharding
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
 from simloader.backends.warp import runtime
-from simloader.backends.warp.engine import Engine
+from simloader.backends.warp.engine import WarpSimulation
 from simloader.config import SimConfig
 from simloader.trajectories import Trajectories
 
@@ -63,10 +63,10 @@ class WarpBackend(Backend):
             refuse_forked_worker("backend='warp'", "CUDA cannot start in a forked child of a "
                                  "process that started it")
         engines = _ENGINES.setdefault(config, {})
-        self.engine: Engine = engines.get(self.device)
+        self.engine: WarpSimulation = engines.get(self.device)
         if self.engine is None:
             with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE):
-                self.engine = engines[self.device] = Engine(
+                self.engine = engines[self.device] = WarpSimulation(
                     config, options, self.device,
                     on_capture=lambda: stats.add(graph_captures=1))
         self.tables = self.engine.tables

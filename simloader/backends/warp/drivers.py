@@ -11,7 +11,7 @@ observations), the engine's stream and device. Each driver has two sides, and ea
 what it reads (in) and writes (out), as MuJoCo Warp marks its kernels' arrays. The engine's side
 is fixed when the engine is built (its graph reads the buffers the driver allocates): `row`
 (inside the graph), `start`, `applied`. The batch's side is called by the backend inside
-`Engine.queued`: `prepare` with the batch's seed and defaults, `run` with the weights its
+`WarpSimulation.queued`: `prepare` with the batch's seed and defaults, `run` with the weights its
 `policy.Snapshot` took before, outside the lock (a copy of the weights may wait for a training
 update).
 """

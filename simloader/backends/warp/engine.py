@@ -39,7 +39,7 @@ from simloader.backends.warp.tables import STATE_ARRAYS, DeviceTables
 
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
 # the engines alive in this process, released at exit (`_release_all`)
-_LIVE: "weakref.WeakSet[Engine]" = weakref.WeakSet()
+_LIVE: "weakref.WeakSet[WarpSimulation]" = weakref.WeakSet()
 _LIVE_GPU: list = []  # non-empty once an engine ran on a GPU in this process
 
 
@@ -57,7 +57,7 @@ def _release_all() -> None:
         torch.cuda.ipc_collect()
 
 
-class Engine:
+class WarpSimulation:
     """MuJoCo Warp's model and data for `config`, built (and its step graph captured) once.
 
     Args:
