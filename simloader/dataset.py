@@ -104,9 +104,9 @@ class SimDataset(torch.utils.data.IterableDataset):
         runs on a copy of its weights on each simulation device.
       **backend_options: the engine's own: `naconmax`/`njmax` for "warp" (MuJoCo Warp's
         buffers; None: sized from the model), `compilation_cache`, `memory_fraction` for
-        "mjx" (see `backends.mjx.check_options`); with "auto", those of an engine not chosen
-        are left unused. A Warp batch also holds `overflow` (nbatch,) bool: trajectories that
-        lost contacts or constraint rows to those buffers.
+        "mjx" (see `backends.mjx.options.check_options`); with "auto", those of an engine
+        not chosen are left unused. A Warp batch also holds `overflow` (nbatch,) bool:
+        trajectories that lost contacts or constraint rows to those buffers.
 
     Raises:
       TypeError, ValueError: bad arguments, naming the argument, the expectation and the value;

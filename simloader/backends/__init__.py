@@ -4,8 +4,9 @@
 `backend="warp"` MuJoCo Warp driven from torch, without JAX (`warp/`), and `backend="auto"`
 the fastest of those that can run here for the model, the sizes and the machine (`auto.py`).
 Construction meets the registry once: `binding.bind` chooses the engine and binds it to the
-validated settings; the dataset then holds the `BoundEngine` and calls it directly. Engine packages are imported when first needed, so that a
-CPU-only user never imports JAX, and a Warp dataset never imports JAX either.
+validated settings; the dataset then holds the `BoundEngine` and calls it directly. Engine
+packages are imported when first needed, so that a CPU-only user never imports JAX, and a
+Warp dataset never imports JAX either.
 
 The older spellings (`backend="rollout"`; `backend="mjx", impl="jax"|"warp"|"auto"`) keep
 working and warn once with the new one (`spelled`).

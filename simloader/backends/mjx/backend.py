@@ -141,7 +141,8 @@ class MjxBackend(Backend):
         return batch
 
     def _tensor(self, array: jax.Array, dtype: Optional[torch.dtype]) -> torch.Tensor:
-        tensor = handoff.to_target(torch.from_dlpack(array), self.config.device, dtype)  # JAX memory, no copy
+        # the JAX array's memory through DLPack: no copy, same device
+        tensor = handoff.to_target(torch.from_dlpack(array), self.config.device, dtype)
         if (self.in_worker and tensor.is_cuda
                 and tensor.data_ptr() == array.unsafe_buffer_pointer()):
             # CUDA IPC, which carries a worker's tensors to the main process, shares only
