@@ -11,7 +11,8 @@ import numpy as np
 
 def batch_nbytes(observations: Sequence[Any], nbatch: int, nframes: int, nstep: int,
                  ncontrol: int, nstate: int, itemsize: Optional[int] = None) -> int:
-    """Bytes of one batch: the recorded buffers (shared sources counted once), `control`,
+    """Bytes of one batch: the recorded buffers (`Record.buffer`: shared ones counted once),
+    `control`,
     `initial_state` and `diverged`.
 
     Args:
@@ -22,12 +23,13 @@ def batch_nbytes(observations: Sequence[Any], nbatch: int, nframes: int, nstep: 
         size = itemsize if itemsize is not None and dtype.kind == "f" else dtype.itemsize
         return size * count
 
-    total, sources = 0, set()
+    total, buffers = 0, set()
     for o in observations:
-        if o.source in sources:
+        buffer, values = o.buffer
+        if buffer in buffers:
             continue
-        sources.add(o.source)
-        total += nbytes(o.dtype, nbatch * nframes * math.prod(o.source_shape))
+        buffers.add(buffer)
+        total += nbytes(o.dtype, nbatch * nframes * values)
     f64 = np.dtype(np.float64)
     return (total + nbytes(f64, nbatch * nstep * ncontrol) + nbytes(f64, nbatch * nstate)
             + nbatch)

@@ -104,40 +104,16 @@ class Record:
         return self.read(xp, {name: held[name].reshape((*lead, *shape))
                               for name, shape in self.made_of})
 
-    # What MuJoCo's own recorder, `mujoco.batch.Batch.rollout` (the CPU engine), records a
-    # record from, and the record out of it: the default reading over that one buffer.
-    # `memory.py` counts a batch's buffers by it (records of one source share a buffer).
-    def recorded_as(self) -> tuple[Union[str, int], Shape]:
-        """`(source, source_shape)`: the MjData field `mujoco.batch` records it from (or an
-        mjtState spec, which it records in `mj_getState`'s layout) and its trailing shape."""
-        (name, shape), = self.made_of
-        return _SPECS.get(name, (name, shape))
-
     @property
-    def source(self) -> Union[str, int]:
-        return self.recorded_as()[0]
-
-    @property
-    def source_shape(self) -> Shape:
-        return self.recorded_as()[1]
-
-    def select(self, recorded: Any) -> Any:
-        """Its value out of its source's recorded `(nbatch, nframes, *source_shape)` buffer
-        (a NumPy array or torch tensor): a view, no copy."""
-        lead = tuple(recorded.shape[:recorded.ndim - len(self.source_shape)])
-        return self.value(_module(recorded), {self.fields()[0]: recorded}, lead)
-
-
-# MjData fields mujoco.batch records as an mjtState spec: time is a float in MjData
-_SPECS = {"time": (int(mujoco.mjtState.mjSTATE_TIME), (1,))}
-
-
-def _module(array: Any) -> Any:
-    """The array module of a NumPy array or torch tensor."""
-    if isinstance(array, np.ndarray):
-        return np
-    import torch
-    return torch
+    def buffer(self) -> tuple[Any, int]:
+        """(what it is kept in, values a frame): records made of the same fields share one
+        buffer (`sensor:NAME` and `sensordata`), one rendered or made of nothing has its own;
+        for `memory.py`, which counts each buffer once. Each engine holds its buffers its own
+        way (the CPU engine: `backends/cpu/recorded.py`)."""
+        if self.rendered or not self.made_of:
+            return self.key, math.prod(self.shape)
+        return self.made_of, max(math.prod(self.shape),
+                                 sum(math.prod(shape) for _, shape in self.made_of))
 
 
 def override(record: Record, table: Mapping[type, Any]) -> Any:
@@ -156,12 +132,6 @@ class State(Record):
     def read(self, xp, fields):
         time, *rest = (fields[name] for name in self.fields())
         return xp.concatenate([time[..., None], *rest], axis=-1)
-
-    def recorded_as(self):
-        return layout.FULLPHYSICS, self.shape  # with the plugin state, if any
-
-    def select(self, recorded):
-        return recorded
 
     @classmethod
     def make(cls, model: mujoco.MjModel, data: mujoco.MjData, name: str) -> State:
@@ -302,12 +272,6 @@ class CameraImage(Record):
     @property
     def rendered(self) -> bool:
         return True
-
-    def recorded_as(self):
-        return self.key, self.shape  # its own buffer, filled by the renderer
-
-    def select(self, recorded):
-        return recorded
 
 
 def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, ...]:

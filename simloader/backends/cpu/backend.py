@@ -28,6 +28,7 @@ from mujoco import batch as mj_batch
 from simloader import controls, handoff, layout, mujoco_warnings, rules, seeds, threads
 from simloader import randomize as dr
 from simloader.backends.cpu import drivers
+from simloader.backends.cpu import recorded as recorded_from
 from simloader.backends.cpu import render as cpu_render
 from simloader.backends.base import Backend
 from simloader.trajectories import Trajectories
@@ -113,7 +114,8 @@ class CpuBackend(Backend):
                                   t.per_trajectory(self.control_defaults), control, low, high)
 
         recorded = {}  # one buffer per source, shared by the observations that read it
-        sources = [(o.source, o.source_shape, o.dtype) for o in c.observations if not o.rendered]
+        sources = [(*recorded_from.source(o), o.dtype) for o in c.observations
+                   if not o.rendered]
         if self.images:  # what rendering a frame needs: the state rows
             sources.append((layout.INTEGRATION, (self.batch.nstate,), np.dtype(np.float64)))
         for source, shape, dtype in sources:
@@ -207,7 +209,8 @@ class CpuBackend(Backend):
         if diverged.any():
             mujoco_warnings.summarize(stacklevel=4)
         self.stats.add(batches=1, steps=c.nbatch * c.nstep, diverged=int(diverged.sum()))
-        out = {o.key: o.select(p.recorded[o.source]) for o in c.observations if not o.rendered}
+        out = {o.key: recorded_from.select(o, p.recorded[recorded_from.source(o)[0]])
+               for o in c.observations if not o.rendered}
         out.update(control=p.control, initial_state=p.initial_state, **p.extras)
         out = {k: handoff.to_target(v, c.device, c.dtype if v.is_floating_point() else None)
                for k, v in out.items()}

@@ -16,6 +16,7 @@ from mujoco import batch as mj_batch
 
 from simloader import controls, handoff, layout, policy, rules
 from simloader.backends import policy_loop
+from simloader.backends.cpu import recorded
 
 # run(out) -> (bad, extras): simulates the batch into `out` ({source: (nbatch, nframes, ...)});
 # bad: (nbatch,) bool, a trajectory got a bad (non-finite or absurd) control; extras: tensors
@@ -164,11 +165,12 @@ class LiveSources:
         self.bound: dict = {}  # source -> live (nbatch, *source_shape) output
         self.columns: dict = {}  # source (an mjtState spec) -> its columns of the state rows
         for o in c.observations:
-            if isinstance(o.source, str):
-                self.bound[o.source] = batch.bind(o.source).reshape(c.nbatch, *o.source_shape)
+            source, shape = recorded.source(o)
+            if isinstance(source, str):
+                self.bound[source] = batch.bind(source).reshape(c.nbatch, *shape)
             else:
-                self.columns[o.source] = layout.component_columns(c.model, layout.INTEGRATION,
-                                                                  o.source)
+                self.columns[source] = layout.component_columns(c.model, layout.INTEGRATION,
+                                                                source)
         self.control_columns = layout.component_columns(c.model, layout.INTEGRATION,
                                                         c.control_spec)
 
@@ -185,8 +187,9 @@ class LiveSources:
         call)."""
         out = {}
         for o in self.config.observations:
-            value = torch.tensor(self.value(o.source), dtype=handoff.torch_dtype(o.dtype))
-            out[o.key] = o.select(value[:, None])[:, 0]
+            value = torch.tensor(self.value(recorded.source(o)[0]),
+                                 dtype=handoff.torch_dtype(o.dtype))
+            out[o.key] = recorded.select(o, value[:, None])[:, 0]
         return out
 
     def record(self, out: dict, frame: int) -> None:
