@@ -25,10 +25,10 @@ import re
 import shutil
 import stat
 from simloader.atomic import PARTIAL, sync_directories
+from simloader.store.lock import FILE as LOCK
+from simloader.store.zarr_format import ATTRIBUTE
 
 ROOT = "zarr.json"
-LOCK = "simloader.lock"  # simloader.store.lock.FILE (that module imports nothing of ours)
-ATTRIBUTE = "simloader"
 _CREATION = frozenset({LOCK, "provenance"})  # what a creation makes before its root
 # the temporary names `atomic_write` gives (NAME.<32 hex>.partial): only those are a killed
 # writer's, a user's `download.partial` is not

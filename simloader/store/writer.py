@@ -109,14 +109,10 @@ def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
         # too), but not the checksums' list of arrays (nor their metadata's record, where
         # the store keeps one)
         ignored = {"shape": None, "attributes": None}
-        if spec.name == CHECKSUM:
-            keep = ("arrays", "metadata") if "metadata" in (existing.get("attributes") or {}) \
-                else ("arrays",)
-            ignored["attributes"] = None
-            same = all((existing.get("attributes") or {}).get(k) == wanted["attributes"][k]
-                       for k in keep)
-        else:
-            same = True
+        kept = existing.get("attributes") or {}
+        compared = () if spec.name != CHECKSUM else \
+            ("arrays", "metadata") if "metadata" in kept else ("arrays",)
+        same = all(kept.get(k) == wanted["attributes"][k] for k in compared)
         if not same or {**existing, **ignored} != {**wanted, **ignored}:
             raise StoreMismatch(f"the store's array {spec.name!r} ({where}) has shape "
                                 f"{existing.get('shape')}, dtype {existing.get('data_type')} "

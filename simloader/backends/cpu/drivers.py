@@ -164,8 +164,9 @@ class LiveSources:
         self.batch = batch
         self.bound: dict = {}  # source -> live (nbatch, *source_shape) output
         self.columns: dict = {}  # source (an mjtState spec) -> its columns of the state rows
-        for o in c.observations:
-            source, shape = recorded.source(o)
+        # each record with its source, found once (observations() runs every step)
+        self.sources = [(o, *recorded.source(o)) for o in c.observations]
+        for _, source, shape in self.sources:
             if isinstance(source, str):
                 self.bound[source] = batch.bind(source).reshape(c.nbatch, *shape)
             else:
@@ -186,9 +187,8 @@ class LiveSources:
         overwrites MuJoCo's buffers; a copy of this size costs little next to a policy
         call)."""
         out = {}
-        for o in self.config.observations:
-            value = torch.tensor(self.value(recorded.source(o)[0]),
-                                 dtype=handoff.torch_dtype(o.dtype))
+        for o, source, _ in self.sources:
+            value = torch.tensor(self.value(source), dtype=handoff.torch_dtype(o.dtype))
             out[o.key] = recorded.select(o, value[:, None])[:, 0]
         return out
 
