@@ -11,6 +11,7 @@ from simloader.batch import Batch
 from simloader.dataset import SimDataset
 from simloader.observe import Camera
 from simloader.store import StoredDataset, write
+from simloader.videos import video
 from simloader.models import builtin_models, builtin_path, describe, load_model, named_models
 
 __version__ = "0.1.0"
@@ -31,5 +32,6 @@ __all__ = [
     "observe",
     "policy",
     "randomize",
+    "video",
     "write",
 ]

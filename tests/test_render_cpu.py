@@ -1,4 +1,4 @@
-"""Cameras on the rollout backend (`backends/cpu/render.py`): every image equals a plain
+"""Cameras on the rollout backend (`simloader/render.py`): every image equals a plain
 `mujoco.Renderer` of the same model and state (after `mj_forward`) bit for bit.
 
 These render for real with OpenGL (EGL: Mesa's software rasterizer on a CPU-only machine).
@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader
 import simloader
 from simloader import controls
 from simloader import randomize as dr
-from simloader.backends.cpu import render as cpu_render
+from simloader import render as cpu_render
 
 
 @pytest.fixture(scope="module", autouse=True)

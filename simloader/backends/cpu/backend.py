@@ -14,22 +14,18 @@ model poses, `eq_active0`), the FULLPHYSICS part from the initial state, zero wa
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-import threading
 import time
 from typing import Any, Optional, Union
 
-import mujoco
 import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
 from simloader import controls, handoff, layout, mujoco_warnings, rules, seeds, threads
-from simloader import randomize as dr
 from simloader.backends.cpu import drivers
 from simloader.backends.cpu import recorded as recorded_from
-from simloader.backends.cpu import render as cpu_render
+from simloader import render as cpu_render
 from simloader.backends.base import Backend
 from simloader.trajectories import Trajectories
 
@@ -149,32 +145,10 @@ class CpuBackend(Backend):
                          {k: t for k, (t, _) in images.items()}, rendering)
 
     def _model_of(self):
-        """`model_of(i)`: trajectory i's model as it ran this batch, for the render threads
-        (which run while the next batch redraws variants and randomized values: these are
-        snapshots)."""
-        c = self.config
-        if c.models is not None:
-            return lambda i: c.models[i]
-        if c.variants is not None:
-            variant = self.trajectories.params["variant"].copy()
-            return lambda i: c.variants[variant[i]]
-        if c.randomization is None:
-            return lambda i: c.model
-        values = {k: v.copy() for k, v in self.trajectories.params.items()}
-        plan, local = c.randomization, threading.local()
-
-        def model_of(i: int) -> mujoco.MjModel:
-            if not hasattr(local, "model"):  # each render thread writes its own copy
-                local.model, local.data = copy.copy(c.model), None
-            m = local.model
-            for r in plan.resolved:
-                if not r.field.startswith("opt."):  # options change nothing a camera sees
-                    dr._field_array(m, r.field).reshape(-1)[r.elements] = values[r.param.key][i]
-            if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
-                local.data = local.data or mujoco.MjData(m)
-                mujoco.mj_setConst(m, local.data)
-            return m
-        return model_of
+        """Trajectory i's model as it ran this batch, for the render threads (which run while
+        the next batch redraws variants and randomized values: a snapshot of them)."""
+        return cpu_render.model_of(self.config, {k: v.copy() for k, v in
+                                                 self.trajectories.params.items()})
 
     def _ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(nbatch, ncontrol) each: the range each trajectory's controls are clamped to."""

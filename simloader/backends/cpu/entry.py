@@ -29,7 +29,7 @@ class CpuEngine(EngineEntry):
 
     def estimate(self, job: Job) -> Optional[float]:
         if job.cameras:
-            from simloader.backends.cpu import render
+            from simloader import render
             try:
                 render.gl_platform()
             except (RuntimeError, ValueError):

@@ -7,7 +7,7 @@ import dataclasses
 from typing import Any
 
 from simloader import memory
-from simloader.backends.cpu import render
+from simloader import render
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Cameras on the CPU engine: a pool of `mujoco.Renderer`s, one set per thread.
+"""OpenGL rendering on the CPU: a pool of `mujoco.Renderer`s, one set per thread, for the CPU
+engine's cameras and for `simloader.video`.
 
 The simulation records, per frame, the `mjSTATE_INTEGRATION` rows of the trajectories (the
 physics state and every input a scene shows: mocap poses, equality activations); the pool then
@@ -18,6 +19,7 @@ driver, or Mesa's software rasterizer on a CPU-only machine), else OSMesa.
 from __future__ import annotations
 
 import concurrent.futures
+import copy
 import importlib
 import os
 import subprocess
@@ -30,6 +32,7 @@ import mujoco
 import numpy as np
 
 from simloader import observe
+from simloader import randomize as dr
 
 _PLATFORM_LOCK = threading.Lock()
 _PLATFORM: Optional[tuple[Any, str]] = None  # (GLContext class, name), chosen once
@@ -150,6 +153,66 @@ def _scene(renderer: mujoco.Renderer, model: mujoco.MjModel, data: mujoco.MjData
                            renderer.scene)
 
 
+class Renderers:
+    """The renderers of one thread (one per image size), made in it and used only there.
+
+    Args:
+      model: the batch's model (renderers are made from it: sizes, meshes, textures).
+      images: the camera images to render.
+    """
+
+    def __init__(self, model: mujoco.MjModel, images: Sequence[observe.CameraImage]):
+        global _GL_PID
+        _check_not_forked_after_gl()
+        _GL_PID = os.getpid()
+        self.images = tuple(images)
+        with _swapped_gl(gl_platform()[0]):
+            self.renderers = {size: mujoco.Renderer(model, *size) for size in
+                              sorted({(o.camera.height, o.camera.width) for o in images})}
+        self.data = mujoco.MjData(model)
+        self.option = mujoco.MjvOption()
+
+    def draw(self, rows: np.ndarray, states: np.ndarray,
+             model_of: Callable[[int], mujoco.MjModel], out: dict) -> None:
+        """Renders trajectories `rows` of `states` ((nbatch, nframes, nintegration)
+        `mjSTATE_INTEGRATION` rows) into `out` ({image key: (nbatch, nframes, *shape)})."""
+        data, option = self.data, self.option
+        for i in rows:
+            model = model_of(int(i))
+            for j in range(states.shape[1]):
+                mujoco.mj_setState(model, data, states[i, j], mujoco.mjtState.mjSTATE_INTEGRATION)
+                mujoco.mj_forward(model, data)
+                for o in self.images:
+                    r = self.renderers[(o.camera.height, o.camera.width)]
+                    _scene(r, model, data, o.camera_id, option)
+                    target = out[o.key][i, j]
+                    if o.kind == "rgb":
+                        r.render(out=target)
+                    elif o.kind == "depth":
+                        r.enable_depth_rendering()
+                        r.render(out=target)
+                        r.disable_depth_rendering()
+                    else:
+                        r.enable_segmentation_rendering()
+                        seg = r.render()
+                        r.disable_segmentation_rendering()
+                        np.copyto(target, np.where(seg[..., 1] == mujoco.mjtObj.mjOBJ_GEOM,
+                                                   seg[..., 0], -1))
+
+    def close(self) -> None:
+        """Frees the GL contexts (in the thread that made them: a context is current there,
+        and a renderer collected in another thread fails to free it)."""
+        for renderer in self.renderers.values():
+            renderer.close()
+        self.renderers = {}
+
+    def __enter__(self) -> "Renderers":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
 class RenderPool:
     """Threads that render recorded states into image buffers.
 
@@ -165,25 +228,10 @@ class RenderPool:
         self.gl, self.platform = gl_platform()
         self.model = model
         self.images = tuple(images)
-        self.sizes = sorted({(o.camera.height, o.camera.width) for o in images})
         self.local = threading.local()
         self.pool = concurrent.futures.ThreadPoolExecutor(
             nthread, thread_name_prefix="simloader-render")
         self.nthread = nthread
-
-    def _renderers(self) -> tuple[dict, mujoco.MjData, mujoco.MjvOption]:
-        """This thread's renderers (one per image size), MjData and scene options."""
-        local = self.local
-        if not hasattr(local, "renderers"):
-            global _GL_PID
-            _check_not_forked_after_gl()
-            _GL_PID = os.getpid()
-            with _swapped_gl(self.gl):
-                local.renderers = {size: mujoco.Renderer(self.model, *size)
-                                   for size in self.sizes}
-            local.data = mujoco.MjData(self.model)
-            local.option = mujoco.MjvOption()
-        return local.renderers, local.data, local.option
 
     def render(self, states: np.ndarray, model_of: Callable[[int], mujoco.MjModel],
                out: dict[str, np.ndarray]) -> list[concurrent.futures.Future]:
@@ -201,28 +249,9 @@ class RenderPool:
 
     def _render_rows(self, rows: np.ndarray, states: np.ndarray,
                      model_of: Callable[[int], mujoco.MjModel], out: dict) -> None:
-        renderers, data, option = self._renderers()
-        for i in rows:
-            model = model_of(int(i))
-            for j in range(states.shape[1]):
-                mujoco.mj_setState(model, data, states[i, j], mujoco.mjtState.mjSTATE_INTEGRATION)
-                mujoco.mj_forward(model, data)
-                for o in self.images:
-                    r = renderers[(o.camera.height, o.camera.width)]
-                    _scene(r, model, data, o.camera_id, option)
-                    target = out[o.key][i, j]
-                    if o.kind == "rgb":
-                        r.render(out=target)
-                    elif o.kind == "depth":
-                        r.enable_depth_rendering()
-                        r.render(out=target)
-                        r.disable_depth_rendering()
-                    else:
-                        r.enable_segmentation_rendering()
-                        seg = r.render()
-                        r.disable_segmentation_rendering()
-                        np.copyto(target, np.where(seg[..., 1] == mujoco.mjtObj.mjOBJ_GEOM,
-                                                   seg[..., 0], -1))
+        if not hasattr(self.local, "renderers"):  # this thread's, made at its first frame
+            self.local.renderers = Renderers(self.model, self.images)
+        self.local.renderers.draw(rows, states, model_of, out)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -247,3 +276,31 @@ class _swapped_gl:
     def __exit__(self, *exc):
         self.module.GLContext = self.before
         self._lock.release()
+
+
+def model_of(config: Any, params: dict[str, np.ndarray]) -> Callable[[int], mujoco.MjModel]:
+    """`model_of(i)`: trajectory i's model as it ran, from the configuration and the batch's
+    `params` ({key: (nbatch, ...)} NumPy arrays: "variant", randomized values), for render
+    threads: each thread writes the randomized values into a copy of its own."""
+    c = config
+    if c.models is not None:
+        return lambda i: c.models[i]
+    if c.variants is not None:
+        variant = np.asarray(params["variant"])
+        return lambda i: c.variants[int(variant[i])]
+    if c.randomization is None:
+        return lambda i: c.model
+    plan, local = c.randomization, threading.local()
+
+    def model(i: int) -> mujoco.MjModel:
+        if not hasattr(local, "model"):  # each render thread writes its own copy
+            local.model, local.data = copy.copy(c.model), None
+        m = local.model
+        for r in plan.resolved:
+            if not r.field.startswith("opt."):  # options change nothing a camera sees
+                dr._field_array(m, r.field).reshape(-1)[r.elements] = params[r.param.key][i]
+        if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
+            local.data = local.data or mujoco.MjData(m)
+            mujoco.mj_setConst(m, local.data)
+        return m
+    return model
