@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 import simloader
 from simloader.store import StoreLocked, formats
-from simloader import backends, observe, threads
+from simloader import backends, cli_specs, observe, threads
 
 DEFAULT_MODEL = "cartpole"
 # the registry's words, and its older spellings (still accepted; the library warns once)
@@ -87,13 +87,29 @@ def parse_control_spec(text: str) -> int:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def spec_option(parse, option: str):
+    """An argparse type from a `cli_specs` parser, whose message names the option once."""
+    def read(text: str):
+        try:
+            return parse(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e).removeprefix(f"{option}: ")) from None
+    read.__name__ = option  # argparse names a failed type by it
+    return read
+
+
 def stream_dataset(args: argparse.Namespace) -> simloader.SimDataset:
-    """quickstart's and write's dataset: uniform controls from perturbed initial states."""
+    """quickstart's and write's dataset: perturbed initial states, uniform controls unless
+    write's `--control` says otherwise, and write's `--randomize` parameters (default none)."""
     record = ({"record": [n.strip() for n in args.record.split(",")]}
               if getattr(args, "record", None) else {})
+    randomize = getattr(args, "randomize", None)
     with from_arguments():
         return simloader.SimDataset(args.model, backend=args.backend, nbatch=args.nbatch,
-                                    nstep=args.nstep, control=simloader.controls.Uniform(),
+                                    nstep=args.nstep,
+                                    control=getattr(args, "control", None)
+                                    or simloader.controls.Uniform(),
+                                    randomize=randomize or None,
                                     initial_state=simloader.initial.Perturbed(),
                                     num_batches=args.batches, seed=args.seed,
                                     # all cores: nothing here trains alongside the simulation
@@ -265,6 +281,27 @@ def warmup(args: argparse.Namespace) -> None:
           f"{time.perf_counter() - start:.1f} s; later processes reuse the caches")
 
 
+def video(args: argparse.Namespace) -> None:
+    """A video of a store's trajectories, or of a batch freshly simulated from a model."""
+    rows = args.rows
+    if os.path.isdir(args.source):  # a store is a folder, a model a name or a file
+        source, model = args.source, args.video_model
+        if model is None:
+            raise BadArgument("--model: a store does not keep its model; give the model that "
+                              "wrote it (a built-in name or an MJCF path) to render its states")
+    else:
+        with from_arguments():
+            source = simloader.SimDataset(
+                args.source, backend="cpu", nbatch=max(rows) + 1, nstep=args.nstep,
+                control=simloader.controls.Uniform(), initial_state=simloader.initial.Perturbed(),
+                seed=args.seed)
+        model = None
+    with from_arguments():
+        path = simloader.video(source, args.out, model=model, rows=rows, camera=args.camera,
+                               size=tuple(args.size), fps=args.fps, lossless=args.lossless)
+    print(f"simloader: wrote {path}")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="simloader", description=__doc__)
     parser.add_argument("--version", action="version", version=f"simloader {simloader.__version__}")
@@ -284,7 +321,12 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--seed", type=int, default=0)
     q.set_defaults(run=quickstart)
 
-    wr = sub.add_parser("write", help="simulate batches into a store (zarr or Minari)")
+    wr = sub.add_parser("write", help="simulate batches into a store (zarr or Minari)",
+                        description="Simulate batches into a store (zarr or Minari): from "
+                                    "perturbed initial states, with uniform controls in the "
+                                    "actuators' ranges (--control to choose another "
+                                    "generator) and no randomization (--randomize to add "
+                                    "some).")
     add_model_argument(wr)
     wr.add_argument("--out", required=True,
                     help="the store: a zarr v3 folder (an existing one of the same settings "
@@ -299,6 +341,21 @@ def main(argv: list[str] | None = None) -> None:
     wr.add_argument("--seed", type=int, default=0)
     wr.add_argument("--record", default="",
                     help="names to record, comma-separated (default: state,sensordata)")
+    wr.add_argument("--control", type=spec_option(cli_specs.parse_control, "--control"),
+                    default=None, metavar="SPEC",
+                    help="the control generator of simloader.controls, by name with keyword "
+                         "arguments, e.g. 'normal(std=0.5)', 'ou(std=0.3, tau=0.05)', "
+                         "'piecewiseconstant(hold=20)', 'sinusoid(frequency=(0.5, 2))'; "
+                         f"names: {', '.join(cli_specs.CONTROLS)} (ou: OrnsteinUhlenbeck) "
+                         "(default: uniform, each actuator uniform in its ctrlrange, [-1, 1] "
+                         "where unlimited, drawn fresh every step)")
+    wr.add_argument("--randomize", type=spec_option(cli_specs.parse_randomize, "--randomize"),
+                    action="append", default=[], metavar=cli_specs.RANDOMIZE_FORM,
+                    help="a randomized model parameter of simloader.randomize, repeatable, "
+                         "e.g. 'body_mass:pole=scale:uniform(0.8, 1.2)' or "
+                         "'dof_damping:hinge=add:normal(0, 0.01, low=0)'; OP: set, scale or "
+                         "add; DIST: uniform(low, high), loguniform(low, high), "
+                         "normal(mean, std, low=, high=) (default: no randomization)")
     wr.add_argument("--num-workers", type=int, default=0,
                     help="DataLoader workers that simulate and write in parallel")
     wr.add_argument("--replace", action="store_true",
@@ -345,6 +402,31 @@ def main(argv: list[str] | None = None) -> None:
                    help="trajectories per batch, as the training run will use them")
     w.add_argument("--nstep", type=int, default=200, help="steps per batch, as in training")
     w.set_defaults(run=warmup)
+
+    v = sub.add_parser("video", help="write an MP4 or GIF of trajectories of a store or a model",
+                       description="Write an MP4 (or GIF) of trajectories side by side: of a "
+                                   "store (rendered from its states, with --model the model "
+                                   "that wrote it, or from its recorded camera), or of a batch "
+                                   "simulated from a model on the CPU (uniform controls, "
+                                   "perturbed initial states).")
+    v.add_argument("source", help="a store folder, or a built-in model name or MJCF path")
+    v.add_argument("out", help="the video file, ending in .mp4 or .gif")
+    v.add_argument("--model", dest="video_model", default=None,
+                   help="for a store: the model that wrote it (name or MJCF path)")
+    v.add_argument("--rows", type=int, nargs="+", default=[0, 1, 2, 3],
+                   help="the trajectories to show (default: 0 1 2 3)")
+    v.add_argument("--camera", default=None,
+                   help="a recorded camera's name, or a model camera to render (default: the "
+                        "recorded one, else the free camera)")
+    v.add_argument("--size", type=positive_int, nargs=2, default=[240, 320],
+                   metavar=("HEIGHT", "WIDTH"), help="pixels of one trajectory (default 240 320)")
+    v.add_argument("--fps", type=float, default=None,
+                   help="frames per second (default: real time, at most 60)")
+    v.add_argument("--lossless", action="store_true", help="MP4 only: exact RGB frames")
+    v.add_argument("--nstep", type=positive_int, default=500,
+                   help="for a model: steps to simulate (default 500)")
+    v.add_argument("--seed", type=int, default=0, help="for a model: the seed (default 0)")
+    v.set_defaults(run=video, model=None)
 
     args = parser.parse_args(argv)
     sub_parser = sub.choices[args.command]

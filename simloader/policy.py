@@ -288,6 +288,32 @@ def _dtype_advice(policy: Any, obs: Mapping[str, Any]) -> Optional[str]:
             f"backend='cpu', float32 on backend='mjx'); pass {fix}")
 
 
+def _dict_advice(policy: Any, obs: Mapping[str, Any], error: Exception) -> Optional[str]:
+    """Why a policy fails on being given the observations as a dict, with the wrapper to
+    write, or None: a network that expects a tensor (`torch.nn.Sequential(torch.nn.Linear(n,
+    m))`) raises a TypeError or AttributeError that names the dict's type."""
+    said = str(error)
+    if not isinstance(error, (TypeError, AttributeError)) or not any(
+            w in said for w in (type(obs).__name__, "'dict'", " dict")):
+        return None
+    shapes = ", ".join(f"{k!r}: {tuple(v.shape)}" for k, v in obs.items()
+                       if isinstance(v, torch.Tensor))
+    first = next(iter(obs), "state")
+    dtype = _dtype_advice(policy, obs)
+    return (f"policy: it is called with a dict of observation tensors, not a tensor: keys "
+            f"{list(obs)} (as record= names them; shapes {{{shapes}}}), and calling it "
+            f"raised {type(error).__name__}: {error}; "
+            f"wrap the network in a module whose forward picks its input from the dict:\n\n"
+            f"    class Policy(torch.nn.Module):\n"
+            f"        def __init__(self, net):\n"
+            f"            super().__init__()\n"
+            f"            self.net = net\n\n"
+            f"        def forward(self, obs):\n"
+            f"            return self.net(obs[{first!r}])\n\n"
+            f"    SimDataset(..., policy=Policy(net))"
+            + (f"\n\nand match the dtypes: {dtype}" if dtype else ""))
+
+
 class Caller:
     """Calls the policy for one batch and checks what it returns.
 
@@ -312,7 +338,12 @@ class Caller:
         try:
             with torch.no_grad():
                 out = self.policy(obs)
-        except (RuntimeError, TypeError) as e:
+        except (RuntimeError, TypeError, AttributeError) as e:
+            advice = _dict_advice(self.policy, obs, e)
+            if advice is not None:
+                raise TypeError(advice) from e
+            if isinstance(e, AttributeError):
+                raise
             # not refused up front: a policy may convert its inputs itself (obs.float())
             advice = _dtype_advice(self.policy, obs)
             said = str(e).lower()

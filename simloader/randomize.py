@@ -1,6 +1,6 @@
 """Domain randomization: model parameters drawn per trajectory, returned with the data.
 
-One line per randomized parameter, objects addressed by name:
+One line per randomized parameter, objects addressed by name::
 
     from simloader import randomize as dr
     randomize = [
@@ -210,7 +210,7 @@ class Resolved:
 
     @property
     def ndraws(self) -> int:
-        """Draws per trajectory: one for all values (shared), else one per value."""
+        """Draws per trajectory, one for all values (shared), else one per value."""
         return 1 if self.param.shared else len(self.elements)
 
     def combine(self, base: Any, draw: Any) -> Any:
@@ -300,10 +300,30 @@ def resolve(model: mujoco.MjModel, param: Param) -> Resolved:
                     "add": base + lo}[param.op]
         if np.any(np.asarray(smallest) < 0):
             raise ValueError(f"randomize: {param.key}: the draw can make {param.field} negative "
-                             f"(lowest value {np.min(smallest)}); bound the distribution")
+                             f"(lowest value {np.min(smallest)}); bound the distribution: "
+                             f"{_bound_hint(param, base)}")
     setconst = param.field.startswith("opt.") or param.field in mujoco.MjModel._setconst_inputs
     objects, columns = param_columns(model, param.field, rows, cols, table.shape[1])
     return Resolved(param, param.field, elements, base, setconst, objects, columns)
+
+
+def _bound_hint(param: Param, base: np.ndarray) -> str:
+    """How to bound `param`'s distribution so that its field stays >= 0, with an example."""
+    # the lowest draw that keeps every value >= 0
+    floor = -float(np.min(base)) if param.op == "add" else 0.0
+    dist, name = param.dist, type(param.dist).__name__
+    if isinstance(dist, Normal):
+        low = max(floor, dist.mean - 3 * dist.std)
+        high = dist.mean + 3 * dist.std if dist.high is None else dist.high
+        how = (f"give the Normal a lower bound low= >= {floor:g} (and an upper one, high=), "
+               f"to which its draws are clipped")
+        bounded = f"dr.Normal({dist.mean:g}, {dist.std:g}, low={low:g}, high={high:g})"
+    else:
+        low = floor + 0.5 * (dist.high - floor) if dist.high > floor else floor
+        how = f"give the {name} a low >= {floor:g}"
+        bounded = f"dr.{name}({low:g}, {max(dist.high, low):g})"
+    on = "" if param.on is None else f", on={param.on!r}"
+    return f"{how}, e.g. dr.{param.op}({param.field!r}, {bounded}{on})"
 
 
 class RandomizationPlan:
@@ -320,7 +340,8 @@ class RandomizationPlan:
 
     @property
     def columns(self) -> dict[str, tuple[tuple[str, ...], tuple[str, ...]]]:
-        """{key of batch["params"]: (the object of each column, the name of each column)}."""
+        """By `batch["params"]` key, its columns as a pair (the object of each column, the
+        name of each column), e.g. `(("floor",), ("floor[0]",))`."""
         return {r.param.key: (r.objects, r.columns) for r in self.resolved}
 
     def sample(self, seed: np.random.SeedSequence, nbatch: int) -> dict[str, np.ndarray]:

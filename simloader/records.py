@@ -10,15 +10,16 @@ their data hold them (`value`). An engine overrides a kind only where its data d
 own small table (`READINGS`, looked up by `override`). A new kind is a class here with its
 `make` and `read`, and a line in `NAMED` or `PREFIXED`.
 
-Kinds of names:
-  "state"            `State`: the `mjSTATE_FULLPHYSICS` vector.
-  "qpos", "xpos", .. `Field`: an `MjData` field (a state component or anything `mj_step`
-                     computes), with the field's own trailing shape and dtype.
-  "sensor:NAME"      `Sensor`: one sensor's columns of `sensordata`.
-  "com"              `CentreOfMass`: the whole model's centre of mass, world coordinates.
-  Camera(...)        `CameraImage`s: a camera's RGB, depth and segmentation images, each its
-                     own batch key ("camera/NAME/rgb", ...). These are rendered, not read from
-                     fields (`Record.rendered`).
+The kinds of names:
+
+- `"state"`: `State`, the `mjSTATE_FULLPHYSICS` vector.
+- `"qpos"`, `"xpos"`, ...: `Field`, an `MjData` field (a state component or anything `mj_step`
+  computes), with the field's own trailing shape and dtype.
+- `"sensor:NAME"`: `Sensor`, one sensor's columns of `sensordata`.
+- `"com"`: `CentreOfMass`, the whole model's centre of mass, world coordinates.
+- `Camera(...)`: one `CameraImage` per image, a camera's RGB, depth and segmentation images,
+  each its own batch key (`"camera/NAME/rgb"`, ...). These are rendered, not read from fields
+  (`Record.rendered`).
 
 `simloader.observe` is this module under its former name; `Observation` is `Record`.
 """
@@ -202,6 +203,7 @@ PREFIXED: dict[str, type] = {SENSOR_PREFIX: Sensor}
 
 
 CAMERA_PREFIX = "camera/"
+FREE = "free"  # the free camera's name (-1), in `Camera` and in the batch keys
 # what a Camera delivers: batch key suffix -> (dtype, channels or None)
 IMAGE_KINDS = {"rgb": (np.dtype(np.uint8), 3), "depth": (np.dtype(np.float32), None),
                "segmentation": (np.dtype(np.int32), None)}
@@ -212,8 +214,9 @@ class Camera:
     """A camera to render in every recorded frame, for `record=`.
 
     Args:
-      camera: the camera's name or id in the model; -1 is the free camera (MuJoCo's default
-        view).
+      camera: the camera's name or id in the model; "free" or -1 is the free camera
+        (MuJoCo's default view). A camera of the model named "free" wins over the free
+        camera: `Camera("free")` is that camera, `Camera(-1)` the free one.
       height, width: the image size in pixels.
       rgb: deliver `"camera/NAME/rgb"`, uint8 `(nbatch, nframes, height, width, 3)`.
       depth: deliver `"camera/NAME/depth"`, float32 metres from the camera,
@@ -233,8 +236,9 @@ class Camera:
 
     def __post_init__(self):
         if isinstance(self.camera, bool) or not isinstance(self.camera, (str, int, np.integer)):
-            raise TypeError(f"Camera: camera must be a camera name (str) or id (int, -1 for the "
-                            f"free camera), got {type(self.camera).__name__} {self.camera!r}")
+            raise TypeError(f"Camera: camera must be a camera name (str) or id (int); \"free\" "
+                            f"or -1 is the free camera; got {type(self.camera).__name__} "
+                            f"{self.camera!r}")
         for name in ("height", "width"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -284,17 +288,19 @@ def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, .
              for i in range(model.ncam)]
     if isinstance(camera.camera, str):
         cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera.camera)
-        if cam < 0:
+        # "free" is the free camera's name in the batch keys, unless a model camera has it
+        if cam < 0 and camera.camera != FREE:
             raise ValueError(f"record: the model has no camera {camera.camera!r}"
-                             f"{layout.did_you_mean(camera.camera, names)}; its cameras: "
-                             f"{names or '(none)'}, or -1 for the free camera")
+                             f"{layout.did_you_mean(camera.camera, [*names, FREE])}; its "
+                             f"cameras: {names or '(none)'}, or {FREE!r} (or -1) for the free "
+                             f"camera")
     else:
         cam = int(camera.camera)
         if not -1 <= cam < model.ncam:
             raise ValueError(f"record: Camera(camera={cam}) is out of range: the model has "
                              f"{model.ncam} cameras (ids 0 to {model.ncam - 1}), and -1 is the "
                              f"free camera")
-    name = "free" if cam < 0 else (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam)
+    name = FREE if cam < 0 else (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam)
                                    or str(cam))
     out = []
     for kind in camera.kinds:

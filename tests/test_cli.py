@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from simloader import cli
 from simloader.tools import bench
@@ -169,3 +170,81 @@ def test_bench_unusable_out_folder_is_usage_error(capsys, tmp_path):
     (tmp_path / "file").write_text("")
     err = _usage_error(capsys, ["bench", *BENCH_FAST, "--out", str(tmp_path / "file" / "x")])
     assert "--out" in err
+
+
+def test_write_with_control_and_randomize_specs(capsys, tmp_path):
+    out = tmp_path / "store"
+    cli.main(["write", "--out", str(out), "--backend", "cpu", "--nbatch", "4", "--nstep", "6",
+              "--batches", "2", "--seed", "7", "--control", "OU(std=0.3, tau=0.05)",
+              "--randomize", "body_mass:pole=scale:uniform(0.8, 1.2)",
+              "--randomize", "dof_damping:hinge=add:normal(0, 0.01, low=0, high=0.02)"])
+    capsys.readouterr()
+    stored = cli.simloader.StoredDataset(str(out))
+    # the same dataset built in Python: the stored stream is its stream, bit for bit
+    from simloader import controls
+    from simloader import randomize as dr
+    ds = cli.simloader.SimDataset(
+        "cartpole", backend="cpu", nbatch=4, nstep=6, seed=7, num_batches=2, nthread=1,
+        control=controls.OrnsteinUhlenbeck(std=0.3, tau=0.05),
+        initial_state=cli.simloader.initial.Perturbed(),
+        randomize=[dr.scale("body_mass", dr.Uniform(0.8, 1.2), on="pole"),
+                   dr.add("dof_damping", dr.Normal(0.0, 0.01, low=0.0, high=0.02),
+                          on="hinge")])
+    batches = list(ds)
+    assert len(stored) == 8
+    for i in range(8):
+        batch, row = batches[i // 4], i % 4
+        assert torch.equal(stored[i]["control"], batch["control"][row])
+        for key in ("body_mass[pole]", "dof_damping[hinge]"):
+            assert torch.equal(stored[i]["params"][key], batch["params"][key][row])
+    masses = torch.stack([stored[i]["params"]["body_mass[pole]"] for i in range(8)])
+    damping = torch.stack([stored[i]["params"]["dof_damping[hinge]"] for i in range(8)])
+    assert ((masses >= 0.08) & (masses < 0.12)).all() and masses.unique().numel() == 8
+    base = float(cli.simloader.load_model("cartpole").joint("hinge").damping[0])
+    assert ((damping >= base) & (damping <= base + 0.02 + 1e-15)).all()
+    assert (damping == base).any()  # the normal's draws below 0 are clipped to low=0
+
+
+def test_write_defaults_to_uniform_controls_without_randomization(capsys, tmp_path):
+    help_text = subprocess.run([sys.executable, "-m", "simloader.cli", "write", "-h"],
+                               capture_output=True, text=True, timeout=120).stdout
+    flat = " ".join(help_text.split())
+    assert "default: uniform, each actuator uniform in its ctrlrange" in flat
+    assert "(default: no randomization)" in flat
+    for name in ("uniform", "normal", "ornsteinuhlenbeck", "piecewiseconstant", "sinusoid",
+                 "constant", "ou"):
+        assert name in flat
+    cli.main(["write", "--out", str(tmp_path / "s"), "--backend", "cpu", "--nbatch", "3",
+              "--nstep", "4", "--batches", "1"])
+    capsys.readouterr()
+    stored = cli.simloader.StoredDataset(str(tmp_path / "s"))
+    control = torch.stack([stored[i]["control"] for i in range(3)])
+    assert "params" not in stored[0]
+    assert control.abs().max() <= 1 and control.unique().numel() == control.numel()
+
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--control", "brownian", "argument --control: unknown name 'brownian' in 'brownian'; "
+     "choices: uniform, normal, ornsteinuhlenbeck, piecewiseconstant, sinusoid, constant, ou"),
+    ("--control", "ou(sigma=0.3)", "argument --control: ou has no argument 'sigma' (in "
+     "'ou(sigma=0.3)'); its arguments: mean, std, tau, clip, on"),
+    ("--control", "uniform(-1, 1)", "argument --control: uniform takes keyword arguments only "
+     "(KEY=VALUE), got 'uniform(-1, 1)'; its arguments: low, high, on"),
+    ("--control", "normal(std=__import__('os'))", "argument --control: normal.std: expected "
+     "a number, a string or a tuple of them, got \"__import__('os')\""),
+    ("--randomize", "body_mass", "argument --randomize: expected FIELD[:OBJ,...]=OP:DIST(ARGS), "
+     "e.g. 'body_mass:pole=scale:uniform(0.8,1.2)', got 'body_mass'"),
+    ("--randomize", "body_mass=times:uniform(1, 2)", "argument --randomize: unknown operation "
+     "'times' in 'body_mass=times:uniform(1, 2)'; choices: set, scale, add"),
+    ("--randomize", "body_mass=scale:gamma(1, 2)", "argument --randomize: unknown name 'gamma' "
+     "in 'gamma(1, 2)'; choices: uniform, loguniform, normal"),
+    ("--randomize", "body_mas:pole=scale:uniform(0.8, 1.2)", "randomize: 'body_mas' is not a "
+     "floating-point MjModel field"),
+])
+def test_write_bad_spec_is_one_line_naming_the_option(capsys, tmp_path, option, value,
+                                                      expected):
+    err = _usage_error(capsys, ["write", "--out", str(tmp_path / "s"), "--backend", "cpu",
+                                "--nbatch", "2", "--nstep", "2", "--batches", "1",
+                                option, value])
+    assert err.startswith("simloader write: error: ") and expected in err, err
+    assert not (tmp_path / "s").exists()

@@ -98,3 +98,95 @@ def test_describe_lists_params_keys():
     text = ds.describe()
     (key,) = next(iter(ds))["params"]
     assert 'batch["params"]' in text and key in text
+
+
+def test_plain_network_as_policy_is_shown_the_wrapper():
+    net = torch.nn.Sequential(torch.nn.Linear(5, 1))  # cartpole: nstate = 1 + 2 + 2
+    ds = make(policy=net, num_batches=1, dtype=torch.float32)
+    with pytest.raises(TypeError) as e:
+        next(iter(ds))
+    msg = str(e.value)
+    for part in ("policy: it is called with a dict of observation tensors, not a tensor",
+                 "keys ['state', 'sensordata']", "'state': (2, 5)", "not Observations",
+                 "class Policy(torch.nn.Module):", "def forward(self, obs):",
+                 "return self.net(obs['state'])", "SimDataset(..., policy=Policy(net))"):
+        assert part in msg, (part, msg)
+    assert "dtype" not in msg  # the dtypes agree here: no second fix to make
+
+    # the wrapper the message shows works
+    class Policy(torch.nn.Module):
+        def __init__(self, net):
+            super().__init__()
+            self.net = net
+
+        def forward(self, obs):
+            return self.net(obs["state"])
+
+    ds = make(policy=Policy(net), num_batches=1, dtype=torch.float32)
+    assert next(iter(ds))["control"].shape == (2, 3, 1)
+
+
+def test_plain_network_of_another_dtype_is_told_both_fixes():
+    ds = make(policy=torch.nn.Sequential(torch.nn.Linear(5, 1)), num_batches=1)
+    with pytest.raises(TypeError) as e:
+        next(iter(ds))
+    msg = str(e.value)
+    assert "class Policy(torch.nn.Module):" in msg
+    assert "and match the dtypes: policy, dtype:" in msg and "policy.double()" in msg
+
+
+def test_unbounded_normal_scale_of_a_mass_says_how_to_bound_it():
+    with pytest.raises(ValueError) as e:
+        make(randomize=[dr.scale("body_mass", dr.Normal(1, 0.1), on="pole")])
+    msg = str(e.value)
+    assert msg.startswith("randomize: body_mass[pole]: the draw can make body_mass negative"), msg
+    assert "give the Normal a lower bound low= >= 0 (and an upper one, high=)" in msg, msg
+    example = "dr.scale('body_mass', dr.Normal(1, 0.1, low=0.7, high=1.3), on='pole')"
+    assert msg.endswith(f"e.g. {example}"), msg
+    # the example it gives is accepted
+    ds = make(randomize=[eval(example)], num_batches=1)  # noqa: S307 - the message's own code
+    values = next(iter(ds))["params"]["body_mass[pole]"]
+    assert ((values >= 0.7 * 0.1 - 1e-12) & (values <= 1.3 * 0.1 + 1e-12)).all()
+
+
+def _gl_or_skip():
+    import os
+
+    from simloader import render
+    try:
+        render.gl_platform()
+    except RuntimeError as e:
+        if os.environ.get("SIMLOADER_REQUIRE_GL") == "1":
+            raise
+        pytest.skip(f"no OpenGL here: {e}")
+
+
+def test_free_camera_by_its_name_is_the_free_camera():
+    _gl_or_skip()
+    batches = [next(iter(make(record=("state", simloader.Camera(cam, height=12, width=16)),
+                              num_batches=1, seed=3)))
+               for cam in ("free", -1)]
+    for batch in batches:
+        assert [k for k in batch if k.startswith("camera/")] == ["camera/free/rgb"]
+    by_name, by_id = (b["camera/free/rgb"] for b in batches)
+    assert by_name.shape == (2, 3, 12, 16, 3) and by_name.any()
+    assert torch.equal(by_name, by_id)
+
+
+def test_a_model_camera_named_free_wins_over_the_free_camera():
+    import mujoco
+    from simloader import records
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><camera name="front" pos="0 -1 0"/><camera name="free" '
+        'pos="0 0 1"/><body><freejoint/><geom size=".1"/></body></worldbody></mujoco>')
+    (named,) = records.camera_images(model, simloader.Camera("free"))
+    (free,) = records.camera_images(model, simloader.Camera(-1))
+    assert (named.key, named.camera_id) == ("camera/free/rgb", 1)
+    assert (free.key, free.camera_id) == ("camera/free/rgb", -1)
+    # elsewhere "free" is the free camera, and an unknown name says so
+    cartpole = simloader.load_model("cartpole")
+    assert records.camera_images(cartpole, simloader.Camera("free"))[0].camera_id == -1
+    with pytest.raises(ValueError, match=re.escape(
+            "record: the model has no camera 'fre' (did you mean 'free'?); its cameras: "
+            "['front'], or 'free' (or -1) for the free camera")):
+        records.camera_images(cartpole, simloader.Camera("fre"))

@@ -118,3 +118,21 @@ def test_a_source_without_states_or_camera_says_what_to_record(tmp_path):
     batch = {"sensordata": torch.zeros(2, 3, 4)}
     with pytest.raises(ValueError, match="expected a batch of simloader"):
         simloader.video(batch, tmp_path / "e.mp4", model="cartpole", progress=False)
+
+
+def test_the_command_line_for_a_model_and_a_store(tmp_path):
+    from simloader import cli
+    out = tmp_path / "m.mp4"
+    cli.main(["video", "cartpole", str(out), "--rows", "0", "2", "--nstep", "20",
+              "--size", "32", "48", "--fps", "10"])
+    frames, _ = decode(out)
+    assert frames.shape == (20, 32, 96, 3)
+    ds = simloader.SimDataset("cartpole", nbatch=2, nstep=10, backend="cpu", seed=0,
+                              num_batches=1)
+    simloader.write(ds, tmp_path / "store", batches=1)
+    with pytest.raises(SystemExit):  # a store needs its model
+        cli.main(["video", str(tmp_path / "store"), str(tmp_path / "s.mp4")])
+    cli.main(["video", str(tmp_path / "store"), str(tmp_path / "s.mp4"), "--model", "cartpole",
+              "--rows", "1", "--fps", "10", "--size", "32", "32", "--lossless"])
+    frames, _ = decode(tmp_path / "s.mp4")
+    assert frames.shape == (10, 32, 32, 3)
