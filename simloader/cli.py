@@ -292,7 +292,7 @@ def video(args: argparse.Namespace) -> None:
     else:
         with from_arguments():
             source = simloader.SimDataset(
-                args.source, backend="cpu", nbatch=max(rows) + 1, nstep=args.nstep,
+                args.source, nbatch=max(rows) + 1, nstep=args.nstep,
                 control=simloader.controls.Uniform(), initial_state=simloader.initial.Perturbed(),
                 seed=args.seed)
         model = None

@@ -2,7 +2,7 @@
 
 A generator drives one `control_spec` component (`ctrl`, `qfrc_applied`, `xfrc_applied`,
 `eq_active`, `mocap_pos`, `mocap_quat`, `userdata`), optionally only some of its objects,
-addressed by name with `on=`:
+addressed by name with `on=`::
 
     control = simloader.controls.Uniform()                       # actuator controls
     control = {"ctrl": controls.Uniform(),

@@ -26,11 +26,13 @@ class SimDataset(torch.utils.data.IterableDataset):
     with named views (`batch.view("qpos")`, `batch.view("xpos", "hand")`); with the default
     `record`:
 
+      =============  ==============================  ==========================================
       state          (nbatch, nframes, nstate)       mjSTATE_FULLPHYSICS state after each frame
       sensordata     (nbatch, nframes, nsensordata)  sensor values after each frame
       control        (nbatch, nstep, ncontrol)       control rows applied before each step
       initial_state  (nbatch, nstate)                state each trajectory started from
       diverged       (nbatch,) bool                  MuJoCo warning or NaN/Inf in this batch
+      =============  ==============================  ==========================================
 
     where `nframes = nstep // record_every` (`nstep` by default). Every name of `record` is a
     key `(nbatch, nframes, *trailing shape)`.

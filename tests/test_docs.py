@@ -3,13 +3,15 @@
 Every ```python block of README.md and of docs/*.md runs as written; an endless stream gets
 a bounded variant here (2 batches), not in the pages. A block whose first line is
 `# needs a CUDA GPU` is marked `gpu` (run with `-m gpu` on a GPU machine). The CI script runs
-exactly the README's test command, the docs site builds offline with warnings as errors, and
-every relative link of the pages points to a file that exists."""
+exactly the README's test command, the docs site builds offline with warnings as errors and
+every cross-reference resolved, and every relative link of the pages, and every local link and
+anchor of the built site, points to something that exists."""
 
 import pathlib
 import re
 import subprocess
 import sys
+import urllib.parse
 
 import pytest
 
@@ -43,7 +45,9 @@ def python_blocks(path):
     return out
 
 
-BLOCKS = [block for path in PAGES for block in python_blocks(path)]
+# the tutorial's blocks build on each other: tests/test_tutorial.py runs them in order
+SEQUENTIAL = {"tutorial.md"}
+BLOCKS = [block for path in PAGES if path.name not in SEQUENTIAL for block in python_blocks(path)]
 
 
 def _param(block_id, code):
@@ -82,16 +86,54 @@ def test_ci_runs_exactly_the_readmes_test_command():
     assert ci[-1] == command
 
 
-def test_the_docs_build_offline_without_warnings(tmp_path):
+@pytest.fixture(scope="module")
+def built_html(tmp_path_factory):
+    """The site, built once for the tests that read it: offline, every warning an error (`-W`),
+    every cross-reference checked (`-n`); the build's output, for the test that asserts it."""
     pytest.importorskip("sphinx")
     pytest.importorskip("myst_parser")
+    out = tmp_path_factory.mktemp("docs")
     run = subprocess.run(
-        [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html",
-         "-d", str(tmp_path / "doctrees"), str(ROOT / "docs"), str(tmp_path / "html")],
+        [sys.executable, "-m", "sphinx", "-W", "-n", "--keep-going", "-q", "-b", "html",
+         "-d", str(out / "doctrees"), str(ROOT / "docs"), str(out / "html")],
         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    return run, out / "html"
+
+
+def test_the_docs_build_offline_without_warnings(built_html):
+    run, html = built_html
     assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-4000:]
-    assert (tmp_path / "html" / "index.html").exists()
-    assert (tmp_path / "html" / "api.html").exists()
+    assert (html / "index.html").exists()
+    assert (html / "api.html").exists()
+
+
+HREF = re.compile(r"""\shref=["']([^"']+)["']""")
+ID = re.compile(r"""\sid=["']([^"']+)["']""")
+
+
+def test_the_built_site_has_no_broken_local_links(built_html):
+    """Every link of the built pages to a local page, and to an anchor there, arrives: a
+    page that exists, an id that it holds (Markdown links, autodoc cross-references, the
+    "[source]" pages, a docstring's slip that links to a `#id1` nowhere)."""
+    run, html = built_html
+    if not (html / "index.html").exists():
+        pytest.skip("the site did not build")
+    ids, broken = {}, []
+    for page in sorted(html.rglob("*.html")):
+        for href in HREF.findall(page.read_text()):
+            if re.match(r"[a-z][a-z0-9+.-]*:", href):
+                continue  # http:, mailto:, ...
+            path, _, anchor = href.partition("#")
+            path = urllib.parse.unquote(path.partition("?")[0])  # style.css?v=...
+            target = (page.parent / path).resolve() if path else page
+            if not target.exists():
+                broken.append(f"{page.relative_to(html)}: {href}")
+            elif anchor and target.suffix == ".html":
+                if target not in ids:
+                    ids[target] = set(ID.findall(target.read_text()))
+                if anchor not in ids[target]:
+                    broken.append(f"{page.relative_to(html)}: {href}")
+    assert not broken, "broken links in the built site:\n" + "\n".join(broken)
 
 
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")

@@ -39,7 +39,7 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
     Raises:
       ValueError: bad arguments; a store of another configuration at `path`; a store whose
         metadata is damaged (`DamagedStore`, naming the file).
-      StoreLocked: another job is writing the store.
+      ~simloader.store.StoreLocked: another job is writing the store.
       OSError: the disk is full or not writable (the store stays readable, holding the
         batches completed so far; writing again resumes).
     """

@@ -307,7 +307,7 @@ class Transitions(torch.utils.data.Dataset):
 
     @functools.cached_property
     def trajectories(self) -> np.ndarray:
-        """The stored trajectories whose transitions these are: read at the first use, not
+        """The stored trajectories whose transitions these are, read at the first use, not
         when the view is made (it reads the flags of every slot)."""
         return (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
                 np.arange(len(self.stored)))
