@@ -18,6 +18,7 @@ import torch
 from simloader import controls, initial, layout, models, observe, threads
 from simloader import policy as simloader_policy
 from simloader import randomize as dr
+from simloader import terminate as terminate_rules
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Settings:
@@ -47,6 +48,8 @@ class Settings:
         `control` generators draw (a plan whose undriven columns are 0), or None.
       deterministic: the same seed must give bit-identical batches (the engine bound to it
         promised it for this model, `Engine.refuses_determinism`).
+      terminate: the rules that end an episode (`simloader.terminate.Episodes`, autoreset on
+        the next frame), or None: every trajectory runs its `nstep` steps.
     """
 
     model: mujoco.MjModel
@@ -74,6 +77,7 @@ class Settings:
     policy: Any = None
     policy_noise: Optional[controls.ControlPlan] = None
     deterministic: bool = False
+    terminate: Optional[terminate_rules.Episodes] = None
 
     @property
     def pool(self) -> tuple[mujoco.MjModel, ...]:
@@ -339,7 +343,7 @@ def validate(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec:
              initial_state: Any, randomize: Any, continue_episodes: Any, num_batches: Any,
              seed: Any, device: Any, dtype: Any, nthread: Any, prefetch: Any, record: Any,
              record_every: Any, policy: Any = None, policy_noise: Any = None,
-             deterministic: Any = False, sim_device: Any = None
+             deterministic: Any = False, sim_device: Any = None, terminate: Any = None
              ) -> tuple[Settings, Optional[tuple[Settings, ...]]]:
     """Validates `SimDataset`'s arguments (see its docstring), engine-free and in one pass,
     into `Settings`; with `sim_device`, also one `Settings` per simulation device (each its
@@ -349,7 +353,8 @@ def validate(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec:
     arguments = dict(nstep=nstep, control_spec=control_spec, continue_episodes=continue_episodes,
                      num_batches=num_batches, seed=seed, dtype=dtype, nthread=nthread,
                      prefetch=prefetch, record=record, record_every=record_every,
-                     policy=policy, policy_noise=policy_noise, deterministic=deterministic)
+                     policy=policy, policy_noise=policy_noise, deterministic=deterministic,
+                     terminate=terminate)
     whole = _settings(model, nbatch=nbatch, control=control, initial_state=initial_state,
                       randomize=randomize, device=_torch_device(device), **arguments)
     target, simulated_on = sim_devices(sim_device, whole.device)
@@ -375,7 +380,7 @@ def _settings(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec
               initial_state: Any, randomize: Any, continue_episodes: Any, num_batches: Any,
               seed: Any, device: Optional[torch.device], dtype: Any, nthread: Any,
               prefetch: Any, record: Any, record_every: Any, policy: Any, policy_noise: Any,
-              deterministic: Any) -> Settings:
+              deterministic: Any, terminate: Any) -> Settings:
     """The arguments of one batch (or one simulation device's part of it), validated."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
@@ -419,4 +424,4 @@ def _settings(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec
         num_batches=num_batches, seed=seed, device=device,
         dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch,
         torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise,
-        deterministic=deterministic)
+        deterministic=deterministic, terminate=terminate_rules.parse(base, terminate))

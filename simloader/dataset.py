@@ -104,6 +104,14 @@ class SimDataset(torch.utils.data.IterableDataset):
         (each its own part of the stream), simulated at once, and gathered on `device` by
         peer copies that overlap the next batch's simulation. GPU engines only; a policy
         runs on a copy of its weights on each simulation device.
+      terminate: episodes that end where the task ends: a rule of `simloader.terminate`
+        (`Below(body, height)`, `Tilted(body, max_angle)`, `Outside(joint, low, high)`,
+        `TimeLimit(steps)`) or a sequence of them (any one ends the episode), checked at every
+        recorded frame. After a frame whose state meets one, the trajectory's next frame is a
+        fresh initial state from its `initial_state` source (autoreset; its control rows are
+        delivered as NaN). The batch then holds "terminated", "truncated" (a `TimeLimit`) and
+        "first" (the fresh frames), `(nbatch, nframes)` bool. None (default): every
+        trajectory runs its `nstep` steps. The CPU engine, open loop, for now.
       **backend_options: the engine's own: `naconmax`/`njmax` for "warp" (MuJoCo Warp's
         buffers; None: sized from the model), `compilation_cache`, `memory_fraction` for
         "mjx" (see `backends.mjx.options.check_options`); with "auto", those of an engine
@@ -124,7 +132,7 @@ class SimDataset(torch.utils.data.IterableDataset):
                  record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
                  policy: Any = None, policy_noise: Any = None,
                  deterministic: Optional[bool] = None, sim_device: Any = None,
-                 **backend_options: Any):
+                 terminate: Any = None, **backend_options: Any):
         super().__init__()
         binding.check_keywords(backend_options, _KEYWORDS)
         settings, parts = validate(
@@ -133,7 +141,7 @@ class SimDataset(torch.utils.data.IterableDataset):
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
             device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
             record_every=record_every, policy=policy, policy_noise=policy_noise,
-            deterministic=deterministic, sim_device=sim_device)
+            deterministic=deterministic, sim_device=sim_device, terminate=terminate)
         self.engine: binding.BoundEngine = binding.bind(backend, backend_options, settings,
                                                         parts)
         self.config: SimConfig = self.engine.config

@@ -90,6 +90,10 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
             {"generator": _describe(d.generator), "columns": _describe(d.columns)}
             for d in config.policy_noise.drivers],
         "dtype": None if config.dtype is None else str(config.dtype),
+        # absent without rules, so that the fingerprints of streams without them stay as saved
+        **({} if getattr(config, "terminate", None) is None else {"terminate": {
+            "rules": [_describe(r) for r in config.terminate.rules],
+            "time_limit": config.terminate.time_limit}}),
         "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())},
     }
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 # independent streams within one batch
-INITIAL, CONTROL, RANDOMIZE = 0, 1, 2
+INITIAL, CONTROL, RANDOMIZE, RESET = 0, 1, 2, 3
 
 
 def batch_seed(seed: int, shard: Any, index: int, purpose: int) -> np.random.SeedSequence:
@@ -21,3 +21,11 @@ def batch_seed(seed: int, shard: Any, index: int, purpose: int) -> np.random.See
     part `shard.part` when the batch is split across simulation devices)."""
     key = (shard.rank, index, purpose) + ((shard.part,) if shard.parts > 1 else ())
     return np.random.SeedSequence(seed, spawn_key=key)
+
+
+def reset_seed(seed: int, shard: Any, index: int, row: int, episode: int
+               ) -> np.random.SeedSequence:
+    """The seed of trajectory `row`'s fresh initial state after its `episode`-th reset
+    (from 0) within global batch `index` (`terminate=`'s autoreset)."""
+    base = batch_seed(seed, shard, index, RESET)
+    return np.random.SeedSequence(seed, spawn_key=base.spawn_key + (row, episode))

@@ -137,7 +137,8 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
              probe.nbatch * probe.nstep * probe.num_batches)
     job = Job(step_s=cpu_step_seconds(probe.model), nbatch=probe.nbatch,
               contacts=has_contacts(probe.model), cores=cores,
-              policy=probe.policy is not None, cameras=cameras, steps=steps)
+              policy=probe.policy is not None, cameras=cameras, steps=steps,
+              episodes=getattr(probe, "terminate", None) is not None)
     rates = {name: rate for name in running
              if (rate := engines[name].estimate(job)) is not None}
     if steps is not None:

@@ -27,6 +27,7 @@ class Job:
       cameras: whether the batch records images (`simloader.Camera`).
       steps: the steps this process will simulate (`nbatch * nstep * num_batches`), or None
         for an endless stream: with a known length, an engine's start-up counts too.
+      episodes: whether episodes end on rules (`terminate=`), with autoreset.
     """
 
     step_s: float
@@ -36,6 +37,7 @@ class Job:
     policy: bool
     cameras: bool
     steps: Optional[int] = None
+    episodes: bool = False
 
 
 @runtime_checkable

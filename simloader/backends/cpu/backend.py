@@ -24,6 +24,7 @@ from mujoco import batch as mj_batch
 
 from simloader import controls, handoff, layout, mujoco_warnings, rules, seeds, threads
 from simloader.backends.cpu import drivers
+from simloader.backends.cpu import episodes as cpu_episodes
 from simloader.backends.cpu import recorded as recorded_from
 from simloader import render as cpu_render
 from simloader.backends.base import Backend
@@ -79,6 +80,10 @@ class CpuBackend(Backend):
         # counts the new warning from 0, so a counter already at 1 would not rise again
         self.warnings = self.batch.warning[:, :, 1]
         self.driver = drivers.driver(c, self.batch)  # the open or the closed loop
+        # terminate=: the rules checked at every frame, and the autoreset
+        self.episodes = (cpu_episodes.Episodes(c, self.batch, drivers.LiveSources(self.batch, c))
+                         if c.terminate is not None else None)
+        self.driver.episodes = self.episodes
         # cameras: rendered by a pool of renderer threads from recorded state rows
         self.images = [o for o in c.observations if o.rendered]
         self.renderer = (cpu_render.RenderPool(c.model, self.images, self.nthread)
@@ -92,6 +97,8 @@ class CpuBackend(Backend):
         c, t = self.config, self.trajectories
         rows = self.batch.state
         initial_t, initial = handoff.host_buffer((c.nbatch, c.nstate), pin=self.pin)
+        if self.episodes is not None:
+            self.episodes.start(self._fresh_rows(index), t.fresh.copy())
         if t.fresh.any():
             x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
             fresh = np.flatnonzero(t.fresh)
@@ -123,6 +130,10 @@ class CpuBackend(Backend):
         out = {s: array for s, (_, array) in recorded.items()}
         bad_control, extras = run(out)
         self.stats.add(simulate_s=time.perf_counter() - start)
+        if self.episodes is not None:
+            self.episodes.unapplied(control)
+            extras = {**extras, **{k: torch.from_numpy(v)
+                                   for k, v in self.episodes.flags.items()}}
         warned = self.warnings.any(axis=1) | bad_control
         if c.continue_episodes:
             # the rows the next batch continues from: a trajectory restarts there when MuJoCo
@@ -143,6 +154,25 @@ class CpuBackend(Backend):
         return _Produced({s: tensor for s, (tensor, _) in recorded.items()}, control_t, initial_t,
                          params, warned, rows_after, extras,
                          {k: t for k, (t, _) in images.items()}, rendering)
+
+    def _fresh_rows(self, index: int):
+        """`episodes.FreshRows` of batch `index`: each row's fresh initial state after a reset,
+        from its initial-state source (the generator seeded by batch, row and episode), as
+        the row of mj_resetData with zero warmstart."""
+        c, t = self.config, self.trajectories
+
+        def fresh(rows: np.ndarray, episodes: np.ndarray) -> np.ndarray:
+            out = t.per_trajectory(self.reset_rows)[rows].copy()
+            if c.initial.generator is not None:
+                x0 = np.concatenate([c.initial.sample(seeds.reset_seed(
+                    c.seed, self.shard, index, int(r), int(e)), 1) for r, e in zip(rows, episodes)])
+            elif self.variant_states is not None:
+                x0 = t.per_trajectory(self.variant_states)[rows]
+            else:
+                x0 = c.initial.fixed[rows]
+            out[:, self.physics_cols] = x0
+            return out
+        return fresh
 
     def _model_of(self):
         """Trajectory i's model as it ran this batch, for the render threads (which run while

@@ -29,6 +29,7 @@ class OpenLoop:
 
     def __init__(self, config: Any, batch: mj_batch.Batch):
         self.config, self.batch = config, batch
+        self.episodes: Optional[Any] = None  # `episodes.Episodes` with terminate=, set by the backend
 
     def prepare(self, seed: np.random.SeedSequence, defaults: np.ndarray, control: np.ndarray,
                 low: np.ndarray, high: np.ndarray) -> Run:
@@ -63,18 +64,24 @@ class OpenLoop:
         """
         c, k, batch = self.config, self.config.record_every, self.batch
         items = tuple(out)
-        if k == 1:
+        if k == 1 and self.episodes is None:
             batch.rollout(c.nstep, control, control_spec=c.control_spec, record=items, out=out)
             return
         if control is not None:
             control = np.broadcast_to(control, (c.nbatch, c.nstep, c.ncontrol))
         frame = {s: np.empty((c.nbatch, 1, *a.shape[2:]), a.dtype) for s, a in out.items()}
+        episodes = self.episodes
         for j in range(c.nframes):
+            # with terminate=: the trajectories whose frame j is a fresh initial state
+            reset = episodes.before_frame() if episodes is not None else None
             u = None if control is None else control[:, j * k:(j + 1) * k]
-            batch.rollout(k - 1, None if u is None else u[:, :-1],
-                          control_spec=c.control_spec, record=())
+            if k > 1:
+                batch.rollout(k - 1, None if u is None else u[:, :-1],
+                              control_spec=c.control_spec, record=())
             batch.rollout(1, None if u is None else u[:, -1:],
                           control_spec=c.control_spec, record=items, out=frame)
+            if episodes is not None:
+                episodes.after_frame(reset, frame, j)
             for s, a in out.items():
                 a[:, j] = frame[s][:, 0]
 
@@ -180,6 +187,9 @@ class LiveSources:
         memory is laid out so, else a copy."""
         if source in self.bound:
             return self.bound[source]
+        if source not in self.columns:  # a state spec no record reads (the cameras' rows)
+            self.columns[source] = layout.component_columns(self.config.model,
+                                                            layout.INTEGRATION, source)
         return self.batch.state[:, self.columns[source]]
 
     def observations(self) -> dict[str, torch.Tensor]:

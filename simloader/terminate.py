@@ -1,0 +1,269 @@
+"""Episodes that end where the task ends: termination rules, for `SimDataset(terminate=...)`.
+
+A rule is data: what it looks at (a body's height, its tilt, a joint's position, the episode's
+length) and a test written once over the array module (NumPy, torch or jax.numpy), which each
+engine evaluates inside its own step loop on the state of every recorded frame. After a
+frame whose state meets a rule, the trajectory's next frame is a fresh initial state
+(autoreset); the frames are flagged in `batch["terminated"]`, `batch["truncated"]` (a
+`TimeLimit`) and `batch["first"]` (the fresh initial states).
+
+    terminate=simloader.terminate.Below("torso", 0.8)            # a fallen walker
+    terminate=[Tilted("torso", 1.0), TimeLimit(500)]             # any one ends the episode
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+
+from simloader import layout
+
+# what a rule may read of a frame's state, as each engine hands it over: name -> shape after
+# (nbatch,). Kinematics (xpos, xmat) are those of the frame's own state (mj_kinematics of it).
+FIELDS = ("qpos", "xpos", "xmat")
+
+
+class Rule:
+    """A termination rule (a frozen dataclass): `reads` the fields of a frame's state it looks
+    at, `resolve(model)` checks it against the model, and `met(xp, fields)` says, for every
+    trajectory, whether the frame's state meets it."""
+
+    reads: tuple[str, ...] = ()
+    truncates = False  # a time limit truncates an episode; the others terminate it
+
+    def resolve(self, model: mujoco.MjModel) -> "Rule":
+        """The rule with its names resolved against `model` (ids filled in).
+
+        Raises:
+          ValueError: an unknown name, naming the rule and the model's choices.
+        """
+        return self
+
+    def met(self, xp: Any, fields: dict[str, Any]) -> Any:
+        """(nbatch,) bool: the frame's state meets the rule; `fields`: {name in `reads`:
+        (nbatch, ...) array of module `xp`}."""
+        raise NotImplementedError
+
+
+def _name(rule: str, what: str, value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise TypeError(f"terminate: {rule}'s {what} must be a name (str), got "
+                        f"{type(value).__name__} {value!r}")
+    return value
+
+
+def _number(rule: str, what: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value):
+        raise ValueError(f"terminate: {rule}'s {what} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _object_id(model: mujoco.MjModel, kind: mujoco.mjtObj, what: str, name: str,
+               rule: str) -> int:
+    found = mujoco.mj_name2id(model, kind, name)
+    if found < 0:
+        count = {mujoco.mjtObj.mjOBJ_BODY: model.nbody, mujoco.mjtObj.mjOBJ_JOINT: model.njnt}[kind]
+        names = [mujoco.mj_id2name(model, kind, i) for i in range(count)]
+        names = [n for n in names if n]
+        raise ValueError(f"terminate: {rule}: the model has no {what} {name!r}"
+                         f"{layout.did_you_mean(name, names)}; its {what}s: {names or '(none)'}")
+    return found
+
+
+@dataclasses.dataclass(frozen=True)
+class Below(Rule):
+    """The body's world height `xpos[body, 2]` is below `height` (metres): a fallen walker.
+
+    Args:
+      body: the body's name.
+      height: the height limit, in metres (any sign).
+    """
+
+    body: str
+    height: float
+    body_id: int = dataclasses.field(default=-1, compare=False, repr=False)
+    reads = ("xpos",)
+
+    def __post_init__(self):
+        _name("Below", "body", self.body)
+        object.__setattr__(self, "height", _number("Below", "height", self.height))
+
+    def resolve(self, model):
+        body = _object_id(model, mujoco.mjtObj.mjOBJ_BODY, "body", self.body,
+                          f"Below({self.body!r}, {self.height})")
+        return dataclasses.replace(self, body_id=body)
+
+    def met(self, xp, fields):
+        return fields["xpos"][:, self.body_id, 2] < self.height
+
+
+@dataclasses.dataclass(frozen=True)
+class Tilted(Rule):
+    """The body's z axis is more than `max_angle` radians from the world's z axis: a robot on
+    its side.
+
+    Args:
+      body: the body's name.
+      max_angle: the largest tilt allowed, in radians, in (0, pi].
+    """
+
+    body: str
+    max_angle: float
+    body_id: int = dataclasses.field(default=-1, compare=False, repr=False)
+    reads = ("xmat",)
+
+    def __post_init__(self):
+        _name("Tilted", "body", self.body)
+        angle = _number("Tilted", "max_angle", self.max_angle)
+        if not 0 < angle <= math.pi:
+            raise ValueError(f"terminate: Tilted({self.body!r}, ...)'s max_angle must be in "
+                             f"(0, pi] radians, got {self.max_angle!r}")
+        object.__setattr__(self, "max_angle", angle)
+
+    def resolve(self, model):
+        body = _object_id(model, mujoco.mjtObj.mjOBJ_BODY, "body", self.body,
+                          f"Tilted({self.body!r}, {self.max_angle})")
+        return dataclasses.replace(self, body_id=body)
+
+    def met(self, xp, fields):
+        # xmat is row-major: element 8 is the z component of the body's z axis, the cosine of
+        # its angle to the world's z axis
+        return fields["xmat"][:, self.body_id, 8] < math.cos(self.max_angle)
+
+
+@dataclasses.dataclass(frozen=True)
+class Outside(Rule):
+    """A 1-dof joint's position (`qpos` of a slide or hinge joint) leaves `[low, high]`: a cart
+    past the rail's end, a pole past an angle.
+
+    Args:
+      joint: the joint's name (a slide or hinge joint).
+      low, high: the interval it must stay in (metres or radians), low < high.
+    """
+
+    joint: str
+    low: float
+    high: float
+    qpos_adr: int = dataclasses.field(default=-1, compare=False, repr=False)
+    reads = ("qpos",)
+
+    def __post_init__(self):
+        _name("Outside", "joint", self.joint)
+        low = _number("Outside", "low", self.low)
+        high = _number("Outside", "high", self.high)
+        if not low < high:
+            raise ValueError(f"terminate: Outside({self.joint!r}, {self.low!r}, {self.high!r}): "
+                             f"expected low < high")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+
+    def resolve(self, model):
+        what = f"Outside({self.joint!r}, {self.low}, {self.high})"
+        joint = _object_id(model, mujoco.mjtObj.mjOBJ_JOINT, "joint", self.joint, what)
+        kind = int(model.jnt_type[joint])
+        if kind not in (mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE):
+            one_dof = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
+                       for j in range(model.njnt) if int(model.jnt_type[j]) in
+                       (mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE)]
+            raise ValueError(f"terminate: {what}: joint {self.joint!r} is a "
+                             f"{mujoco.mjtJoint(kind).name[6:].lower()} joint; Outside takes a "
+                             f"1-dof joint (slide or hinge): {one_dof or '(none)'}")
+        return dataclasses.replace(self, qpos_adr=int(model.jnt_qposadr[joint]))
+
+    def met(self, xp, fields):
+        q = fields["qpos"][:, self.qpos_adr]
+        return (q < self.low) | (q > self.high)
+
+
+@dataclasses.dataclass(frozen=True)
+class TimeLimit(Rule):
+    """The episode is truncated after `steps` physics steps (a reset frame is step 0; with
+    `continue_episodes=True` the count runs across batches). Checked at the recorded frames:
+    with `record_every=k`, the first frame at or past `steps`.
+
+    Args:
+      steps: the episode's length in steps, >= 1.
+    """
+
+    steps: int
+    truncates = True
+
+    def __post_init__(self):
+        if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) \
+                or self.steps < 1:
+            raise ValueError(f"terminate: TimeLimit(steps)'s steps must be an int >= 1, got "
+                             f"{self.steps!r}")
+
+    def met(self, xp, fields):
+        return fields["episode_steps"] >= self.steps
+
+
+@dataclasses.dataclass(frozen=True)
+class Episodes:
+    """The resolved `terminate=` of a dataset: its rules (checked against the model), what
+    they read, and the time limit if any.
+
+    Attributes:
+      rules: the rules that terminate an episode, resolved.
+      time_limit: a `TimeLimit`'s steps, or None.
+      reads: the fields of a frame's state the rules read (a subset of `FIELDS`).
+    """
+
+    rules: tuple[Rule, ...]
+    time_limit: Optional[int]
+    reads: tuple[str, ...]
+
+    @property
+    def kinematic(self) -> bool:
+        """Whether a rule reads what mj_kinematics derives from the state (xpos, xmat)."""
+        return any(f != "qpos" for f in self.reads)
+
+    def terminated(self, xp: Any, fields: dict[str, Any], like: Any) -> Any:
+        """(nbatch,) bool: a frame's state meets a terminating rule (`like`: an (nbatch,)
+        bool array of the module, returned False when there are no such rules)."""
+        out = xp.zeros_like(like)
+        for rule in self.rules:
+            out = out | rule.met(xp, fields)
+        return out
+
+    def truncated(self, episode_steps: Any, like: Any, xp: Any) -> Any:
+        """(nbatch,) bool: the time limit ends the episode at a frame after `episode_steps`
+        steps."""
+        if self.time_limit is None:
+            return xp.zeros_like(like)
+        return episode_steps >= self.time_limit
+
+
+def parse(model: mujoco.MjModel, terminate: Any) -> Optional[Episodes]:
+    """The `Episodes` of `terminate=`: None, a rule, or a sequence of rules (any one ends the
+    episode; at most one `TimeLimit`).
+
+    Raises:
+      ValueError, TypeError: a rule that does not fit the model, or a value that is not one.
+    """
+    if terminate is None:
+        return None
+    rules = [terminate] if isinstance(terminate, Rule) else terminate
+    if callable(terminate) and not isinstance(terminate, Rule):
+        raise ValueError("terminate: a callable over the observations is not supported yet; "
+                         "give rules of simloader.terminate (Below, Tilted, Outside, TimeLimit)")
+    if not isinstance(rules, Sequence) or isinstance(rules, (str, bytes)) or not rules:
+        raise TypeError(f"terminate: expected None, a rule of simloader.terminate (Below, "
+                        f"Tilted, Outside, TimeLimit) or a non-empty sequence of them, got "
+                        f"{terminate!r}")
+    bad = [r for r in rules if not isinstance(r, Rule)]
+    if bad:
+        raise TypeError(f"terminate: expected rules of simloader.terminate (Below, Tilted, "
+                        f"Outside, TimeLimit), got {bad[0]!r}")
+    limits = [r for r in rules if isinstance(r, TimeLimit)]
+    if len(limits) > 1:
+        raise ValueError(f"terminate: at most one TimeLimit, got {limits}")
+    resolved = tuple(r.resolve(model) for r in rules if not isinstance(r, TimeLimit))
+    reads = tuple(f for f in FIELDS if any(f in r.reads for r in resolved))
+    return Episodes(resolved, limits[0].steps if limits else None, reads)

@@ -1,0 +1,215 @@
+"""Episodes that end where the task ends (`terminate=`), on the CPU engine: every episode of a
+batch equals `mujoco.rollout` from its initial state with its controls, bit for bit; the
+flags are what the rules say; the fresh frames are fresh initial states."""
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from mujoco import rollout
+
+import simloader
+from simloader import controls, initial
+from simloader import terminate as T
+
+WALKER = "examples/models/walker/walker.xml"
+
+
+def episodes(batch, row):
+    """[(start frame, stop frame)] of trajectory `row`: the frames of each episode."""
+    first = batch["first"][row].numpy()
+    starts = [0] + list(np.flatnonzero(first))
+    stops = starts[1:] + [first.shape[0]]
+    return list(zip(starts, stops))
+
+
+def check_against_rollout(ds, batch, rows):
+    """Every episode of `rows` equals mujoco.rollout from its initial state (the batch's
+    initial state, or its fresh first frame) with its controls, state and sensors bit for
+    bit; a fresh frame's sensors are mj_forward's at it; its controls are NaN."""
+    model = ds.config.model
+    data = mujoco.MjData(model)
+    state = batch["state"].numpy()
+    sensors = batch["sensordata"].numpy()
+    control = batch["control"].numpy()
+    checked = 0
+    for row in rows:
+        for start, stop in episodes(batch, row):
+            if start == 0:
+                x0, frames = batch["initial_state"][row].numpy(), range(0, stop)
+            else:
+                x0, frames = state[row, start], range(start + 1, stop)
+                # the fresh frame: its sensors as mj_forward computes them there
+                mujoco.mj_resetData(model, data)
+                mujoco.mj_setState(model, data, x0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+                mujoco.mj_forward(model, data)
+                np.testing.assert_array_equal(sensors[row, start], data.sensordata)
+                assert np.isnan(control[row, start]).all()
+            if len(frames) == 0:
+                continue
+            u = control[row, frames.start:frames.stop]
+            assert np.isfinite(u).all()
+            want_state, want_sensors = rollout.rollout(model, data, x0[None], u[None])
+            np.testing.assert_array_equal(state[row, frames.start:frames.stop], want_state[0])
+            np.testing.assert_array_equal(sensors[row, frames.start:frames.stop],
+                                          want_sensors[0])
+            checked += 1
+    return checked
+
+
+@pytest.fixture(scope="module")
+def walker():
+    ds = simloader.SimDataset(WALKER, nbatch=6, nstep=300, seed=1, backend="cpu",
+                              control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.05),
+                              initial_state=initial.Perturbed(qpos_std=0.05, qvel_std=0.2),
+                              terminate=T.Below("torso", 0.9))
+    return ds, next(iter(ds))
+
+
+def test_every_walker_episode_equals_mujoco_rollout(walker):
+    # contacts and the constraint solver's warmstart: a reset that kept the fallen walker's
+    # warmstart (or applied its control row) would not equal a rollout from the fresh state
+    ds, batch = walker
+    assert batch["first"].sum() >= 6, "every walker falls and restarts at least once"
+    assert check_against_rollout(ds, batch, range(6)) > 12
+
+
+def test_the_flags_say_what_the_rule_and_the_resets_did(walker):
+    ds, batch = walker
+    model = ds.config.model
+    data = mujoco.MjData(model)
+    terminated, first = batch["terminated"].numpy(), batch["first"].numpy()
+    assert not batch["truncated"].any()  # no time limit
+    torso = model.body("torso").id
+    for row in range(2):
+        for j in range(batch["state"].shape[1]):
+            mujoco.mj_setState(model, data, batch["state"][row, j].numpy(),
+                               mujoco.mjtState.mjSTATE_FULLPHYSICS)
+            mujoco.mj_kinematics(model, data)
+            assert terminated[row, j] == (data.xpos[torso, 2] < 0.9)
+    # the frame after a terminated one is a fresh one, and only then
+    np.testing.assert_array_equal(first[:, 1:], terminated[:, :-1])
+    assert not first[:, 0].any()
+
+
+def test_fresh_states_come_from_the_generator_seeded_per_row_and_episode(walker):
+    ds, batch = walker
+    again = next(iter(simloader.SimDataset(
+        WALKER, nbatch=6, nstep=300, seed=1, backend="cpu",
+        control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.05),
+        initial_state=initial.Perturbed(qpos_std=0.05, qvel_std=0.2),
+        terminate=T.Below("torso", 0.9))))
+    for key in ("state", "sensordata", "first", "terminated"):
+        assert torch.equal(batch[key], again[key])
+    fresh = batch["state"][batch["first"]]
+    assert len(torch.unique(fresh[:, 1:], dim=0)) == len(fresh)  # each its own draw
+    # drawn around the model's default pose (time 0, rootz 0)
+    assert torch.all(fresh[:, 0] == 0)
+
+
+def test_a_fixed_initial_state_restarts_from_itself_and_record_every():
+    ds = simloader.SimDataset("cartpole", nbatch=5, nstep=400, seed=0, backend="cpu",
+                              record_every=2, control=controls.Uniform(),
+                              terminate=[T.Outside("hinge", -0.25, 0.25)])
+    batch = next(iter(ds))
+    first = batch["first"]
+    assert first.sum() >= 5
+    state = batch["state"].numpy()
+    np.testing.assert_array_equal(state[first.numpy()],
+                                  np.broadcast_to(batch["initial_state"][0].numpy(),
+                                                  (int(first.sum()), state.shape[-1])))
+    # a fresh frame's two control rows are NaN, and only those
+    nan = torch.isnan(batch["control"][..., 0]).reshape(5, -1, 2)
+    assert torch.equal(nan[..., 0], first) and torch.equal(nan[..., 1], first)
+    hinge = batch.view("qpos", "hinge").numpy().reshape(5, 200)
+    np.testing.assert_array_equal(batch["terminated"].numpy(),
+                                  (hinge < -0.25) | (hinge > 0.25))
+
+
+def test_a_time_limit_truncates_every_k_steps():
+    ds = simloader.SimDataset("cartpole", nbatch=3, nstep=50, seed=0, backend="cpu",
+                              control=controls.Uniform(), terminate=T.TimeLimit(10))
+    batch = next(iter(ds))
+    truncated, first = batch["truncated"].numpy(), batch["first"].numpy()
+    # steps 1..10 then a fresh frame (step 0), 10 more: frames 9, 20, 31, 42
+    want = np.zeros(50, dtype=bool)
+    want[[9, 20, 31, 42]] = True
+    for row in range(3):
+        np.testing.assert_array_equal(truncated[row], want)
+        np.testing.assert_array_equal(first[row, 1:], want[:-1])
+    assert not batch["terminated"].any()
+    assert check_against_rollout(ds, batch, range(3)) == 15
+
+
+def test_tilted_reads_the_bodys_orientation():
+    ds = simloader.SimDataset(WALKER, nbatch=4, nstep=200, seed=2, backend="cpu",
+                              control=controls.Uniform(), terminate=T.Tilted("torso", 0.5))
+    batch = next(iter(ds))
+    model, data = ds.config.model, mujoco.MjData(ds.config.model)
+    torso = model.body("torso").id
+    seen = 0
+    for j in range(200):
+        mujoco.mj_setState(model, data, batch["state"][0, j].numpy(),
+                           mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        mujoco.mj_kinematics(model, data)
+        tilt = math.acos(min(1.0, data.xmat[torso, 8]))
+        assert bool(batch["terminated"][0, j]) == (tilt > 0.5)
+        seen += tilt > 0.5
+    assert seen >= 1
+    assert check_against_rollout(ds, batch, range(4)) >= 4
+
+
+def test_without_terminate_nothing_changes():
+    ds = simloader.SimDataset("cartpole", nbatch=2, nstep=5, seed=0, backend="cpu")
+    assert not {"terminated", "truncated", "first"} & set(next(iter(ds)))
+
+
+@pytest.mark.parametrize("rule, message", [
+    (T.Below("nobody", 0.5), "terminate: Below('nobody', 0.5): the model has no body 'nobody'"),
+    (T.Outside("nohinge", -1, 1), "the model has no joint 'nohinge' (did you mean 'hinge'?); its joints: ['slider', 'hinge']"),
+    (T.Outside("rootz", -1, 1), None),
+])
+def test_unknown_names_are_refused_with_the_choices(rule, message):
+    if message is None:  # a walker's slide joint is 1-dof: accepted
+        simloader.SimDataset(WALKER, nbatch=1, nstep=1, backend="cpu", terminate=rule)
+        return
+    with pytest.raises(ValueError) as e:
+        simloader.SimDataset("cartpole", nbatch=1, nstep=1, backend="cpu", terminate=rule)
+    assert message in str(e.value)
+
+
+def test_bad_rules_are_refused_at_construction():
+    with pytest.raises(ValueError, match=r"max_angle must be in \(0, pi\] radians, got 4"):
+        T.Tilted("torso", 4)
+    with pytest.raises(ValueError, match=r"max_angle must be in \(0, pi\] radians, got 0"):
+        T.Tilted("torso", 0)
+    T.Below("torso", -0.5)  # a negative height is fine
+    with pytest.raises(ValueError, match=r"TimeLimit\(steps\)'s steps must be an int >= 1, got 0"):
+        T.TimeLimit(0)
+    with pytest.raises(ValueError, match="expected low < high"):
+        T.Outside("hinge", 1, -1)
+    with pytest.raises(ValueError, match="at most one TimeLimit"):
+        simloader.SimDataset("cartpole", nbatch=1, nstep=1, backend="cpu",
+                             terminate=[T.TimeLimit(3), T.TimeLimit(4)])
+    with pytest.raises(TypeError, match="terminate: expected None, a rule"):
+        simloader.SimDataset("cartpole", nbatch=1, nstep=1, backend="cpu", terminate="hinge")
+
+
+def test_a_free_joint_is_not_outsideable():
+    xml = """<mujoco><worldbody><body name="b"><freejoint name="f"/><geom size="0.1"/></body>
+             </worldbody></mujoco>"""
+    with pytest.raises(ValueError, match="joint 'f' is a free joint; Outside takes a 1-dof"):
+        simloader.SimDataset(xml, nbatch=1, nstep=1, backend="cpu",
+                             terminate=T.Outside("f", -1, 1))
+
+
+def test_auto_takes_the_engine_that_ends_episodes_and_the_others_say_so():
+    ds = simloader.SimDataset("cartpole", nbatch=64, nstep=5, terminate=T.TimeLimit(3))
+    assert ds.config.backend == "cpu"
+    for backend in ("mjx",):
+        with pytest.raises(ValueError, match=f"terminate: backend='{backend}' does not end "
+                                             f"episodes yet; backend='cpu' does"):
+            simloader.SimDataset("cartpole", nbatch=4, nstep=5, backend=backend,
+                                 terminate=T.TimeLimit(3))
