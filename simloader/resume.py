@@ -54,6 +54,22 @@ def decode_trajectories(encoded: dict[str, Any],
             {k: decode_array(v) for k, v in encoded["params"].items()})
 
 
+def encode_episodes(pending: np.ndarray, steps: np.ndarray) -> dict[str, Any]:
+    """What continuing episodes (`terminate=`) carry into the next batch: the rows whose last
+    frame met a rule (their next frame is a fresh state) and each episode's steps so far."""
+    return {"pending": encode_array(np.asarray(pending, bool)),
+            "steps": encode_array(np.asarray(steps, np.int64))}
+
+
+def decode_episodes(encoded: dict[str, Any], nbatch: int) -> tuple[np.ndarray, np.ndarray]:
+    """(pending, steps) of `encode_episodes` in a trajectories record; none pending and no
+    steps where the record has none."""
+    if "episodes" not in encoded:
+        return np.zeros(nbatch, bool), np.zeros(nbatch, np.int64)
+    return (decode_array(encoded["episodes"]["pending"]),
+            decode_array(encoded["episodes"]["steps"]))
+
+
 def check(config: SimConfig, state: Any) -> None:
     """Raises ValueError unless `state` is a state_dict of a stream with this configuration,
     naming the differences."""

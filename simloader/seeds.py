@@ -23,9 +23,9 @@ def batch_seed(seed: int, shard: Any, index: int, purpose: int) -> np.random.See
     return np.random.SeedSequence(seed, spawn_key=key)
 
 
-def reset_seed(seed: int, shard: Any, index: int, row: int, episode: int
-               ) -> np.random.SeedSequence:
-    """The seed of trajectory `row`'s fresh initial state after its `episode`-th reset
-    (from 0) within global batch `index` (`terminate=`'s autoreset)."""
+def reset_seed(seed: int, shard: Any, index: int, draw: int) -> np.random.SeedSequence:
+    """The seed of global batch `index`'s `draw`-th set of fresh initial states, one per
+    trajectory (`terminate=`'s autoreset: a trajectory's e-th reset of the batch takes its
+    row of set `e % terminate.FRESH_DRAWS`)."""
     base = batch_seed(seed, shard, index, RESET)
-    return np.random.SeedSequence(seed, spawn_key=base.spawn_key + (row, episode))
+    return np.random.SeedSequence(seed, spawn_key=base.spawn_key + (draw,))

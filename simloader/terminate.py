@@ -23,6 +23,11 @@ import numpy as np
 
 from simloader import layout
 
+# fresh initial states an initial-state generator draws per trajectory and batch for the
+# autoreset: a trajectory's e-th reset within a batch takes draw e mod FRESH_DRAWS (each seeded
+# by batch and draw, so streams stay reproducible and resumable, and engines agree)
+FRESH_DRAWS = 8
+
 # what a rule may read of a frame's state, as each engine hands it over: name -> shape after
 # (nbatch,). Kinematics (xpos, xmat) are those of the frame's own state (mj_kinematics of it).
 FIELDS = ("qpos", "xpos", "xmat")

@@ -22,7 +22,8 @@ import numpy as np
 import torch
 from mujoco import batch as mj_batch
 
-from simloader import controls, handoff, layout, mujoco_warnings, rules, seeds, threads
+from simloader import controls, handoff, layout, mujoco_warnings, resume, rules, seeds, terminate
+from simloader import threads
 from simloader.backends.cpu import drivers
 from simloader.backends.cpu import episodes as cpu_episodes
 from simloader.backends.cpu import recorded as recorded_from
@@ -42,6 +43,8 @@ class _Produced:
     extras: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)  # policy's
     images: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)  # cameras'
     rendering: list = dataclasses.field(default_factory=list)  # futures filling `images`
+    # terminate= with continue_episodes: (pending, episode steps) after this batch
+    episodes: Optional[tuple[np.ndarray, np.ndarray]] = None
 
 
 class CpuBackend(Backend):
@@ -151,9 +154,11 @@ class CpuBackend(Backend):
                       for o in self.images}
             rendering = self.renderer.render(recorded[layout.INTEGRATION][1], self._model_of(),
                                              {k: a for k, (_, a) in images.items()})
+        episodes = (None if self.episodes is None or not c.continue_episodes else
+                    (self.episodes.pending.copy(), self.episodes.episode_steps.copy()))
         return _Produced({s: tensor for s, (tensor, _) in recorded.items()}, control_t, initial_t,
                          params, warned, rows_after, extras,
-                         {k: t for k, (t, _) in images.items()}, rendering)
+                         {k: t for k, (t, _) in images.items()}, rendering, episodes)
 
     def _fresh_rows(self, index: int):
         """`episodes.FreshRows` of batch `index`: each row's fresh initial state after a reset,
@@ -161,11 +166,17 @@ class CpuBackend(Backend):
         the row of mj_resetData with zero warmstart."""
         c, t = self.config, self.trajectories
 
+        draws: dict[int, np.ndarray] = {}  # a generator's sets of fresh states, drawn when needed
+
         def fresh(rows: np.ndarray, episodes: np.ndarray) -> np.ndarray:
             out = t.per_trajectory(self.reset_rows)[rows].copy()
             if c.initial.generator is not None:
-                x0 = np.concatenate([c.initial.sample(seeds.reset_seed(
-                    c.seed, self.shard, index, int(r), int(e)), 1) for r, e in zip(rows, episodes)])
+                sets = episodes % terminate.FRESH_DRAWS
+                for e in np.unique(sets):
+                    if e not in draws:
+                        draws[e] = c.initial.sample(
+                            seeds.reset_seed(c.seed, self.shard, index, int(e)), c.nbatch)
+                x0 = np.stack([draws[e][r] for r, e in zip(rows, sets)])
             elif self.variant_states is not None:
                 x0 = t.per_trajectory(self.variant_states)[rows]
             else:
@@ -228,11 +239,17 @@ class CpuBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict]:
         if not self.config.continue_episodes:
             return None
-        return self.trajectories.checkpoint(produced.rows_after, produced.warned,
-                                            produced.params)
+        encoded = self.trajectories.checkpoint(produced.rows_after, produced.warned,
+                                               produced.params)
+        if produced.episodes is not None:
+            encoded["episodes"] = resume.encode_episodes(*produced.episodes)
+        return encoded
 
     def restore(self, trajectories: dict) -> None:
         self.batch.state[...] = self.trajectories.restore(trajectories)
+        if self.episodes is not None:
+            self.episodes.pending, self.episodes.episode_steps = resume.decode_episodes(
+                trajectories, self.config.nbatch)
         # the trajectories that continue run on the models they ran on
         self._apply_params(np.arange(self.config.nbatch))
 

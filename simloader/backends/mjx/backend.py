@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import handoff, layout, resume, seeds, sharding
+from simloader import handoff, layout, resume, seeds, sharding, terminate
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import drivers, runtime
@@ -101,8 +101,14 @@ class MjxBackend(Backend):
                          randomize_seed.generate_state(2, np.uint32)])
         variant = None if c.variants is None else dr.draw_variants(
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
+        fresh = None
+        if c.terminate is not None and c.initial.generator is not None:
+            # a generator's fresh states for the autoreset, as the CPU engine draws them
+            fresh = np.stack([c.initial.sample(seeds.reset_seed(c.seed, self.shard, index, e),
+                                               c.nbatch)
+                              for e in range(terminate.FRESH_DRAWS)], axis=1).astype(p.dtype)
         return BatchArgs(p.model, p.data0, p.inputs0, x0, p.control, p.bounds, keys, variant,
-                         self.carry, self.restart)
+                         self.carry, self.restart, fresh, p.reset_control)
 
     def produce(self, index: int) -> _Produced:
         c = self.config
@@ -158,8 +164,13 @@ class MjxBackend(Backend):
         rows = np.empty((len(state), mujoco.mj_stateSize(model, _ROWS)), dtype=state.dtype)
         rows[:, layout.component_columns(model, _ROWS, layout.FULLPHYSICS)] = state
         rows[:, layout.component_columns(model, _ROWS, _WARMSTART)] = carry["qacc_warmstart"]
-        return resume.encode_trajectories(_ROWS, rows, np.asarray(produced.outputs["diverged"]),
-                                          {k: np.asarray(v) for k, v in carry["params"].items()})
+        encoded = resume.encode_trajectories(
+            _ROWS, rows, np.asarray(produced.outputs["diverged"]),
+            {k: np.asarray(v) for k, v in carry["params"].items()})
+        if "pending" in carry:
+            encoded["episodes"] = resume.encode_episodes(np.asarray(carry["pending"]),
+                                                         np.asarray(carry["episode_steps"]))
+        return encoded
 
     def restore(self, trajectories: dict[str, Any]) -> None:
         rows, self.restart, params = resume.decode_trajectories(trajectories, _ROWS)
@@ -167,6 +178,9 @@ class MjxBackend(Backend):
         carry = {"state": rows[:, layout.component_columns(model, _ROWS, layout.FULLPHYSICS)],
                  "qacc_warmstart": rows[:, layout.component_columns(model, _ROWS, _WARMSTART)],
                  "params": params}
+        if self.config.terminate is not None:
+            pending, steps = resume.decode_episodes(trajectories, self.config.nbatch)
+            carry.update(pending=pending, episode_steps=steps.astype(np.int32))
         self.carry = jax.device_put(carry, self.device)
 
     def close(self, _finalizing: Callable[[], bool] = sys.is_finalizing) -> None:

@@ -77,8 +77,8 @@ class MjxEngine(EngineEntry):
         return gpu_visible() and any(_found(p) for p in _CUDA_PLUGINS)
 
     def estimate(self, job: Job) -> Optional[float]:
-        if job.cameras or job.episodes:
-            return None  # MJX does not render, nor end episodes yet
+        if job.cameras or (job.episodes and job.policy):
+            return None  # MJX does not render; episodes end in the open loop only
         if self._gpu():
             rate = gpu_rule.steps_per_second(job, RULE)
         else:
@@ -114,9 +114,9 @@ class MjxEngine(EngineEntry):
         return runtime.determinism_refusal()
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
-        if config.terminate is not None:
-            raise ValueError(f"terminate: backend={self.name!r} does not end episodes yet; "
-                             f"backend='cpu' does (open loop)")
+        if config.terminate is not None and config.policy is not None:
+            raise ValueError("terminate: episodes end in the open loop for now; with policy= "
+                             "every trajectory runs its nstep steps (terminate=None)")
         from simloader.backends.mjx import options as mjx_options, runtime
         if config.deterministic:  # before anything below starts JAX
             runtime.configure_determinism()

@@ -102,8 +102,14 @@ class Pieces:
                   {r.param.key: zeros(len(r.elements)) for r in randomizer.plan.resolved})
         if c.variants is not None:
             params["variant"] = np.zeros(c.nbatch, np.int32)
+        # terminate=: the rules checked at every frame (None: none), and what the carry
+        # holds of episodes: which rows restart at the next frame, and each episode's steps
+        self.episodes = getattr(c, "terminate", None)
+        episodes = ({} if self.episodes is None else
+                    {"pending": np.zeros(c.nbatch, bool),
+                     "episode_steps": np.zeros(c.nbatch, np.int32)})
         self.blank_carry = ({"state": zeros(c.nstate), "qacc_warmstart": zeros(c.model.nv),
-                             "params": params} if c.continue_episodes else None)
+                             "params": params, **episodes} if c.continue_episodes else None)
 
     def reset(self, m, d0, inputs0, x0):
         """One trajectory as mj_resetData leaves it, with the physics state `x0`."""
@@ -168,6 +174,29 @@ class Pieces:
                 restart, jnp.zeros_like(data.qacc_warmstart), carry["qacc_warmstart"]))
         return m, data, control, variant, params
 
+    def kinematics(self, m, d):
+        """{name: (nbatch, ...)}: what the rules read of each trajectory's own state (its
+        positions, and the kinematics mj_kinematics derives from them; not the step's,
+        which are those of the state before it)."""
+        E, fields = self.episodes, {}
+        if "qpos" in E.reads:
+            fields["qpos"] = d.qpos
+        if E.kinematic:
+            k = jax.vmap(mjx.kinematics, (self.model_axes, 0))(m, d)
+            fields.update({name: getattr(k, name).reshape(self.nbatch, -1, 3 if name == "xpos"
+                                                          else 9)
+                           for name in E.reads if name != "qpos"})
+        return fields
+
+    def hold(self, m, d, pending, fresh):
+        """The rows `pending` at their fresh state `fresh` ((nbatch, nstate)), with zero
+        warmstart; the others as they are."""
+        physics = self.physics(m, d)
+        d = jax.vmap(lambda m, d, x: mjx.set_state(m, d, x, PHYSICS), (self.model_axes, 0, 0))(
+            m, d, _restarted(pending, fresh, physics))
+        return d.replace(qacc_warmstart=_restarted(pending, jnp.zeros_like(d.qacc_warmstart),
+                                                   d.qacc_warmstart))
+
     def finite(self, frame):
         """(nbatch,) bool, or None with no floating observation that `restart_unstable`
         leaves unchecked (a value made only of what it restarts is finite already)."""
@@ -188,6 +217,8 @@ class BatchArgs(NamedTuple):
     variant: Any
     carry: Any
     restart: Any
+    fresh: Any = None
+    reset_control: Any = None
 
 
 def batch_function(pieces: Pieces) -> Callable:
@@ -210,18 +241,47 @@ def batch_function(pieces: Pieces) -> Callable:
         the CPU engine draws it); None otherwise.
       carry, restart: with `continue_episodes`, what the previous batch left ({"state":
         (nbatch, nstate) after its last step, "qacc_warmstart": (nbatch, nv), "params": the
-        randomized values and variants}) and the (nbatch,) bool rows to restart from `x0`
-        with fresh values instead; None otherwise.
+        randomized values and variants; with `terminate`, "pending" (nbatch,) bool: rows whose
+        last frame met a rule, and "episode_steps" (nbatch,) int32}) and the (nbatch,) bool
+        rows to restart from `x0` with fresh values instead; None otherwise.
+      fresh: with `terminate` and an initial-state generator, (nbatch, FRESH_DRAWS, nstate)
+        fresh states (a trajectory's e-th reset takes draw e mod FRESH_DRAWS); None: a reset
+        restarts from the trajectory's `x0`.
+      reset_control: with `terminate`, the `control_spec` components as mj_resetData leaves
+        them, (npool or 1, ncontrol): a fresh frame's inputs (its control rows are not
+        applied); None otherwise.
 
     It returns (outputs, carry): the batch's dict of arrays and, with `continue_episodes`,
     the carry for the next batch.
+
+    With `terminate`, every frame's state is checked against the rules. After a frame that
+    meets one, the trajectory's next frame is its fresh state: it is stepped from that state
+    with the inputs mj_resetData leaves (so that what it records besides its state is the
+    step's forward pass there, as the CPU engine's mj_forward), and held there (state, zero
+    warmstart); its control rows are delivered as NaN.
     """
     P = pieces
     every, nframes, given, shape = P.every, P.nframes, P.given, P.shape
+    E = P.episodes
 
-    def simulate(m, d0, inputs0, x0, control, bounds, seeds, variant, carry, restart):
+    def simulate(m, d0, inputs0, x0, control, bounds, seeds, variant, carry, restart,
+                 fresh=None, reset_control=None):
+        source = x0  # each row's initial-state source, for its fresh states
         m, data, control, variant, params = P.begin(m, d0, inputs0, x0, control, seeds,
                                                     variant, carry, restart)
+        if E is not None:
+            if P.x0_per_variant:
+                source = source[variant]
+            if reset_control.shape[0] > 1:  # per model of the pool
+                reset_control = reset_control[variant] if P.variants else reset_control
+            rows = jnp.arange(P.nbatch)
+            if P.continuing:
+                pending = carry["pending"] & ~restart
+                steps = jnp.where(restart, 0, carry["episode_steps"])
+            else:
+                pending = jnp.zeros(P.nbatch, bool)
+                steps = jnp.zeros(P.nbatch, jnp.int32)
+            episodes = (pending, steps, jnp.zeros(P.nbatch, jnp.int32))
         initial = P.physics(m, data)
         low, high = P.bounds(m, bounds, variant)
         if P.drivers:
@@ -236,32 +296,66 @@ def batch_function(pieces: Pieces) -> Callable:
               if given else None)
 
         def advance(loop, u):
-            d, diverged = loop
+            d, diverged = loop[:2]
+            if E is None:
+                d = jax.vmap(P.step, (P.model_axes, 0, 0 if given else None))(m, d, u)
+                d, unstable = P.restart_unstable(m, d)
+                return (d, diverged | unstable), None
+            held, at = loop[2:]  # rows held at their fresh state this frame, and that state
+            d = P.hold(m, d, held, at)
+            if given:  # a held row's inputs stay as mj_resetData leaves them
+                u = _restarted(held, jnp.broadcast_to(reset_control, u.shape), u)
             d = jax.vmap(P.step, (P.model_axes, 0, 0 if given else None))(m, d, u)
             d, unstable = P.restart_unstable(m, d)
-            return (d, diverged | unstable), None
+            return (P.hold(m, d, held, at), diverged | unstable, held, at), None
 
         def record(loop, us):
             """`record_every` steps (`us`: their control rows), then one recorded frame."""
-            if every == 1:
-                loop, _ = advance(loop, None if us is None else us[0])
+            if E is None:
+                inner = loop
             else:
-                loop, _ = jax.lax.scan(advance, loop, us, length=every)
-            d, diverged = loop
+                d, diverged, (pending, steps, resets) = loop
+                at = source if fresh is None else fresh[rows, resets % fresh.shape[1]]
+                inner = (d, diverged, pending, at)
+            if every == 1:
+                inner, _ = advance(inner, None if us is None else us[0])
+            else:
+                inner, _ = jax.lax.scan(advance, inner, us, length=every)
+            d, diverged = inner[:2]
             frame = mjx_observe.frame(P.observations, P.model_axes, m, d)
             finite = P.finite(frame)
-            return (d, diverged if finite is None else diverged | ~finite), frame
+            diverged = diverged if finite is None else diverged | ~finite
+            if E is None:
+                return (d, diverged), frame
+            # the frame's flags: its state against the rules; the episode's steps
+            steps = jnp.where(pending, 0, steps + every)
+            fields = P.kinematics(m, d)
+            no = jnp.zeros(P.nbatch, bool)
+            terminated = E.terminated(jnp, fields, no)
+            truncated = E.truncated(steps, no, jnp)
+            frame.update(terminated=terminated, truncated=truncated, first=pending)
+            episodes = (terminated | truncated, steps, resets + pending)
+            return (d, diverged, episodes), frame
 
-        (data, diverged), frames = jax.lax.scan(record, (data, bad), xs, length=nframes)
+        loop = (data, bad) if E is None else (data, bad, episodes)
+        loop, frames = jax.lax.scan(record, loop, xs, length=nframes)
+        data, diverged = loop[:2]
         outputs = {key: jnp.swapaxes(value, 0, 1) for key, value in frames.items()}
+        if E is not None:
+            # a fresh frame's control rows were not applied
+            unapplied = jnp.repeat(outputs["first"], every, axis=1)[..., None]
+            control = jnp.where(unapplied, jnp.asarray(jnp.nan, control.dtype), control)
         outputs.update(control=control, initial_state=initial, diverged=diverged)
         if params:
             outputs["params"] = params
         if not P.continuing:
             return outputs, None
         # what the next batch continues from (`begin`; the closed loop's `finish` alike)
-        return outputs, {"state": P.physics(m, data), "qacc_warmstart": data.qacc_warmstart,
-                         "params": params}
+        out = {"state": P.physics(m, data), "qacc_warmstart": data.qacc_warmstart,
+               "params": params}
+        if E is not None:
+            out.update(pending=loop[2][0], episode_steps=loop[2][1])
+        return outputs, out
 
     return simulate
 
@@ -312,6 +406,9 @@ class Program:
         control_defaults, variant_states = tables.control_defaults, tables.variant_states
         constant = c.control.fixed if c.control.fixed is not None else control_defaults
         self.control = jax.device_put(constant.astype(self.dtype), device)
+        # terminate=: a fresh frame's inputs, per model of the pool
+        self.reset_control = (None if getattr(c, "terminate", None) is None else
+                              jax.device_put(control_defaults.astype(self.dtype), device))
         # fixed initial states go to the device once; generated ones with every batch
         if c.initial.generator is not None:
             x0 = None
