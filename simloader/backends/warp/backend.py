@@ -22,7 +22,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from simloader import handoff, policy, seeds, sharding
+from simloader import handoff, policy, resume, seeds, sharding, terminate
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
 from simloader.backends.warp import runtime
@@ -73,6 +73,10 @@ class WarpBackend(Backend):
         # which trajectories start afresh, the variant and values each runs with (on the device)
         self.trajectories = Trajectories(config, self.device)
         self.restored: Optional[torch.Tensor] = None  # resumed rows, applied at the next batch
+        # terminate= with continue_episodes: (pending, episode steps) this iterator's episodes
+        # left, and those to load at the next batch (resumed, or taken back)
+        self.episodes_after: Optional[tuple] = None
+        self.restored_episodes: Optional[tuple] = None
         self.rows: Optional[torch.Tensor] = None  # continuing: the rows after the last batch
         self.token = object()  # names this iterator as the engine's owner (holding nothing)
         self.snapshot = (policy.Snapshot(config.policy, self.device)
@@ -104,12 +108,28 @@ class WarpBackend(Backend):
         # reset could read them before they arrived)
         x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
         drawn = self.draw_models(index)
+        fresh = None
+        if c.terminate is not None and c.initial.generator is not None:
+            # a generator's fresh states for the autoreset, as the CPU engine draws them
+            fresh = np.stack([c.initial.sample(seeds.reset_seed(c.seed, self.shard, index, d),
+                                               c.nbatch)
+                              for d in range(terminate.FRESH_DRAWS)], axis=1)
         # the weights this batch runs with, one version of them (a copy taken now)
         weights = self.snapshot.take() if self.snapshot is not None else None
         dispatched = time.perf_counter()
         with e.queued():
-            self._start_trajectories({k: self.upload(v) for k, v in drawn.items()},
-                                     self.upload(x0))
+            starts_afresh = self.trajectories.fresh.clone()
+            x0 = self._start_trajectories({k: self.upload(v) for k, v in drawn.items()},
+                                          self.upload(x0))
+            if e.episodes is not None:
+                if self.restored_episodes is not None:
+                    for buffer, value in zip((e.episodes.pending, e.episodes.steps),
+                                             self.restored_episodes):
+                        buffer.copy_(torch.as_tensor(value, device=self.device))
+                    self.restored_episodes = None
+                e.episodes.start(x0[:, None] if fresh is None else self.upload(fresh),
+                                 self.trajectories.per_trajectory(tables.control_defaults),
+                                 starts_afresh)
             initial_state = e.physics()
             e.set_bounds(self.trajectories.per_trajectory(tables.low),
                          self.trajectories.per_trajectory(tables.high))
@@ -122,6 +142,11 @@ class WarpBackend(Backend):
             outputs.update(control=e.applied(), diverged=e.diverged.clone(),
                            initial_state=initial_state,
                            overflow=e.views["overflow"][:, 0].clone())
+            episodes = None
+            if e.episodes is not None:
+                outputs.update(e.episodes.finish(outputs["control"]))
+                episodes = (e.episodes.pending.clone(), e.episodes.steps.clone())
+                self.episodes_after = episodes
             params = {k: v.clone() for k, v in self.trajectories.params.items()}
             rows_after = e.integration() if c.continue_episodes else None
             self.rows = rows_after
@@ -132,19 +157,23 @@ class WarpBackend(Backend):
             if ready is not None:
                 ready.record()
         produced = _Produced(outputs, params, extras, rows_after, ready, dispatched)
+        produced.episodes = episodes
         self.last = produced
         return produced
 
-    def _start_trajectories(self, drawn: dict[str, torch.Tensor], x0: torch.Tensor) -> None:
+    def _start_trajectories(self, drawn: dict[str, torch.Tensor],
+                            x0: torch.Tensor) -> torch.Tensor:
         """Trajectories that start afresh (all, unless continuing) take their newly drawn
         model (variant) and parameters and restart from their initial state; the others keep
-        theirs."""
+        theirs. Returns each trajectory's initial state (its source's row: the fresh state of
+        an autoreset where no generator draws them)."""
         c, e, tables, t = self.config, self.engine, self.tables, self.trajectories
         fresh = t.fresh
         if e.claim(self.token) and self.restored is None and c.continue_episodes:
             # another iterator of this dataset ran on the engine's data since: take back
             # this one's trajectories (the rows it left, warmstart included)
             self.restored = self.rows
+            self.restored_episodes = self.episodes_after
         if self.restored is not None:  # resumed or taken back: the rows, before any restart
             e.reset(self.restored, torch.ones_like(fresh))
             self.restored = None
@@ -155,6 +184,7 @@ class WarpBackend(Backend):
             x0 = t.per_trajectory(tables.variant_states)
         rows[:, tables.physics_cols] = x0
         e.reset(rows, fresh)
+        return x0
 
     def deliver(self, produced: _Produced) -> dict[str, torch.Tensor]:
         c = self.config
@@ -202,12 +232,19 @@ class WarpBackend(Backend):
     def checkpoint(self, produced: _Produced) -> Optional[dict[str, Any]]:
         if not self.config.continue_episodes:
             return None
-        return self.trajectories.checkpoint(produced.rows_after, produced.outputs["diverged"],
-                                            produced.params)
+        encoded = self.trajectories.checkpoint(produced.rows_after,
+                                               produced.outputs["diverged"], produced.params)
+        if produced.episodes is not None:
+            encoded["episodes"] = resume.encode_episodes(
+                *(v.cpu().numpy() for v in produced.episodes))
+        return encoded
 
     def restore(self, trajectories: dict[str, Any]) -> None:
         # the rows are loaded at the next batch, inside the engine's stream
         self.restored = self.trajectories.restore(trajectories)
+        if self.engine.episodes is not None:
+            pending, steps = resume.decode_episodes(trajectories, self.config.nbatch)
+            self.restored_episodes = (pending, steps)
 
     def close(self) -> None:
         # batches queued but never delivered would keep the GPU busy after the iterator is

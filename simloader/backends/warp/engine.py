@@ -33,6 +33,7 @@ import torch
 
 from simloader import rules
 from simloader.backends.warp import cameras, drivers, model_arrays, runtime
+from simloader.backends.warp import episodes as warp_episodes
 from simloader.backends.warp import observe as warp_observe
 from simloader.backends.warp.options import WarpOptions
 from simloader.backends.warp.tables import STATE_ARRAYS, DeviceTables
@@ -98,8 +99,10 @@ class WarpSimulation:
             self.d = mjw.make_data(c.model, nworld=n, naconmax=options.naconmax,
                                    njmax=options.njmax)
             self.observations = [o for o in c.observations if not o.rendered]
+            read = c.terminate.reads if c.terminate is not None else ()  # by the rules
             names = (*STATE_ARRAYS.values(), "qacc", "sensordata", "overflow",
-                     *(name for o in self.observations for name in o.fields()))
+                     *(name for o in self.observations for name in o.fields()),
+                     *(name for name in read if name != "qpos"))
             self.views = {name: self._data(name) for name in dict.fromkeys(names)}
             self.model_views = {k: self.wp.to_torch(v)
                                 for k, v in model_arrays.arrays(self.m).items()}
@@ -182,6 +185,17 @@ class WarpSimulation:
         if self.cameras is not None:
             self.frames.update(self.cameras.frames(c.nbatch, c.nframes))
         self.obs: dict[str, torch.Tensor] = {}
+        # terminate=: the rules checked after every step, and the autoreset
+        self.episodes = (warp_episodes.Episodes(c, self.views, self._kinematics)
+                         if c.terminate is not None else None)
+
+    def _kinematics(self) -> dict[str, torch.Tensor]:
+        """MuJoCo Warp's kinematics of the state now, for the rules: {"xpos": (nbatch, nbody,
+        3), "xmat": (nbatch, nbody, 9)} as they read them (the next step computes its own)."""
+        self.mjw.kinematics(self.m, self.d)
+        nbody = self.config.model.nbody
+        return {name: self.views[name].view(-1, nbody, 3 if name == "xpos" else 9)
+                for name in self.config.terminate.reads if name != "qpos"}
 
     def _capture(self) -> Any:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
@@ -342,6 +356,8 @@ class WarpSimulation:
             u, bad = self.loop.row(self.t, self.low, self.high)
             if bad is not None:
                 self.diverged |= bad
+            if self.episodes is not None:  # a fresh frame's inputs are mj_resetData's
+                u = self.episodes.inputs(u)
             for columns, target, boolean in self.inputs:
                 row = u[:, columns]
                 target.copy_(row != 0 if boolean else row)
@@ -349,6 +365,8 @@ class WarpSimulation:
             frame = rules.frame_index(self.t, c.record_every)
             _, unstable = rules.restart_unstable(self.views, self.model_views["qpos0"], torch)
             self.diverged |= unstable
+            if self.episodes is not None:  # a fresh frame stays at its fresh state
+                self.episodes.hold()
             obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
             for key, value in obs.items():
                 self.frames[key].index_copy_(1, frame, value[:, None])
@@ -359,6 +377,8 @@ class WarpSimulation:
                     obs = {k: v.clone() for k, v in obs.items()}
                 # images go straight into their frames; the policy gets this step's
                 obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
+            if self.episodes is not None:  # the frame's flags; at its end, the resets
+                self.episodes.after_step(self.t, frame)
         self.t += 1
         self.obs = obs
 

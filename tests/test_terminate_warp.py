@@ -1,0 +1,125 @@
+"""Episodes that end (`terminate=`) on the Warp engine, inside its step graph: the flags the
+rules imply, the fresh states of the initial-state source, MuJoCo's physics after a reset
+within the named float32 tolerance, and episodes across batches resumed bit for bit. Without a
+GPU these run MuJoCo Warp's CPU kernels (`SIMLOADER_WARP_ON_CPU=1`); on the GPU machine the
+same tests run the captured CUDA graph."""
+
+import os
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from mujoco import rollout
+
+pytest.importorskip("warp")
+pytest.importorskip("mujoco_warp")
+
+import simloader  # noqa: E402
+from simloader import controls, initial, seeds, sharding  # noqa: E402
+from simloader import terminate as T  # noqa: E402
+from test_terminate_mjx import CONTACT_FREE_TOL, KINEMATICS_TOL, resets  # noqa: E402
+
+WALKER = "examples/models/walker/walker.xml"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def warp_on_cpu():
+    """MuJoCo Warp on the CPU where no GPU is (on a GPU the variable changes nothing)."""
+    before = os.environ.get("SIMLOADER_WARP_ON_CPU")
+    os.environ["SIMLOADER_WARP_ON_CPU"] = "1"
+    yield
+    if before is None:
+        del os.environ["SIMLOADER_WARP_ON_CPU"]
+    else:
+        os.environ["SIMLOADER_WARP_ON_CPU"] = before
+
+
+def host(batch):
+    return {k: v.cpu() for k, v in batch.items() if isinstance(v, torch.Tensor)}
+
+
+@pytest.mark.parametrize("record_every", [1, 2])
+def test_cartpole_flags_fresh_states_and_physics(record_every):
+    ds = simloader.SimDataset("cartpole", nbatch=8, nstep=120, seed=5, backend="warp",
+                              record_every=record_every, control=controls.Uniform(),
+                              initial_state=initial.Perturbed(qpos_std=0.05, qvel_std=0.3),
+                              terminate=[T.Outside("hinge", -0.3, 0.3), T.TimeLimit(40)])
+    batch = host(next(iter(ds)))
+    terminated, truncated, first = (batch[k].numpy() for k in ("terminated", "truncated",
+                                                                "first"))
+    hinge = batch["state"][..., 2].numpy()  # qpos of the hinge: [time, slider, hinge, ...]
+    np.testing.assert_array_equal(terminated, (hinge < -0.3) | (hinge > 0.3))
+    np.testing.assert_array_equal(first[:, 1:], (terminated | truncated)[:, :-1])
+    assert first.sum() >= 8 and truncated.any()
+    # the k-th reset of a row takes its draw k of the batch, as on the CPU engine
+    draws = [ds.config.initial.sample(seeds.reset_seed(5, sharding.Shard(), 0, e), 8)
+             for e in range(T.FRESH_DRAWS)]
+    state, control = batch["state"].numpy(), batch["control"].numpy()
+    model, data = ds.config.model, mujoco.MjData(ds.config.model)
+    nframes = 120 // record_every
+    checked = 0
+    for row, frame, e in resets(first):
+        np.testing.assert_array_equal(state[row, frame],
+                                      draws[e % T.FRESH_DRAWS][row].astype(np.float32))
+        steps = slice(frame * record_every, (frame + 1) * record_every)
+        assert np.isnan(control[row, steps]).all()
+        stop = next((j for j in range(frame + 1, nframes) if first[row, j]), nframes)
+        if stop - frame < 2:
+            continue
+        u = control[row, (frame + 1) * record_every:stop * record_every].astype(np.float64)
+        want, _ = rollout.rollout(model, data, state[row, frame].astype(np.float64)[None],
+                                  u[None])
+        np.testing.assert_allclose(state[row, frame + 1:stop],
+                                   want[0, record_every - 1::record_every], rtol=0,
+                                   atol=CONTACT_FREE_TOL)
+        checked += 1
+    assert checked >= 4
+    assert np.isfinite(np.delete(control, np.flatnonzero(first.repeat(record_every, 1)
+                                                         .ravel()), axis=None)).all()
+
+
+def test_a_walker_falls_by_its_own_kinematics():
+    ds = simloader.SimDataset(WALKER, nbatch=3, nstep=120, seed=1, backend="warp",
+                              control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.05),
+                              terminate=T.Below("torso", 0.9))
+    batch = host(next(iter(ds)))
+    model, data = ds.config.model, mujoco.MjData(ds.config.model)
+    torso = model.body("torso").id
+    terminated, first = batch["terminated"].numpy(), batch["first"].numpy()
+    assert terminated.any() and first.any()
+    np.testing.assert_array_equal(first[:, 1:], terminated[:, :-1])
+    for row in range(3):
+        for j in range(120):
+            mujoco.mj_setState(model, data, batch["state"][row, j].numpy().astype(np.float64),
+                               mujoco.mjtState.mjSTATE_FULLPHYSICS)
+            mujoco.mj_kinematics(model, data)
+            height = data.xpos[torso, 2]
+            if abs(height - 0.9) > KINEMATICS_TOL:
+                assert terminated[row, j] == (height < 0.9), (row, j, height)
+    x0 = batch["initial_state"][0].numpy()
+    np.testing.assert_array_equal(batch["state"].numpy()[first], np.broadcast_to(
+        x0, (int(first.sum()), x0.size)))
+
+
+def test_episodes_run_across_batches_and_resume_exactly():
+    def make():
+        return simloader.SimDataset("cartpole", nbatch=4, nstep=20, seed=2, backend="warp",
+                                    control=controls.Uniform(), continue_episodes=True,
+                                    num_batches=4, terminate=T.TimeLimit(30))
+    whole = [host(b) for b in make()]
+    truncated = torch.cat([b["truncated"] for b in whole], dim=1)
+    first = torch.cat([b["first"] for b in whole], dim=1)
+    assert torch.equal(torch.nonzero(truncated[0]).ravel(), torch.tensor([29, 60]))
+    assert torch.equal(torch.nonzero(first[0]).ravel(), torch.tensor([30, 61]))
+    ds = make()
+    it = iter(ds)
+    next(it)
+    state = ds.state_dict()
+    del it
+    resumed = make()
+    resumed.load_state_dict(state)
+    for got, want in zip(resumed, whole[1:]):
+        for key in ("state", "control", "terminated", "truncated", "first"):
+            torch.testing.assert_close(got[key].cpu(), want[key], rtol=0, atol=0,
+                                       equal_nan=True)
