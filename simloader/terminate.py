@@ -28,6 +28,11 @@ from simloader import layout
 # by batch and draw, so streams stay reproducible and resumable, and engines agree)
 FRESH_DRAWS = 8
 
+# the rules as rows of a table (`Rule.row`): kind -> code, for an engine that evaluates them in
+# a kernel of its own (MuJoCo Warp's): outside: qpos[index] < a or > b; below: xpos[index, 2]
+# < a; tilted: xmat[index, 8] (the cosine of the body's tilt) < a
+KINDS = {"outside": 0, "below": 1, "tilted": 2}
+
 # what a rule may read of a frame's state, as each engine hands it over: name -> shape after
 # (nbatch,). Kinematics (xpos, xmat) are those of the frame's own state (mj_kinematics of it).
 FIELDS = ("qpos", "xpos", "xmat")
@@ -40,6 +45,11 @@ class Rule:
 
     reads: tuple[str, ...] = ()
     truncates = False  # a time limit truncates an episode; the others terminate it
+
+    def row(self) -> tuple[int, int, float, float]:
+        """The resolved rule as one row of a table an engine's kernel reads: (kind, index,
+        a, b), kinds in `KINDS` (what `met` computes, spelled as data)."""
+        raise NotImplementedError
 
     def resolve(self, model: mujoco.MjModel) -> "Rule":
         """The rule with its names resolved against `model` (ids filled in).
@@ -107,6 +117,9 @@ class Below(Rule):
     def met(self, xp, fields):
         return fields["xpos"][:, self.body_id, 2] < self.height
 
+    def row(self):
+        return (KINDS["below"], self.body_id, self.height, 0.0)
+
 
 @dataclasses.dataclass(frozen=True)
 class Tilted(Rule):
@@ -140,6 +153,9 @@ class Tilted(Rule):
         # xmat is row-major: element 8 is the z component of the body's z axis, the cosine of
         # its angle to the world's z axis
         return fields["xmat"][:, self.body_id, 8] < math.cos(self.max_angle)
+
+    def row(self):
+        return (KINDS["tilted"], self.body_id, math.cos(self.max_angle), 0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,6 +200,9 @@ class Outside(Rule):
     def met(self, xp, fields):
         q = fields["qpos"][:, self.qpos_adr]
         return (q < self.low) | (q > self.high)
+
+    def row(self):
+        return (KINDS["outside"], self.qpos_adr, self.low, self.high)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -99,10 +99,8 @@ class WarpSimulation:
             self.d = mjw.make_data(c.model, nworld=n, naconmax=options.naconmax,
                                    njmax=options.njmax)
             self.observations = [o for o in c.observations if not o.rendered]
-            read = c.terminate.reads if c.terminate is not None else ()  # by the rules
             names = (*STATE_ARRAYS.values(), "qacc", "sensordata", "overflow",
-                     *(name for o in self.observations for name in o.fields()),
-                     *(name for name in read if name != "qpos"))
+                     *(name for o in self.observations for name in o.fields()))
             self.views = {name: self._data(name) for name in dict.fromkeys(names)}
             self.model_views = {k: self.wp.to_torch(v)
                                 for k, v in model_arrays.arrays(self.m).items()}
@@ -186,16 +184,10 @@ class WarpSimulation:
             self.frames.update(self.cameras.frames(c.nbatch, c.nframes))
         self.obs: dict[str, torch.Tensor] = {}
         # terminate=: the rules checked after every step, and the autoreset
-        self.episodes = (warp_episodes.Episodes(c, self.views, self._kinematics)
-                         if c.terminate is not None else None)
-
-    def _kinematics(self) -> dict[str, torch.Tensor]:
-        """MuJoCo Warp's kinematics of the state now, for the rules: {"xpos": (nbatch, nbody,
-        3), "xmat": (nbatch, nbody, 9)} as they read them (the next step computes its own)."""
-        self.mjw.kinematics(self.m, self.d)
-        nbody = self.config.model.nbody
-        return {name: self.views[name].view(-1, nbody, 3 if name == "xpos" else 9)
-                for name in self.config.terminate.reads if name != "qpos"}
+        # (the rules' kinematics of the state now: the next step computes its own)
+        self.episodes = (warp_episodes.Episodes(
+            c, self.d, lambda: self.mjw.kinematics(self.m, self.d), self.device)
+            if c.terminate is not None else None)
 
     def _capture(self) -> Any:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
@@ -378,7 +370,7 @@ class WarpSimulation:
                 # images go straight into their frames; the policy gets this step's
                 obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
             if self.episodes is not None:  # the frame's flags; at its end, the resets
-                self.episodes.after_step(self.t, frame)
+                self.episodes.after_step(self.t)
         self.t += 1
         self.obs = obs
 

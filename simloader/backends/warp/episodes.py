@@ -6,8 +6,13 @@ frame's end the trajectories that met a rule are set to their fresh state, so th
 step starts from it. A fresh frame's steps run from that state with the inputs mj_resetData
 leaves (what the frame records besides its state is the step's forward pass there, as the CPU
 engine's mj_forward), and the state is held there after each step (physics and zero
-warmstart). All device tensors and fixed buffers, so that one graph serves every step; the
-batch's side (`start`, `finish`) runs outside it, on the engine's stream.
+warmstart).
+
+Two Warp kernels do it, one thread per world, so that a step adds two launches to the graph
+(plus the kinematics for body rules): on a cheap model every launch shows (the cart-pole's
+step is a few hundred microseconds for 8192 worlds). They read the rules as the table
+`terminate.Rule.row` spells them. The batch's side (`start`, `finish`) runs outside the graph,
+on the engine's stream.
 """
 
 from __future__ import annotations
@@ -15,114 +20,198 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+import warp as wp
 
 from simloader import terminate
 
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
+OUTSIDE, BELOW, TILTED = (terminate.KINDS[k] for k in ("outside", "below", "tilted"))
+
+
+@wp.func
+def _set_state(w: int, at: wp.array2d(dtype=wp.float32), time: wp.array(dtype=wp.float32),
+               qpos: wp.array2d(dtype=wp.float32), qvel: wp.array2d(dtype=wp.float32),
+               act: wp.array2d(dtype=wp.float32), warmstart: wp.array2d(dtype=wp.float32)):
+    """World `w` at its fresh state `at[w]` (time, qpos, qvel, act), zero warmstart."""
+    nq, nv, na = qpos.shape[1], qvel.shape[1], act.shape[1]
+    time[w] = at[w, 0]
+    for i in range(nq):
+        qpos[w, i] = at[w, 1 + i]
+    for i in range(nv):
+        qvel[w, i] = at[w, 1 + nq + i]
+        warmstart[w, i] = 0.0
+    for i in range(na):
+        act[w, i] = at[w, 1 + nq + nv + i]
+
+
+@wp.kernel
+def _hold(held: wp.array(dtype=wp.bool), at: wp.array2d(dtype=wp.float32),
+          time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
+          qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
+          warmstart: wp.array2d(dtype=wp.float32)):
+    """Held worlds back at their fresh state after the step."""
+    w = wp.tid()
+    if held[w]:
+        _set_state(w, at, time, qpos, qvel, act, warmstart)
+
+
+@wp.kernel
+def _after_step(t: wp.array(dtype=wp.int64), every: int, time_limit: int,
+                kinds: wp.array(dtype=wp.int32), index: wp.array(dtype=wp.int32),
+                a: wp.array(dtype=wp.float32), b: wp.array(dtype=wp.float32),
+                xpos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33),
+                fresh: wp.array3d(dtype=wp.float32),
+                held: wp.array(dtype=wp.bool), pending: wp.array(dtype=wp.bool),
+                steps: wp.array(dtype=wp.int64), resets: wp.array(dtype=wp.int64),
+                at: wp.array2d(dtype=wp.float32),
+                terminated: wp.array2d(dtype=wp.bool), truncated: wp.array2d(dtype=wp.bool),
+                first: wp.array2d(dtype=wp.bool),
+                time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
+                qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
+                warmstart: wp.array2d(dtype=wp.float32)):
+    """After step `t[0]` was recorded: the episode's steps, the frame's flags, and at a
+    frame's end the worlds that met a rule set to their next fresh state."""
+    w = wp.tid()
+    step = t[0]
+    if held[w]:
+        steps[w] = wp.int64(0)
+    else:
+        steps[w] = steps[w] + wp.int64(1)
+    met = bool(False)  # dynamic: set inside the loop
+    for r in range(kinds.shape[0]):
+        i = index[r]
+        if kinds[r] == OUTSIDE:
+            q = qpos[w, i]
+            if q < a[r] or q > b[r]:
+                met = True
+        elif kinds[r] == BELOW:
+            if xpos[w, i][2] < a[r]:
+                met = True
+        else:
+            if xmat[w, i][2, 2] < a[r]:
+                met = True
+    limit = time_limit > 0 and steps[w] >= wp.int64(time_limit)
+    frame = int(step // wp.int64(every))
+    terminated[w, frame] = met
+    truncated[w, frame] = limit
+    first[w, frame] = held[w]
+    if (step + wp.int64(1)) % wp.int64(every) == wp.int64(0):  # the frame ends here
+        again = met or limit
+        pending[w] = again
+        held[w] = again
+        if again:
+            draw = int(resets[w] % wp.int64(fresh.shape[1]))
+            for c in range(at.shape[1]):
+                at[w, c] = fresh[w, draw, c]
+            resets[w] = resets[w] + wp.int64(1)
+            _set_state(w, at, time, qpos, qvel, act, warmstart)
+
+
+@wp.kernel
+def _swap(rows: wp.array(dtype=wp.bool), fresh: wp.array3d(dtype=wp.float32),
+          resets: wp.array(dtype=wp.int64), at: wp.array2d(dtype=wp.float32),
+          time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
+          qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
+          warmstart: wp.array2d(dtype=wp.float32)):
+    """Worlds `rows` take their next fresh state (a batch's start, for continued episodes)."""
+    w = wp.tid()
+    if rows[w]:
+        draw = int(resets[w] % wp.int64(fresh.shape[1]))
+        for c in range(at.shape[1]):
+            at[w, c] = fresh[w, draw, c]
+        resets[w] = resets[w] + wp.int64(1)
+        _set_state(w, at, time, qpos, qvel, act, warmstart)
 
 
 class Episodes:
-    """One engine's episode buffers and its per-step bookkeeping.
+    """One engine's episode buffers and its per-step kernels.
 
     Args:
       config: the engine's configuration (its `terminate` rules, sizes).
-      views: torch views of MuJoCo Warp's data arrays, (nbatch, -1) each.
+      d: MuJoCo Warp's data (its arrays never move).
       kinematics: MuJoCo Warp's kinematics of the data now (for body rules), or None.
+      device: the torch device of the data.
     """
 
-    def __init__(self, config: Any, views: dict[str, torch.Tensor], kinematics: Any):
+    def __init__(self, config: Any, d: Any, kinematics: Any, device: torch.device):
         c = config
-        self.rules, self.every = c.terminate, c.record_every
-        self.views, self.kinematics = views, kinematics
-        like = views["qpos"]
-        n, f = c.nbatch, dict(dtype=like.dtype, device=like.device)
-        self.widths = [views[name].shape[1] for name in _PHYSICS]
-        nstate = sum(self.widths)
-        flags = dict(dtype=torch.bool, device=like.device)
-        steps = dict(dtype=torch.int64, device=like.device)
-        # carried between batches (continue_episodes): rows whose last frame met a rule, and
-        # the steps of each episode so far
+        self.rules, self.every, self.d = c.terminate, c.record_every, d
+        self.kinematics = kinematics if c.terminate.kinematic else None
+        self.time_limit = c.terminate.time_limit or 0
+        n = c.nbatch
+        nstate = 1 + c.model.nq + c.model.nv + c.model.na
+        f32 = dict(dtype=torch.float32, device=device)
+        flags = dict(dtype=torch.bool, device=device)
+        steps = dict(dtype=torch.int64, device=device)
+        table = [r.row() for r in c.terminate.rules]  # empty with a time limit alone
+        self.kinds = torch.tensor([r[0] for r in table], dtype=torch.int32, device=device)
+        self.index = torch.tensor([r[1] for r in table], dtype=torch.int32, device=device)
+        self.a = torch.tensor([r[2] for r in table], **f32)
+        self.b = torch.tensor([r[3] for r in table], **f32)
+        # carried between batches (continue_episodes): worlds whose last frame met a rule,
+        # and the steps of each episode so far
         self.pending = torch.zeros(n, **flags)
         self.steps = torch.zeros(n, **steps)
-        # this batch's: rows whose frame now is a fresh state, that state, resets so far
+        # this batch's: worlds whose frame now is a fresh state, that state, resets so far
         self.held = torch.zeros(n, **flags)
-        self.at = torch.zeros((n, nstate), **f)
+        self.at = torch.zeros((n, nstate), **f32)
         self.resets = torch.zeros(n, **steps)
-        self.rows = torch.arange(n, device=like.device)
-        # each row's fresh states: its initial-state source's row (1 draw) or a generator's
+        # each world's fresh states: its initial-state source's row (1 draw) or a generator's
         # FRESH_DRAWS draws of the batch; and the inputs as mj_resetData leaves them
         draws = terminate.FRESH_DRAWS if c.initial.generator is not None else 1
-        self.fresh = torch.zeros((n, draws, nstate), **f)
-        self.reset_control = torch.zeros((n, c.ncontrol), **f)
+        self.fresh = torch.zeros((n, draws, nstate), **f32)
+        self.reset_control = torch.zeros((n, c.ncontrol), **f32)
         self.flags = {k: torch.zeros((n, c.nframes), **flags)
                       for k in ("terminated", "truncated", "first")}
+        self.state = [getattr(d, name) for name in (*_PHYSICS, "qacc_warmstart")]
+        self.w = {k: wp.from_torch(v) for k, v in (
+            ("kinds", self.kinds), ("index", self.index), ("a", self.a), ("b", self.b),
+            ("fresh", self.fresh), ("held", self.held), ("pending", self.pending),
+            ("steps", self.steps), ("resets", self.resets), ("at", self.at))}
+        self.w.update({k: wp.from_torch(v) for k, v in self.flags.items()})
 
     # -- the batch's side (outside the graph, on the engine's stream) ------------------------
 
     def start(self, fresh: torch.Tensor, reset_control: torch.Tensor,
               starts_afresh: torch.Tensor) -> None:
         """Before a batch: its fresh states ((nbatch, draws, nstate)) and reset inputs
-        ((nbatch, ncontrol)); rows that start afresh (`starts_afresh`) start a new episode;
-        rows whose last frame met a rule start at their fresh state."""
+        ((nbatch, ncontrol)); worlds that start afresh (`starts_afresh`) start a new episode;
+        worlds whose last frame met a rule start at their fresh state."""
         self.fresh.copy_(fresh)
         self.reset_control.copy_(reset_control)
         self.resets.zero_()
         self.pending &= ~starts_afresh
         self.steps.masked_fill_(starts_afresh, 0)
         self.held.copy_(self.pending)
-        self._swap(self.pending)
+        w = self.w
+        wp.launch(_swap, dim=len(self.held), inputs=[w["pending"], w["fresh"], w["resets"],
+                                                     w["at"], *self.state])
 
     def finish(self, control: torch.Tensor) -> dict[str, torch.Tensor]:
         """After a batch: its flags (new tensors), and the control rows of its fresh frames
         set to NaN in `control` ((nbatch, nstep, ncontrol), the delivered rows)."""
-        first = self.flags["first"]
-        unapplied = first.repeat_interleave(self.every, dim=1)[..., None]
+        unapplied = self.flags["first"].repeat_interleave(self.every, dim=1)[..., None]
         control.masked_fill_(unapplied, float("nan"))
         return {k: v.clone() for k, v in self.flags.items()}
 
     # -- inside the graph --------------------------------------------------------------------
 
     def inputs(self, u: torch.Tensor) -> torch.Tensor:
-        """The step's control rows: a held row's inputs stay as mj_resetData leaves them."""
+        """The step's control rows: a held world's inputs stay as mj_resetData leaves them."""
         return torch.where(self.held[:, None], self.reset_control, u)
 
     def hold(self) -> None:
-        """Held rows back at their fresh state after the step (state, zero warmstart)."""
-        self._set_state(self.held, self.at)
+        """Held worlds back at their fresh state after the step (state, zero warmstart)."""
+        w = self.w
+        wp.launch(_hold, dim=len(self.held), inputs=[w["held"], w["at"], *self.state])
 
-    def after_step(self, t: torch.Tensor, frame: torch.Tensor) -> None:
-        """After step `t` (of frame `frame`, both (1,)) was recorded: the episode's steps, the
-        frame's flags, and at a frame's end the rows that met a rule set to their fresh
-        state."""
-        self.steps.copy_(torch.where(self.held, 0, self.steps + 1))
-        fields = {}
-        if "qpos" in self.rules.reads:
-            fields["qpos"] = self.views["qpos"]
-        if self.rules.kinematic:
-            fields.update(self.kinematics())
-        no = torch.zeros_like(self.held)
-        terminated = self.rules.terminated(torch, fields, no)
-        truncated = self.rules.truncated(self.steps, no, torch)
-        for key, value in (("terminated", terminated), ("truncated", truncated),
-                           ("first", self.held)):
-            self.flags[key].index_copy_(1, frame, value[:, None])
-        end = (t + 1) % self.every == 0  # (1,): this step ends its frame
-        self.pending.copy_(torch.where(end, terminated | truncated, self.pending))
-        self.held.copy_(torch.where(end, self.pending, self.held))
-        self._swap(self.pending & end)
-
-    def _swap(self, rows: torch.Tensor) -> None:
-        """Rows `rows` ((nbatch,) bool) take their next fresh state (their reset's draw)."""
-        draw = self.resets % self.fresh.shape[1]
-        self.at.copy_(torch.where(rows[:, None], self.fresh[self.rows, draw], self.at))
-        self.resets += rows
-        self._set_state(rows, self.at)
-
-    def _set_state(self, rows: torch.Tensor, state: torch.Tensor) -> None:
-        start = 0
-        for name, width in zip(_PHYSICS, self.widths):
-            view = self.views[name]
-            view.copy_(torch.where(rows[:, None], state[:, start:start + width], view))
-            start += width
-        warmstart = self.views["qacc_warmstart"]
-        warmstart.masked_fill_(rows[:, None], 0.0)
+    def after_step(self, t: torch.Tensor) -> None:
+        """After step `t` ((1,) int64) was recorded: the episode's steps, the frame's flags,
+        and at a frame's end the worlds that met a rule set to their fresh state."""
+        if self.kinematics is not None:
+            self.kinematics()
+        w, d = self.w, self.d
+        wp.launch(_after_step, dim=len(self.held), inputs=[
+            wp.from_torch(t), self.every, self.time_limit, w["kinds"], w["index"], w["a"],
+            w["b"], d.xpos, d.xmat, w["fresh"], w["held"], w["pending"], w["steps"],
+            w["resets"], w["at"], w["terminated"], w["truncated"], w["first"], *self.state])
