@@ -188,14 +188,17 @@ class Pieces:
                            for name in E.reads if name != "qpos"})
         return fields
 
-    def hold(self, m, d, pending, fresh):
-        """The rows `pending` at their fresh state `fresh` ((nbatch, nstate)), with zero
-        warmstart; the others as they are."""
-        physics = self.physics(m, d)
-        d = jax.vmap(lambda m, d, x: mjx.set_state(m, d, x, PHYSICS), (self.model_axes, 0, 0))(
-            m, d, _restarted(pending, fresh, physics))
-        return d.replace(qacc_warmstart=_restarted(pending, jnp.zeros_like(d.qacc_warmstart),
-                                                   d.qacc_warmstart))
+    def hold(self, d, rows, at):
+        """The rows `rows` ((nbatch,) bool) at their fresh state `at` ((nbatch, nstate):
+        time, qpos, qvel, act), with zero warmstart; the others as they are. Selects on the
+        arrays themselves (fused by XLA), not through mjx.set_state."""
+        nq, nv = d.qpos.shape[1], d.qvel.shape[1]
+        parts = {"time": at[:, 0], "qpos": at[:, 1:1 + nq], "qvel": at[:, 1 + nq:1 + nq + nv],
+                 "act": at[:, 1 + nq + nv:],
+                 "qacc_warmstart": jnp.zeros_like(d.qacc_warmstart)}
+        return d.replace(**{name: _restarted(rows, value.astype(getattr(d, name).dtype),
+                                             getattr(d, name))
+                            for name, value in parts.items()})
 
     def finite(self, frame):
         """(nbatch,) bool, or None with no floating observation that `restart_unstable`
@@ -275,13 +278,22 @@ def batch_function(pieces: Pieces) -> Callable:
             if reset_control.shape[0] > 1:  # per model of the pool
                 reset_control = reset_control[variant] if P.variants else reset_control
             rows = jnp.arange(P.nbatch)
+            resets = jnp.zeros(P.nbatch, jnp.int32)
+
+            def fresh_state(resets):
+                """Each row's next fresh state: its source's row, or its generator draw."""
+                return source if fresh is None else fresh[rows, resets % fresh.shape[1]]
+
             if P.continuing:
-                pending = carry["pending"] & ~restart
+                # rows whose last frame met a rule start the batch at their fresh state
+                held = carry["pending"] & ~restart
                 steps = jnp.where(restart, 0, carry["episode_steps"])
             else:
-                pending = jnp.zeros(P.nbatch, bool)
+                held = jnp.zeros(P.nbatch, bool)
                 steps = jnp.zeros(P.nbatch, jnp.int32)
-            episodes = (pending, steps, jnp.zeros(P.nbatch, jnp.int32))
+            at = fresh_state(resets)
+            data = P.hold(data, held, at)
+            episodes = (held, steps, resets + held, at)
         initial = P.physics(m, data)
         low, high = P.bounds(m, bounds, variant)
         if P.drivers:
@@ -301,22 +313,21 @@ def batch_function(pieces: Pieces) -> Callable:
                 d = jax.vmap(P.step, (P.model_axes, 0, 0 if given else None))(m, d, u)
                 d, unstable = P.restart_unstable(m, d)
                 return (d, diverged | unstable), None
-            held, at = loop[2:]  # rows held at their fresh state this frame, and that state
-            d = P.hold(m, d, held, at)
+            # rows whose frame is a fresh state (set to it at the previous frame's end), and it
+            held, at = loop[2:]
             if given:  # a held row's inputs stay as mj_resetData leaves them
                 u = _restarted(held, jnp.broadcast_to(reset_control, u.shape), u)
             d = jax.vmap(P.step, (P.model_axes, 0, 0 if given else None))(m, d, u)
             d, unstable = P.restart_unstable(m, d)
-            return (P.hold(m, d, held, at), diverged | unstable, held, at), None
+            return (P.hold(d, held, at), diverged | unstable, held, at), None
 
         def record(loop, us):
             """`record_every` steps (`us`: their control rows), then one recorded frame."""
             if E is None:
                 inner = loop
             else:
-                d, diverged, (pending, steps, resets) = loop
-                at = source if fresh is None else fresh[rows, resets % fresh.shape[1]]
-                inner = (d, diverged, pending, at)
+                d, diverged, (held, steps, resets, at) = loop
+                inner = (d, diverged, held, at)
             if every == 1:
                 inner, _ = advance(inner, None if us is None else us[0])
             else:
@@ -328,14 +339,17 @@ def batch_function(pieces: Pieces) -> Callable:
             if E is None:
                 return (d, diverged), frame
             # the frame's flags: its state against the rules; the episode's steps
-            steps = jnp.where(pending, 0, steps + every)
+            steps = jnp.where(held, 0, steps + every)
             fields = P.kinematics(m, d)
             no = jnp.zeros(P.nbatch, bool)
             terminated = E.terminated(jnp, fields, no)
             truncated = E.truncated(steps, no, jnp)
-            frame.update(terminated=terminated, truncated=truncated, first=pending)
-            episodes = (terminated | truncated, steps, resets + pending)
-            return (d, diverged, episodes), frame
+            frame.update(terminated=terminated, truncated=truncated, first=held)
+            # rows that met a rule take their fresh state now: the next frame starts there
+            again = terminated | truncated
+            at = _restarted(again, fresh_state(resets), at)
+            d = P.hold(d, again, at)
+            return (d, diverged, (again, steps, resets + again, at)), frame
 
         loop = (data, bad) if E is None else (data, bad, episodes)
         loop, frames = jax.lax.scan(record, loop, xs, length=nframes)
