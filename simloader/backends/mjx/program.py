@@ -344,7 +344,9 @@ def batch_function(pieces: Pieces) -> Callable:
             no = jnp.zeros(P.nbatch, bool)
             terminated = E.terminated(jnp, fields, no)
             truncated = E.truncated(steps, no, jnp)
-            frame.update(terminated=terminated, truncated=truncated, first=held)
+            # one scan output for the three flags (bits), unpacked once per batch
+            frame["episode/flags"] = (terminated.astype(jnp.uint8) | truncated.astype(jnp.uint8)
+                                      << 1 | held.astype(jnp.uint8) << 2)
             # rows that met a rule take their fresh state now: the next frame starts there
             again = terminated | truncated
             at = _restarted(again, fresh_state(resets), at)
@@ -356,6 +358,9 @@ def batch_function(pieces: Pieces) -> Callable:
         data, diverged = loop[:2]
         outputs = {key: jnp.swapaxes(value, 0, 1) for key, value in frames.items()}
         if E is not None:
+            bits = outputs.pop("episode/flags")
+            outputs.update(terminated=(bits & 1) != 0, truncated=(bits & 2) != 0,
+                           first=(bits & 4) != 0)
             # a fresh frame's control rows were not applied
             unapplied = jnp.repeat(outputs["first"], every, axis=1)[..., None]
             control = jnp.where(unapplied, jnp.asarray(jnp.nan, control.dtype), control)
