@@ -28,10 +28,16 @@ def cartpole(backend, **kwargs):
                                 terminate=RULES, **kwargs)
 
 
+def host(batch):
+    """The batch on the CPU (MJX delivers on its device: a GPU's on the GPU machine)."""
+    return simloader.Batch({k: v.cpu() for k, v in batch.items() if isinstance(v, torch.Tensor)},
+                           layout=batch.layout)
+
+
 @pytest.fixture(scope="module")
 def mjx_batch():
     ds = cartpole("mjx")
-    return ds, next(iter(ds))
+    return ds, host(next(iter(ds)))
 
 
 def resets(first):
@@ -72,7 +78,7 @@ def test_fresh_states_are_the_generators_draws_as_on_the_cpu_engine(mjx_batch):
                                       draws[e % T.FRESH_DRAWS][row].astype(np.float32))
         assert torch.isnan(batch["control"][row, frame]).all()
     # the CPU engine's e-th fresh state of a row is the same draw
-    cpu = next(iter(cartpole("cpu")))
+    cpu = host(next(iter(cartpole("cpu"))))
     for row, frame, e in resets(cpu["first"].numpy()):
         np.testing.assert_array_equal(cpu["state"][row, frame].numpy(),
                                       draws[e % T.FRESH_DRAWS][row])
@@ -110,7 +116,7 @@ def test_a_walker_falls_by_its_own_kinematics():
                               seed=1, backend="mjx",
                               control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.05),
                               terminate=T.Below("torso", 0.9))
-    batch = next(iter(ds))
+    batch = host(next(iter(ds)))
     model, data = ds.config.model, mujoco.MjData(ds.config.model)
     torso = model.body("torso").id
     terminated, first = batch["terminated"].numpy(), batch["first"].numpy()
@@ -135,7 +141,7 @@ def test_episodes_run_across_batches_and_resume_exactly(backend):
         return simloader.SimDataset("cartpole", nbatch=4, nstep=20, seed=2, backend=backend,
                                     control=controls.Uniform(), continue_episodes=True,
                                     num_batches=4, terminate=T.TimeLimit(30))
-    whole = list(make())
+    whole = [host(b) for b in make()]
     # 30 steps counted across batches: truncated at frame 9 of the second batch, fresh at
     # frame 10, and again 30 steps later (frame 0 of the fourth batch is step 30: frame 9+1
     # = 10 fresh, then 10..19 of batch 2, 0..19 of batch 3 => truncated at frame 19 of batch 3)
@@ -151,4 +157,5 @@ def test_episodes_run_across_batches_and_resume_exactly(backend):
     resumed.load_state_dict(state)
     for got, want in zip(resumed, whole[1:]):
         for key in ("state", "control", "terminated", "truncated", "first"):
-            torch.testing.assert_close(got[key], want[key], rtol=0, atol=0, equal_nan=True)
+            torch.testing.assert_close(got[key].cpu(), want[key], rtol=0, atol=0,
+                                       equal_nan=True)

@@ -165,7 +165,8 @@ from typing import Any, Callable, Iterable, Iterator, Mapping, Optional
 import numpy as np
 
 from simloader import sharding
-from simloader.store.minari_episodes import action_space, applied_action_bounds, check_batch
+from simloader.store.minari_episodes import (EPISODE_FLAGS, action_space, applied_action_bounds,
+                                             check_batch)
 from simloader.store.minari_folder import (EPISODES, METADATA, clear, dataset_dir_of, locked,
                                            survey)
 from simloader.store.minari_hdf5 import (commit_batch, committed, covered, create_empty, finish,
@@ -421,7 +422,8 @@ def _write_locked(dataset: Any, path: str, dataset_id: str, dataset_dir: str, ba
         for _, batch, _ in dataset.stream(dataset.make_backend(), range(done // c.nbatch,
                                                                          batches)):
             out: dict[str, Any] = {k: v.detach().cpu().numpy() for k, v in batch.items()
-                                   if k in ("initial_state", "state", "control", "diverged")}
+                                   if k in ("initial_state", "state", "control", "diverged",
+                                            *EPISODE_FLAGS)}
             if "params" in batch:
                 out["params"] = {k: v.detach().cpu().numpy()
                                  for k, v in batch["params"].items()}

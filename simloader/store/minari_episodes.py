@@ -55,31 +55,78 @@ def check_batch(batch: Any, observation_key: str, index: int,
             raise ValueError(f"{where}['params'][{key!r}]: expected shape (n, ...) with n = "
                              f"{n}, got {value.shape}")
         rows[str(key).replace("/", "|")] = value
-    return {"init": init, "obs": obs, "control": control, "diverged": diverged,
-            "params": rows}
+    out = {"init": init, "obs": obs, "control": control, "diverged": diverged, "params": rows}
+    if "first" in batch:  # episodes that end (terminate=): a trajectory holds several
+        for key in EPISODE_FLAGS:
+            value = np.asarray(batch[key])
+            if value.shape != (n, nstep) or value.dtype != np.bool_:
+                raise ValueError(f"{where}[{key!r}]: expected a bool array of shape "
+                                 f"{(n, nstep)}, got {value.dtype} {value.shape}")
+            out[key] = value
+    return out
+
+
+# a batch's flags of episodes that end (`terminate=`), kept with its batch file
+EPISODE_FLAGS = ("first", "terminated", "truncated")
 
 
 def episodes(batch: dict, n: int) -> Iterator[Any]:
-    """The first ``n`` trajectories of a checked batch as Minari episode buffers."""
+    """The first ``n`` trajectories of a checked batch as Minari episode buffers: one per
+    trajectory, or with episodes that end (``first`` in the batch) one per episode of it."""
     from minari.data_collector import EpisodeBuffer
 
     init, obs, control, diverged = batch["init"], batch["obs"], batch["control"], batch["diverged"]
     params = batch.get("params") or {}
     nstep = obs.shape[1]
     for i in range(n):
-        observations = np.concatenate([init[i][None].astype(obs.dtype, copy=False), obs[i]])
-        terminations = np.zeros(nstep, dtype=bool)
-        truncations = np.zeros(nstep, dtype=bool)
-        # A trajectory ends either way at its last step: diverged ones because the physics broke
-        # (terminal), the others only because the rollout was nstep long (truncated).
-        (terminations if diverged[i] else truncations)[-1] = True
-        # Minari's infos are per step (nstep + 1 rows, the reset's first): the values the
-        # trajectory ran with, on every row.
-        infos = ({"params": {key: np.repeat(value[i][None], nstep + 1, axis=0)
-                             for key, value in params.items()}} if params else {})
-        yield EpisodeBuffer(observations=observations, actions=np.array(control[i]),
-                            rewards=np.zeros(nstep), terminations=terminations,
-                            truncations=truncations, infos=infos)
+        for start, stop, terminal, from_initial in _episodes_of(batch, i, nstep):
+            # frames start..stop-1 of the trajectory; the first episode starts from the
+            # initial state (its frames are the steps after it), a later one from its fresh
+            # frame (whose control row was not applied: its steps are the frames after it)
+            if from_initial:
+                observations = np.concatenate([init[i][None].astype(obs.dtype, copy=False),
+                                               obs[i, :stop]])
+                actions = control[i, :stop]
+            else:
+                observations, actions = obs[i, start:stop], control[i, start + 1:stop]
+            steps = len(actions)
+            if steps == 0:  # a fresh state that met a rule at once: no step to keep
+                continue
+            terminations = np.zeros(steps, dtype=bool)
+            truncations = np.zeros(steps, dtype=bool)
+            # Minari's meaning: terminal, the task's end (a rule, or physics that broke on the
+            # trajectory's last episode); truncated, cut short (a time limit, or the batch's
+            # end)
+            last = stop == nstep
+            if terminal or (last and diverged[i]):
+                terminations[-1] = True
+            else:
+                truncations[-1] = True
+            # Minari's infos are per step (steps + 1 rows, the reset's first): the values the
+            # trajectory ran with, on every row
+            infos = ({"params": {key: np.repeat(value[i][None], steps + 1, axis=0)
+                                 for key, value in params.items()}} if params else {})
+            yield EpisodeBuffer(observations=np.array(observations), actions=np.array(actions),
+                                rewards=np.zeros(steps), terminations=terminations,
+                                truncations=truncations, infos=infos)
+
+
+def _episodes_of(batch: dict, i: int, nstep: int
+                 ) -> Iterator[tuple[int, int, bool, bool]]:
+    """(start, stop, terminal, from_initial) of each episode of trajectory `i`: its frames
+    start..stop-1, whether a terminating rule ended it, and whether it starts from the
+    batch's initial state (else from its fresh frame `start`)."""
+    if "first" not in batch:
+        yield 0, nstep, False, True
+        return
+    fresh = [int(f) for f in np.flatnonzero(batch["first"][i])]
+    # without a fresh frame 0, the first episode starts from the batch's initial state (with
+    # continue_episodes a trajectory may start the batch at a fresh frame instead)
+    starts = ([] if fresh and fresh[0] == 0 else [0]) + fresh
+    for k, start in enumerate(starts):
+        stop = starts[k + 1] if k + 1 < len(starts) else nstep
+        from_initial = k == 0 and start not in fresh
+        yield start, stop, bool(batch["terminated"][i][stop - 1]), from_initial
 
 
 def applied_action_bounds(config: Any) -> tuple[np.ndarray, np.ndarray]:

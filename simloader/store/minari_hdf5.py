@@ -18,7 +18,7 @@ import warnings
 from typing import Any, Optional
 
 from simloader.atomic import PARTIAL, sync_directories
-from simloader.store.minari_episodes import episodes
+from simloader.store.minari_episodes import EPISODE_FLAGS, episodes
 from simloader.store.minari_folder import (BACKUP, CREATING, EPISODES, MAIN, MERGING, METADATA,
                                            datasets_root, read_json, root_of)
 from simloader.store.minari_metadata import (atomic_json, incomplete_version, put_metadata,
@@ -122,7 +122,8 @@ def commit_batch(dataset_dir: str, first: int, batch: dict, n: int) -> None:
     partial = f"{final}.{uuid.uuid4().hex}{PARTIAL}"
     try:
         with h5py.File(partial, "w") as f:
-            for key in ("init", "obs", "control", "diverged"):
+            for key in ("init", "obs", "control", "diverged",
+                        *(k for k in EPISODE_FLAGS if k in batch)):
                 f.create_dataset(key, data=batch[key][:n])
             for key, value in batch["params"].items():
                 f.create_dataset(f"params/{key}", data=value[:n])
@@ -178,7 +179,8 @@ def prune(dataset_dir: str, keep: int, where: str, fix: str) -> None:
 def _read_batch(path: str) -> dict:
     import h5py
     with h5py.File(path, "r") as f:
-        batch = {key: f[key][()] for key in ("init", "obs", "control", "diverged")}
+        batch = {key: f[key][()] for key in ("init", "obs", "control", "diverged",
+                                             *EPISODE_FLAGS) if key in f}
         batch["params"] = ({key: value[()] for key, value in f["params"].items()}
                            if "params" in f else {})
     return batch

@@ -255,7 +255,9 @@ class Transitions(torch.utils.data.Dataset):
     (`k x ncontrol`). The first frame's predecessor is the initial state for the
     key `"state"` (`initial_state`), so a trajectory gives `nframes` transitions; other keys
     have no stored initial value and give `nframes - 1`. Each `context` key (a per-trajectory
-    value: `params/...`, ...) is in every item too, its trajectory's value.
+    value: `params/...`, ...) is in every item too, its trajectory's value. In a store of
+    episodes that end (`terminate=`: a stored `first`), a frame is never paired with the
+    fresh initial state that follows it: the transitions into a `first` frame are left out.
     """
 
     def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool,
@@ -312,7 +314,38 @@ class Transitions(torch.utils.data.Dataset):
         return (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
                 np.arange(len(self.stored)))
 
+    @functools.cached_property
+    def pairs(self) -> Optional[np.ndarray]:
+        """In a store of episodes that end (a stored `first`), the transitions that are
+        physics, as `position * nframes + frame` (position in `trajectories`, frame the
+        transition's target), ascending; None in a store without resets (all of them). Read
+        slot by slot at the first use."""
+        if "first" not in self.stored.layouts:
+            return None
+        first, nbatch = self.stored.arrays()["first"], self.stored.nbatch
+        kept = self.trajectories
+        out = []
+        for k, slot in enumerate(self.stored.slots):
+            lo, hi = np.searchsorted(kept, [k * nbatch, (k + 1) * nbatch])
+            if lo == hi:
+                continue
+            flags = first.slot(int(slot))[kept[lo:hi] % nbatch, self.first:]
+            position, frame = np.nonzero(~flags)
+            out.append((lo + position) * self.nframes + frame + self.first)
+        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+    def locate(self, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(stored trajectory, target frame) of transitions `ks` (in range)."""
+        if self.pairs is not None:
+            position, frames = np.divmod(self.pairs[ks], self.nframes)
+        else:
+            position, frames = np.divmod(ks, self.per)
+            frames = frames + self.first
+        return self.trajectories[position], frames
+
     def __len__(self) -> int:
+        if self.pairs is not None:
+            return len(self.pairs)
         return len(self.trajectories) * self.per
 
     def __getitem__(self, k: int | Sequence[int]) -> dict[str, torch.Tensor]:
@@ -378,8 +411,8 @@ class Transitions(torch.utils.data.Dataset):
         page cache in the background (see `order.BlockOrder`)."""
         firsts = np.asarray(blocks, dtype=np.int64)
         lasts = np.minimum(firsts + block, len(self)) - 1
-        rows = np.concatenate([self.trajectories[a // self.per:b // self.per + 1]
-                               for a, b in zip(firsts, lasts)])
+        rows = np.concatenate([np.arange(*(self.locate(np.array([a, b]))[0] + [0, 1]))
+                               for a, b in zip(firsts, lasts) if a <= b])
         slots = np.unique(self.stored.slots[rows // self.stored.nbatch])
         arrays = self.stored.arrays()
         names = [*self.keys, "control", "initial_state", *self.context]
@@ -400,9 +433,7 @@ class Transitions(torch.utils.data.Dataset):
         order = None if ascending else np.argsort(ks, kind="stable")
         if order is not None:
             ks = ks[order]
-        trajectories, frames = np.divmod(ks, self.per)
-        trajectories = self.trajectories[trajectories]
-        frames += self.first
+        trajectories, frames = self.locate(ks)
         nbatch = self.stored.nbatch
         slots = self.stored.slots[trajectories // nbatch]
         rows = trajectories % nbatch
