@@ -212,3 +212,35 @@ def test_a_policy_with_terminate_is_refused_by_name(backend, monkeypatch):
     with pytest.raises(ValueError, match="terminate: episodes end in the open loop for now"):
         simloader.SimDataset("cartpole", nbatch=4, nstep=5, backend=backend,
                              policy=lambda obs: torch.zeros(4, 1), terminate=T.TimeLimit(3))
+
+
+def test_a_fresh_frames_image_shows_its_fresh_state():
+    from simloader import render
+    try:
+        render.gl_platform()
+    except RuntimeError as e:
+        pytest.skip(f"no OpenGL here: {e}")
+    ds = simloader.SimDataset("cartpole", nbatch=3, nstep=80, seed=0, backend="cpu",
+                              control=controls.Uniform(),
+                              record=("state", simloader.Camera(-1, height=24, width=32)),
+                              terminate=T.Outside("hinge", -0.2, 0.2))
+    batch = next(iter(ds))
+    first = batch["first"]
+    assert first.any()
+    images = batch["camera/free/rgb"][first]
+    # a fixed initial state: every fresh frame is the same state, so the same picture, which
+    # differs from the terminated frame before it
+    assert all(torch.equal(image, images[0]) for image in images)
+    row, frame = (int(i) for i in torch.nonzero(first)[0])
+    assert not torch.equal(batch["camera/free/rgb"][row, frame - 1], images[0])
+    model = ds.config.model
+    data = mujoco.MjData(model)
+    mujoco.mj_setState(model, data, batch["initial_state"][0].numpy(),
+                       mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    mujoco.mj_forward(model, data)
+    with render.Renderers(model, ds.config.observations[1:]) as renderers:
+        out = {"camera/free/rgb": np.zeros((1, 1, 24, 32, 3), np.uint8)}
+        rows = np.empty((1, 1, mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION)))
+        mujoco.mj_getState(model, data, rows[0, 0], mujoco.mjtState.mjSTATE_INTEGRATION)
+        renderers.draw([0], rows, lambda i: model, out)
+    np.testing.assert_array_equal(images[0].numpy(), out["camera/free/rgb"][0, 0])

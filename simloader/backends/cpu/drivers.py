@@ -172,7 +172,8 @@ class LiveSources:
         self.bound: dict = {}  # source -> live (nbatch, *source_shape) output
         self.columns: dict = {}  # source (an mjtState spec) -> its columns of the state rows
         # each record with its source, found once (observations() runs every step)
-        self.sources = [(o, *recorded.source(o)) for o in c.observations]
+        # (rendered images are drawn from the state rows, not read from MjData)
+        self.sources = [(o, *recorded.source(o)) for o in c.observations if not o.rendered]
         for _, source, shape in self.sources:
             if isinstance(source, str):
                 self.bound[source] = batch.bind(source).reshape(c.nbatch, *shape)

@@ -33,7 +33,9 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
     """The pure `start`, `advance` and `finish` of a closed-loop batch (`P`: `Pieces`)."""
     every, nframes = P.every, P.nframes
 
-    def start(m, d0, inputs0, x0, defaults, bounds, seeds, variant, carry, restart, previous):
+    def start(m, d0, inputs0, x0, defaults, bounds, seeds, variant, carry, restart, fresh,
+              reset_control, previous):
+        # (fresh, reset_control: episodes' inputs, None here: terminate= runs open loop only)
         """The batch's models and reset trajectories, the loop state, and the observations of
         the initial state (derived fields by a forward pass, as `mj_forward` computes them).
 
