@@ -96,6 +96,7 @@ class ClosedLoop:
         self.config, self.batch = config, batch
         self.snapshot = policy.Snapshot(config.policy)
         self.live: Optional[LiveSources] = None  # made at the first batch
+        self.episodes: Optional[Any] = None  # `episodes.Episodes` with terminate=, set by the backend
 
     def prepare(self, seed: np.random.SeedSequence, defaults: np.ndarray, control: np.ndarray,
                 low: np.ndarray, high: np.ndarray) -> Run:
@@ -131,18 +132,30 @@ class ClosedLoop:
             noise = np.empty((c.nbatch, c.nstep, c.ncontrol))
             c.policy_noise.sample_numpy(seed, noise, c.policy_noise.default_rows)
         bad = np.zeros(c.nbatch, dtype=bool)
+        episodes = self.episodes
+        held = np.zeros(0, dtype=np.intp)  # with terminate=: the rows whose frame is fresh
 
         def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
+            nonlocal held
             row = control[:, t]
             row[...] = rows.to(torch.float64).numpy()
             if noise is not None:
                 row += noise[:, t]
             row[...], bad_now = controls.as_applied(row, low, high)
             bad[...] |= bad_now
+            if episodes is not None and t % k == 0:  # a frame starts: its fresh rows
+                held = episodes.before_frame()
             b.state[:, live.control_columns] = row
+            if len(held):  # a fresh frame's inputs are mj_resetData's, not the policy's
+                b.state[np.ix_(held, live.control_columns)] = \
+                    episodes.reset_to[:, live.control_columns]
             b.step()
             if rules.frame_due(t, k):
-                live.record(out, rules.frame_index(t, k))
+                frame = rules.frame_index(t, k)
+                live.record(out, frame)
+                if episodes is not None:  # the fresh rows' frames, the rules, the resets
+                    episodes.after_frame(held, {s: a[:, frame:frame + 1]
+                                                for s, a in out.items()}, frame)
             return live.observations()
 
         b.forward()

@@ -28,8 +28,6 @@ class CpuEngine(EngineEntry):
     forks_safely = True  # MuJoCo's threads start in the process that iterates
 
     def estimate(self, job: Job) -> Optional[float]:
-        if job.episodes and job.policy:
-            return None  # episodes end in the open loop only, for now
         if job.cameras:
             from simloader import render
             try:
@@ -52,9 +50,6 @@ class CpuEngine(EngineEntry):
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
         from simloader.backends.cpu import options as cpu_options
-        if config.terminate is not None and config.policy is not None:
-            raise ValueError("terminate: episodes end in the open loop for now; with policy= "
-                             "every trajectory runs its nstep steps (terminate=None)")
         return cpu_options.check_options(config, options, reason)
 
     def create(self, config: Any, shard: Any, stats: Any) -> Any:

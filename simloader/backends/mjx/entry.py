@@ -115,8 +115,8 @@ class MjxEngine(EngineEntry):
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
         if config.terminate is not None and config.policy is not None:
-            raise ValueError("terminate: episodes end in the open loop for now; with policy= "
-                             "every trajectory runs its nstep steps (terminate=None)")
+            raise ValueError("terminate: MJX ends episodes in the open loop only for now; with "
+                             "policy= use backend='cpu' or 'warp', or terminate=None")
         from simloader.backends.mjx import options as mjx_options, runtime
         if config.deterministic:  # before anything below starts JAX
             runtime.configure_determinism()

@@ -348,7 +348,8 @@ class WarpSimulation:
             u, bad = self.loop.row(self.t, self.low, self.high)
             if bad is not None:
                 self.diverged |= bad
-            if self.episodes is not None:  # a fresh frame's inputs are mj_resetData's
+            if self.episodes is not None:  # fresh frames start; their inputs are mj_resetData's
+                self.episodes.begin(self.t)
                 u = self.episodes.inputs(u)
             for columns, target, boolean in self.inputs:
                 row = u[:, columns]

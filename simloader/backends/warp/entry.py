@@ -44,8 +44,6 @@ class WarpEngine(EngineEntry):
         return why
 
     def estimate(self, job: Job) -> Optional[float]:
-        if job.episodes and job.policy:
-            return None  # episodes end in the open loop only, for now
         rate = gpu_rule.steps_per_second(job, RULE)
         return rate * (POLICY if job.policy else 1.0) * (CAMERAS if job.cameras else 1.0)
 
@@ -63,9 +61,6 @@ class WarpEngine(EngineEntry):
         return determinism.refusal(model)
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
-        if config.terminate is not None and config.policy is not None:
-            raise ValueError("terminate: episodes end in the open loop for now; with policy= "
-                             "every trajectory runs its nstep steps (terminate=None)")
         from simloader.backends.warp import options as warp_options
         return warp_options.check_options(config, options, reason)
 

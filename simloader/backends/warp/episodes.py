@@ -1,14 +1,15 @@
 """Episodes that end on the Warp engine (`terminate=`), inside its captured step graph.
 
 Every step, after the frame is recorded: the rules read the frame's own state (its positions,
-and MuJoCo Warp's kinematics of them for body rules), the flags go into their frame, and at a
-frame's end the trajectories that met a rule are set to their fresh state, so that the next
-step starts from it. A fresh frame's steps run from that state with the inputs mj_resetData
+and MuJoCo Warp's kinematics of them for body rules) and the flags go into their frame. At the
+next frame's first step, the trajectories whose frame met a rule are set to their fresh state
+first (so a policy's observations after the ending frame show the ending state, as on the CPU
+engine). A fresh frame's steps run from that state with the inputs mj_resetData
 leaves (what the frame records besides its state is the step's forward pass there, as the CPU
 engine's mj_forward), and the state is held there after each step (physics and zero
 warmstart).
 
-Two Warp kernels do it, one thread per world, so that a step adds two launches to the graph
+Three Warp kernels do it, one thread per world, so that a step adds three launches to the graph
 (plus the kinematics for body rules): on a cheap model every launch shows (the cart-pole's
 step is a few hundred microseconds for 8192 worlds). They read the rules as the table
 `terminate.Rule.row` spells them. The batch's side (`start`, `finish`) runs outside the graph,
@@ -60,17 +61,13 @@ def _after_step(t: wp.array(dtype=wp.int64), every: int, time_limit: int,
                 kinds: wp.array(dtype=wp.int32), index: wp.array(dtype=wp.int32),
                 a: wp.array(dtype=wp.float32), b: wp.array(dtype=wp.float32),
                 xpos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33),
-                fresh: wp.array3d(dtype=wp.float32),
                 held: wp.array(dtype=wp.bool), pending: wp.array(dtype=wp.bool),
-                steps: wp.array(dtype=wp.int64), resets: wp.array(dtype=wp.int64),
-                at: wp.array2d(dtype=wp.float32),
+                steps: wp.array(dtype=wp.int64),
                 terminated: wp.array2d(dtype=wp.bool), truncated: wp.array2d(dtype=wp.bool),
-                first: wp.array2d(dtype=wp.bool),
-                time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
-                qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
-                warmstart: wp.array2d(dtype=wp.float32)):
+                first: wp.array2d(dtype=wp.bool), qpos: wp.array2d(dtype=wp.float32)):
     """After step `t[0]` was recorded: the episode's steps, the frame's flags, and at a
-    frame's end the worlds that met a rule set to their next fresh state."""
+    frame's end which worlds met a rule (`pending`: the next frame holds them at their fresh
+    state)."""
     w = wp.tid()
     step = t[0]
     if held[w]:
@@ -96,31 +93,27 @@ def _after_step(t: wp.array(dtype=wp.int64), every: int, time_limit: int,
     truncated[w, frame] = limit
     first[w, frame] = held[w]
     if (step + wp.int64(1)) % wp.int64(every) == wp.int64(0):  # the frame ends here
-        again = met or limit
-        pending[w] = again
-        held[w] = again
-        if again:
+        pending[w] = met or limit
+
+
+@wp.kernel
+def _begin(t: wp.array(dtype=wp.int64), every: int, pending: wp.array(dtype=wp.bool),
+           held: wp.array(dtype=wp.bool), fresh: wp.array3d(dtype=wp.float32),
+           resets: wp.array(dtype=wp.int64), at: wp.array2d(dtype=wp.float32),
+           time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
+           qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
+           warmstart: wp.array2d(dtype=wp.float32)):
+    """Before step `t[0]`: at a frame's first step, the worlds whose last frame met a rule
+    (`pending`) are held this frame, at their next fresh state."""
+    w = wp.tid()
+    if t[0] % wp.int64(every) == wp.int64(0):
+        held[w] = pending[w]
+        if pending[w]:
             draw = int(resets[w] % wp.int64(fresh.shape[1]))
             for c in range(at.shape[1]):
                 at[w, c] = fresh[w, draw, c]
             resets[w] = resets[w] + wp.int64(1)
             _set_state(w, at, time, qpos, qvel, act, warmstart)
-
-
-@wp.kernel
-def _swap(rows: wp.array(dtype=wp.bool), fresh: wp.array3d(dtype=wp.float32),
-          resets: wp.array(dtype=wp.int64), at: wp.array2d(dtype=wp.float32),
-          time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
-          qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
-          warmstart: wp.array2d(dtype=wp.float32)):
-    """Worlds `rows` take their next fresh state (a batch's start, for continued episodes)."""
-    w = wp.tid()
-    if rows[w]:
-        draw = int(resets[w] % wp.int64(fresh.shape[1]))
-        for c in range(at.shape[1]):
-            at[w, c] = fresh[w, draw, c]
-        resets[w] = resets[w] + wp.int64(1)
-        _set_state(w, at, time, qpos, qvel, act, warmstart)
 
 
 class Episodes:
@@ -176,16 +169,14 @@ class Episodes:
               starts_afresh: torch.Tensor) -> None:
         """Before a batch: its fresh states ((nbatch, draws, nstate)) and reset inputs
         ((nbatch, ncontrol)); worlds that start afresh (`starts_afresh`) start a new episode;
-        worlds whose last frame met a rule start at their fresh state."""
+        worlds whose last frame met a rule stay pending (the first step holds them at their
+        fresh state)."""
         self.fresh.copy_(fresh)
         self.reset_control.copy_(reset_control)
         self.resets.zero_()
         self.pending &= ~starts_afresh
         self.steps.masked_fill_(starts_afresh, 0)
-        self.held.copy_(self.pending)
-        w = self.w
-        wp.launch(_swap, dim=len(self.held), inputs=[w["pending"], w["fresh"], w["resets"],
-                                                     w["at"], *self.state])
+        self.held.zero_()
 
     def finish(self, control: torch.Tensor) -> dict[str, torch.Tensor]:
         """After a batch: its flags (new tensors), and the control rows of its fresh frames
@@ -195,6 +186,14 @@ class Episodes:
         return {k: v.clone() for k, v in self.flags.items()}
 
     # -- inside the graph --------------------------------------------------------------------
+
+    def begin(self, t: torch.Tensor) -> None:
+        """Before step `t` ((1,) int64): at a frame's first step, the worlds whose last frame
+        met a rule take their fresh state and are held there this frame."""
+        w = self.w
+        wp.launch(_begin, dim=len(self.held), inputs=[
+            wp.from_torch(t), self.every, w["pending"], w["held"], w["fresh"], w["resets"],
+            w["at"], *self.state])
 
     def inputs(self, u: torch.Tensor) -> torch.Tensor:
         """The step's control rows: a held world's inputs stay as mj_resetData leaves them."""
@@ -207,11 +206,11 @@ class Episodes:
 
     def after_step(self, t: torch.Tensor) -> None:
         """After step `t` ((1,) int64) was recorded: the episode's steps, the frame's flags,
-        and at a frame's end the worlds that met a rule set to their fresh state."""
+        and at a frame's end which worlds met a rule (`pending`)."""
         if self.kinematics is not None:
             self.kinematics()
         w, d = self.w, self.d
         wp.launch(_after_step, dim=len(self.held), inputs=[
             wp.from_torch(t), self.every, self.time_limit, w["kinds"], w["index"], w["a"],
-            w["b"], d.xpos, d.xmat, w["fresh"], w["held"], w["pending"], w["steps"],
-            w["resets"], w["at"], w["terminated"], w["truncated"], w["first"], *self.state])
+            w["b"], d.xpos, d.xmat, w["held"], w["pending"], w["steps"], w["terminated"],
+            w["truncated"], w["first"], d.qpos])
