@@ -191,3 +191,16 @@ def started_writer():
             time.sleep(0.01)
         return proc
     return start
+
+
+@pytest.fixture(scope="module")
+def warp_on_cpu(cache_dir):
+    """MuJoCo Warp on the CPU where no GPU is (on a GPU the variable changes nothing), for a
+    module's tests (`pytestmark = pytest.mark.usefixtures("warp_on_cpu")`)."""
+    before = os.environ.get("SIMLOADER_WARP_ON_CPU")
+    os.environ["SIMLOADER_WARP_ON_CPU"] = "1"
+    yield
+    if before is None:
+        del os.environ["SIMLOADER_WARP_ON_CPU"]
+    else:
+        os.environ["SIMLOADER_WARP_ON_CPU"] = before

@@ -135,8 +135,11 @@ def test_a_walker_falls_by_its_own_kinematics():
         x0, (int(first.sum()), x0.size)))
 
 
-@pytest.mark.parametrize("backend", ["cpu", "mjx"])
-def test_episodes_run_across_batches_and_resume_exactly(backend):
+@pytest.mark.parametrize("backend", ["cpu", "mjx", "warp"])
+def test_episodes_run_across_batches_and_resume_exactly(backend, request):
+    if backend == "warp":  # its CPU kernels where no GPU is
+        pytest.importorskip("mujoco_warp")
+        request.getfixturevalue("warp_on_cpu")
     def make():
         return simloader.SimDataset("cartpole", nbatch=4, nstep=20, seed=2, backend=backend,
                                     control=controls.Uniform(), continue_episodes=True,

@@ -4,7 +4,6 @@ within the named float32 tolerance, and episodes across batches resumed bit for 
 GPU these run MuJoCo Warp's CPU kernels (`SIMLOADER_WARP_ON_CPU=1`); on the GPU machine the
 same tests run the captured CUDA graph."""
 
-import os
 
 import mujoco
 import numpy as np
@@ -23,16 +22,8 @@ from test_terminate_mjx import CONTACT_FREE_TOL, KINEMATICS_TOL, resets  # noqa:
 WALKER = "examples/models/walker/walker.xml"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def warp_on_cpu():
-    """MuJoCo Warp on the CPU where no GPU is (on a GPU the variable changes nothing)."""
-    before = os.environ.get("SIMLOADER_WARP_ON_CPU")
-    os.environ["SIMLOADER_WARP_ON_CPU"] = "1"
-    yield
-    if before is None:
-        del os.environ["SIMLOADER_WARP_ON_CPU"]
-    else:
-        os.environ["SIMLOADER_WARP_ON_CPU"] = before
+# MuJoCo Warp on the CPU where no GPU is (conftest.warp_on_cpu)
+pytestmark = pytest.mark.usefixtures("warp_on_cpu")
 
 
 def host(batch):
@@ -100,29 +91,6 @@ def test_a_walker_falls_by_its_own_kinematics():
     x0 = batch["initial_state"][0].numpy()
     np.testing.assert_array_equal(batch["state"].numpy()[first], np.broadcast_to(
         x0, (int(first.sum()), x0.size)))
-
-
-def test_episodes_run_across_batches_and_resume_exactly():
-    def make():
-        return simloader.SimDataset("cartpole", nbatch=4, nstep=20, seed=2, backend="warp",
-                                    control=controls.Uniform(), continue_episodes=True,
-                                    num_batches=4, terminate=T.TimeLimit(30))
-    whole = [host(b) for b in make()]
-    truncated = torch.cat([b["truncated"] for b in whole], dim=1)
-    first = torch.cat([b["first"] for b in whole], dim=1)
-    assert torch.equal(torch.nonzero(truncated[0]).ravel(), torch.tensor([29, 60]))
-    assert torch.equal(torch.nonzero(first[0]).ravel(), torch.tensor([30, 61]))
-    ds = make()
-    it = iter(ds)
-    next(it)
-    state = ds.state_dict()
-    del it
-    resumed = make()
-    resumed.load_state_dict(state)
-    for got, want in zip(resumed, whole[1:]):
-        for key in ("state", "control", "terminated", "truncated", "first"):
-            torch.testing.assert_close(got[key].cpu(), want[key], rtol=0, atol=0,
-                                       equal_nan=True)
 
 
 def test_a_policy_sees_the_fresh_states():

@@ -7,7 +7,6 @@ its cache (about a minute on a CPU for the first model). Tests marked `gpu` run 
 the GPU machine.
 """
 
-import os
 import warnings
 
 import mujoco
@@ -32,16 +31,8 @@ EVERY_INPUT = int(S.mjSTATE_CTRL | S.mjSTATE_QFRC_APPLIED | S.mjSTATE_XFRC_APPLI
 HAS_GPU = torch.cuda.is_available()
 
 
-@pytest.fixture(scope="module", autouse=True)
-def warp_on_cpu(cache_dir):
-    """MuJoCo Warp on the CPU where no GPU is (on a GPU the variable changes nothing)."""
-    before = os.environ.get("SIMLOADER_WARP_ON_CPU")
-    os.environ["SIMLOADER_WARP_ON_CPU"] = "1"
-    yield
-    if before is None:
-        del os.environ["SIMLOADER_WARP_ON_CPU"]
-    else:
-        os.environ["SIMLOADER_WARP_ON_CPU"] = before
+# MuJoCo Warp on the CPU where no GPU is (conftest.warp_on_cpu)
+pytestmark = pytest.mark.usefixtures("warp_on_cpu")
 
 
 @pytest.fixture(scope="module")
