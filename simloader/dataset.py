@@ -106,8 +106,9 @@ class SimDataset(torch.utils.data.IterableDataset):
         runs on a copy of its weights on each simulation device.
       terminate: episodes that end where the task ends: a rule of `simloader.terminate`
         (`Below(body, height)`, `Tilted(body, max_angle)`, `Outside(joint, low, high)`,
-        `TimeLimit(steps)`) or a sequence of them (any one ends the episode), checked at every
-        recorded frame. After a frame whose state meets one, the trajectory's next frame is a
+        `TimeLimit(steps)`), a callable `obs -> (nbatch,) bool tensor` over the observations
+        a policy would get (CPU and Warp engines), or a sequence of them (any one ends the
+        episode), checked at every recorded frame. After a frame whose state meets one, the trajectory's next frame is a
         fresh initial state from its `initial_state` source (autoreset; its control rows are
         delivered as NaN). The batch then holds "terminated", "truncated" (a `TimeLimit`) and
         "first" (the fresh frames), `(nbatch, nframes)` bool. None (default): every

@@ -93,7 +93,8 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
         # absent without rules, so that the fingerprints of streams without them stay as saved
         **({} if getattr(config, "terminate", None) is None else {"terminate": {
             "rules": [_describe(r) for r in config.terminate.rules],
-            "time_limit": config.terminate.time_limit}}),
+            "time_limit": config.terminate.time_limit,
+            "check": _describe(config.terminate.check)}}),
         "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())},
     }
 

@@ -237,11 +237,32 @@ class Episodes:
       rules: the rules that terminate an episode, resolved.
       time_limit: a `TimeLimit`'s steps, or None.
       reads: the fields of a frame's state the rules read (a subset of `FIELDS`).
+      check: a callable `obs -> (nbatch,) bool tensor` over the observations a policy would
+        get (the records, as torch tensors), called after every recorded frame where the
+        engine steps from Python (the CPU and Warp engines), or None.
     """
 
     rules: tuple[Rule, ...]
     time_limit: Optional[int]
     reads: tuple[str, ...]
+    check: Any = dataclasses.field(default=None, compare=False)
+
+    def checked(self, obs: dict[str, Any], frame: int, nbatch: int) -> Any:
+        """(nbatch,) bool tensor: `check` on frame `frame`'s observations, its result checked.
+
+        Raises:
+          ValueError: not a bool tensor of shape (nbatch,), naming the frame.
+        """
+        import torch
+        out = self.check(obs)
+        if not (isinstance(out, torch.Tensor) and out.dtype == torch.bool
+                and tuple(out.shape) == (nbatch,)):
+            got = (f"{out.dtype} tensor of shape {tuple(out.shape)}"
+                   if isinstance(out, torch.Tensor) else type(out).__name__)
+            raise ValueError(f"terminate: the callable {getattr(self.check, '__name__', '')!r} "
+                             f"must return a bool tensor of shape ({nbatch},) (nbatch: does "
+                             f"each trajectory's episode end?), got {got} at frame {frame}")
+        return out
 
     @property
     def kinematic(self) -> bool:
@@ -273,21 +294,25 @@ def parse(model: mujoco.MjModel, terminate: Any) -> Optional[Episodes]:
     """
     if terminate is None:
         return None
-    rules = [terminate] if isinstance(terminate, Rule) else terminate
-    if callable(terminate) and not isinstance(terminate, Rule):
-        raise ValueError("terminate: a callable over the observations is not supported yet; "
-                         "give rules of simloader.terminate (Below, Tilted, Outside, TimeLimit)")
+    single = isinstance(terminate, Rule) or (callable(terminate)
+                                             and not isinstance(terminate, Sequence))
+    rules = [terminate] if single else terminate
     if not isinstance(rules, Sequence) or isinstance(rules, (str, bytes)) or not rules:
         raise TypeError(f"terminate: expected None, a rule of simloader.terminate (Below, "
-                        f"Tilted, Outside, TimeLimit) or a non-empty sequence of them, got "
-                        f"{terminate!r}")
-    bad = [r for r in rules if not isinstance(r, Rule)]
+                        f"Tilted, Outside, TimeLimit), a callable obs -> (nbatch,) bool tensor, "
+                        f"or a non-empty sequence of them, got {terminate!r}")
+    checks = [r for r in rules if callable(r) and not isinstance(r, Rule)]
+    bad = [r for r in rules if not isinstance(r, Rule) and not callable(r)]
     if bad:
         raise TypeError(f"terminate: expected rules of simloader.terminate (Below, Tilted, "
-                        f"Outside, TimeLimit), got {bad[0]!r}")
+                        f"Outside, TimeLimit) or a callable, got {bad[0]!r}")
+    if len(checks) > 1:
+        raise ValueError(f"terminate: at most one callable, got {len(checks)}")
+    rules = [r for r in rules if isinstance(r, Rule)]
     limits = [r for r in rules if isinstance(r, TimeLimit)]
     if len(limits) > 1:
         raise ValueError(f"terminate: at most one TimeLimit, got {limits}")
     resolved = tuple(r.resolve(model) for r in rules if not isinstance(r, TimeLimit))
     reads = tuple(f for f in FIELDS if any(f in r.reads for r in resolved))
-    return Episodes(resolved, limits[0].steps if limits else None, reads)
+    return Episodes(resolved, limits[0].steps if limits else None, reads,
+                    checks[0] if checks else None)

@@ -279,3 +279,43 @@ def test_a_fresh_frames_image_shows_its_fresh_state():
         mujoco.mj_getState(model, data, rows[0, 0], mujoco.mjtState.mjSTATE_INTEGRATION)
         renderers.draw([0], rows, lambda i: model, out)
     np.testing.assert_array_equal(images[0].numpy(), out["camera/free/rgb"][0, 0])
+
+
+def hinge_out(obs):
+    """A callable terminate=: the pole past 0.25 rad (the state's columns: time, slider,
+    hinge, ...)."""
+    return obs["state"][:, 2].abs() > 0.25
+
+
+def check_callable(backend, **kwargs):
+    """A callable over the observations ends episodes as the same rule does."""
+    kwargs = kwargs or {"control": controls.Uniform()}
+    make = lambda terminate: simloader.SimDataset(  # noqa: E731
+        "cartpole", nbatch=4, nstep=120, seed=3, backend=backend, terminate=terminate,
+        **kwargs)
+    by_callable = next(iter(make(hinge_out)))
+    by_rule = next(iter(make(T.Outside("hinge", -0.25, 0.25))))
+    assert by_callable["first"].sum() >= 4
+    for key in ("state", "terminated", "truncated", "first"):
+        assert torch.equal(by_callable[key].cpu(), by_rule[key].cpu()), key
+
+
+def test_a_callable_ends_episodes_as_a_rule_does():
+    check_callable("cpu")
+    check_callable("cpu", policy=lambda obs: torch.zeros(4, 1, dtype=obs["state"].dtype),
+                   policy_noise=controls.Normal(std=1.0))
+
+
+def test_a_callable_of_the_wrong_shape_is_refused_at_its_first_call():
+    ds = simloader.SimDataset("cartpole", nbatch=4, nstep=10, backend="cpu",
+                              terminate=lambda obs: obs["state"][:, 2])
+    with pytest.raises(ValueError, match=r"must return a bool tensor of shape \(4,\) .* got "
+                                         r"torch.float64 tensor of shape \(4,\) at frame 0"):
+        next(iter(ds))
+
+
+def test_mjx_refuses_a_callable_by_name():
+    pytest.importorskip("mujoco.mjx")
+    with pytest.raises(ValueError, match="terminate: a callable over the observations runs "
+                                         "where the simulation steps from Python"):
+        simloader.SimDataset("cartpole", nbatch=4, nstep=5, backend="mjx", terminate=hinge_out)

@@ -96,3 +96,8 @@ def test_a_walker_falls_by_its_own_kinematics():
 def test_a_policy_sees_the_fresh_states():
     from test_terminate import check_closed_loop
     check_closed_loop("warp")
+
+
+def test_a_callable_ends_episodes_as_a_rule_does():
+    from test_terminate import check_callable
+    check_callable("warp")

@@ -138,7 +138,9 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
     job = Job(step_s=cpu_step_seconds(probe.model), nbatch=probe.nbatch,
               contacts=has_contacts(probe.model), cores=cores,
               policy=probe.policy is not None, cameras=cameras, steps=steps,
-              episodes=getattr(probe, "terminate", None) is not None)
+              episodes=getattr(probe, "terminate", None) is not None,
+              episode_callable=getattr(getattr(probe, "terminate", None), "check", None)
+              is not None)
     rates = {name: rate for name in running
              if (rate := engines[name].estimate(job)) is not None}
     if steps is not None:

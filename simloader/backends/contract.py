@@ -28,6 +28,8 @@ class Job:
       steps: the steps this process will simulate (`nbatch * nstep * num_batches`), or None
         for an endless stream: with a known length, an engine's start-up counts too.
       episodes: whether episodes end on rules (`terminate=`), with autoreset.
+      episode_callable: whether a callable over the observations ends them (it runs in
+        Python after every frame).
     """
 
     step_s: float
@@ -38,6 +40,7 @@ class Job:
     cameras: bool
     steps: Optional[int] = None
     episodes: bool = False
+    episode_callable: bool = False
 
 
 @runtime_checkable

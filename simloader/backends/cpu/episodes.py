@@ -99,6 +99,8 @@ class Episodes:
             fields.update(self.kinematics)
         like = np.zeros(c.nbatch, dtype=bool)
         terminated = self.rules.terminated(np, fields, like)
+        if self.rules.check is not None:  # a callable over the observations a policy gets
+            terminated |= self.rules.checked(live.observations(), index, c.nbatch).numpy()
         truncated = self.rules.truncated(self.episode_steps, like, np)
         flags["terminated"][:, index] = terminated
         flags["truncated"][:, index] = truncated

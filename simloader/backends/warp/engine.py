@@ -310,6 +310,7 @@ class WarpSimulation:
         """Before a batch's first step: step index and flags to zero, then the driver's
         start (the open loop checks and clamps the batch's rows at once)."""
         self.t.zero_()
+        self.host_t = 0  # the step index, on the host (a callable terminate= reads it)
         self.diverged.zero_()
         bad = self.loop.start(self.low, self.high)
         if bad is not None:
@@ -335,6 +336,13 @@ class WarpSimulation:
             self.graph.replay()
         else:
             self._step()
+        c, episodes = self.config, self.episodes
+        self.host_t += 1
+        if episodes is not None and episodes.rules.check is not None \
+                and self.host_t % c.record_every == 0:  # a callable, after each frame
+            frame = self.host_t // c.record_every - 1
+            obs = {k: v.clone() for k, v in self.obs.items()}
+            episodes.external(episodes.rules.checked(obs, frame, c.nbatch), frame)
         return self.obs
 
     def _step(self, capturing: bool = False) -> None:

@@ -195,6 +195,12 @@ class Episodes:
             wp.from_torch(t), self.every, w["pending"], w["held"], w["fresh"], w["resets"],
             w["at"], *self.state])
 
+    def external(self, met: torch.Tensor, frame: int) -> None:
+        """A callable's verdict on frame `frame` ((nbatch,) bool), after its last step: the
+        frame is terminated where it says so, and the next frame is fresh there."""
+        self.flags["terminated"][:, frame] |= met
+        self.pending |= met
+
     def inputs(self, u: torch.Tensor) -> torch.Tensor:
         """The step's control rows: a held world's inputs stay as mj_resetData leaves them."""
         return torch.where(self.held[:, None], self.reset_control, u)
