@@ -112,8 +112,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         fresh initial state from its `initial_state` source (autoreset; its control rows are
         delivered as NaN). The batch then holds "terminated", "truncated" (a `TimeLimit`) and
         "first" (the fresh frames), `(nbatch, nframes)` bool. None (default): every
-        trajectory runs its `nstep` steps. Every engine; with `policy=`, the CPU and Warp
-        engines.
+        trajectory runs its `nstep` steps. Every engine, open or closed loop.
       **backend_options: the engine's own: `naconmax`/`njmax` for "warp" (MuJoCo Warp's
         buffers; None: sized from the model), `compilation_cache`, `memory_fraction` for
         "mjx" (see `backends.mjx.options.check_options`); with "auto", those of an engine

@@ -205,13 +205,6 @@ def test_a_free_joint_is_not_outsideable():
                              terminate=T.Outside("f", -1, 1))
 
 
-def test_mjx_refuses_a_policy_with_terminate_by_name():
-    pytest.importorskip("mujoco.mjx")
-    with pytest.raises(ValueError, match="terminate: MJX ends episodes in the open loop only"):
-        simloader.SimDataset("cartpole", nbatch=4, nstep=5, backend="mjx",
-                             policy=lambda obs: torch.zeros(4, 1), terminate=T.TimeLimit(3))
-
-
 SEEN: list = []  # what Recorder was given (simloader runs a copy of the policy)
 
 

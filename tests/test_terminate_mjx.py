@@ -162,3 +162,8 @@ def test_episodes_run_across_batches_and_resume_exactly(backend, request):
         for key in ("state", "control", "terminated", "truncated", "first"):
             torch.testing.assert_close(got[key].cpu(), want[key], rtol=0, atol=0,
                                        equal_nan=True)
+
+
+def test_a_policy_sees_the_fresh_states():
+    from test_terminate import check_closed_loop
+    check_closed_loop("mjx")

@@ -31,16 +31,18 @@ from simloader.backends.mjx.runtime import mjx
 
 def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callable]:
     """The pure `start`, `advance` and `finish` of a closed-loop batch (`P`: `Pieces`)."""
-    every, nframes = P.every, P.nframes
+    every, nframes, E = P.every, P.nframes, P.episodes
 
     def start(m, d0, inputs0, x0, defaults, bounds, seeds, variant, carry, restart, fresh,
               reset_control, previous):
-        # (fresh, reset_control: episodes' inputs, None here: terminate= runs open loop only)
         """The batch's models and reset trajectories, the loop state, and the observations of
         the initial state (derived fields by a forward pass, as `mj_forward` computes them).
+        With `terminate`, the loop also holds the episodes' state (`fresh`, `reset_control`:
+        as the open loop's batch function takes them).
 
         `previous`: the last batch's data, donated so the new one takes its buffers."""
         del previous
+        source = x0
         m, data, defaults, variant, params = P.begin(m, d0, inputs0, x0, defaults, seeds,
                                                      variant, carry, restart)
         initial = P.physics(m, data)
@@ -60,7 +62,39 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                 "high": jnp.broadcast_to(high, shape[::2]).astype(P.dtype)}
         if noise is not None:
             loop["noise"] = noise
+        if E is not None:
+            if P.x0_per_variant:
+                source = source[variant]
+            if reset_control.shape[0] > 1 and P.variants:  # per model of the pool
+                reset_control = reset_control[variant]
+            n = P.nbatch
+            pending = (carry["pending"] & ~restart if P.continuing else jnp.zeros(n, bool))
+            loop["episode"] = {
+                "pending": pending, "held": jnp.zeros(n, bool),
+                "steps": (jnp.where(restart, 0, carry["episode_steps"]) if P.continuing
+                          else jnp.zeros(n, jnp.int32)),
+                "resets": jnp.zeros(n, jnp.int32),
+                "at": jnp.zeros_like(initial), "source": source,
+                "fresh": jnp.zeros((n, 0, initial.shape[1]), P.dtype) if fresh is None
+                else fresh,
+                "reset_control": jnp.broadcast_to(reset_control, shape[::2]).astype(P.dtype),
+                "flags": jnp.zeros((n, nframes), jnp.uint8)}
         return m, loop, obs, {"initial_state": initial, "params": params}
+
+    def begin_frame(loop, t):
+        """At a frame's first step: rows whose last frame met a rule take their next fresh
+        state and are held there this frame (as on the CPU engine: the policy saw the ending
+        state first). Returns (loop's episode state, data)."""
+        e, d = loop["episode"], loop["d"]
+        boundary = t % every == 0
+        take = boundary & e["pending"]
+        draws = e["fresh"].shape[1]
+        fresh_state = (e["source"] if draws == 0 else
+                       e["fresh"][jnp.arange(P.nbatch), e["resets"] % max(draws, 1)])
+        at = jnp.where(take[:, None], fresh_state, e["at"])
+        e = {**e, "at": at, "resets": e["resets"] + take,
+             "held": jnp.where(boundary, e["pending"], e["held"])}
+        return e, P.hold(d, take, at)
 
     def advance(m, loop, u):
         """One step of every trajectory with the policy's rows `u` (nbatch, ncontrol): the
@@ -71,8 +105,16 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
             u = u + jax.lax.dynamic_index_in_dim(loop["noise"], t, axis=1, keepdims=False)
         # as the open loop: a bad row flags its trajectory, MuJoCo's clamp is applied
         u, bad = controls.as_applied(u, loop["low"], loop["high"], jnp)
-        d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, loop["d"], u)
+        d = loop["d"]
+        if E is not None:  # a fresh frame's inputs are mj_resetData's
+            e, d = begin_frame(loop, t)
+            u_step = jnp.where(e["held"][:, None], e["reset_control"], u)
+        else:
+            u_step = u
+        d = jax.vmap(P.step, (P.model_axes, 0, 0))(m, d, u_step)
         d, unstable = P.restart_unstable(m, d)
+        if E is not None:  # held at the fresh state, derived fields the step's there
+            d = P.hold(d, e["held"], e["at"])
         obs = mjx_observe.frame(P.observations, P.model_axes, m, d)
         diverged = loop["diverged"] | unstable | bad
         finite = P.finite(obs)
@@ -88,6 +130,16 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         control = jax.lax.dynamic_update_index_in_dim(loop["control"], u, t, axis=1)
         loop = {**loop, "d": d, "t": t + 1, "diverged": diverged, "frames": frames,
                 "control": control}
+        if E is not None:  # the frame's flags; at its end, which rows met a rule
+            steps = jnp.where(e["held"], 0, e["steps"] + 1)
+            no = jnp.zeros(P.nbatch, bool)
+            terminated = E.terminated(jnp, P.kinematics(m, d), no)
+            truncated = E.truncated(steps, no, jnp)
+            bits = (terminated.astype(jnp.uint8) | truncated.astype(jnp.uint8) << 1
+                    | e["held"].astype(jnp.uint8) << 2)
+            flags = jax.lax.dynamic_update_index_in_dim(e["flags"], bits, j, axis=1)
+            pending = jnp.where(rules.frame_due(t, every), terminated | truncated, e["pending"])
+            loop["episode"] = {**e, "steps": steps, "flags": flags, "pending": pending}
         return loop, obs
 
     def finish(m, loop, delivered):
@@ -101,6 +153,15 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
             outputs["params"] = params
         carry = ({"state": P.physics(m, d), "qacc_warmstart": d.qacc_warmstart,
                   "params": params} if P.continuing else None)  # as the open loop's
+        if E is not None:
+            e = loop["episode"]
+            bits = e["flags"]
+            outputs.update(terminated=(bits & 1) != 0, truncated=(bits & 2) != 0,
+                           first=(bits & 4) != 0)
+            unapplied = jnp.repeat(outputs["first"], every, axis=1)[..., None]
+            outputs["control"] = jnp.where(unapplied, jnp.nan, outputs["control"])
+            if carry is not None:
+                carry.update(pending=e["pending"], episode_steps=e["steps"])
         return outputs, carry, d
 
     return start, advance, finish

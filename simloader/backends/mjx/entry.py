@@ -77,7 +77,7 @@ class MjxEngine(EngineEntry):
         return gpu_visible() and any(_found(p) for p in _CUDA_PLUGINS)
 
     def estimate(self, job: Job) -> Optional[float]:
-        if job.cameras or (job.episodes and job.policy) or job.episode_callable:
+        if job.cameras or job.episode_callable:
             return None  # MJX does not render; episodes end in the open loop only
         if self._gpu():
             rate = gpu_rule.steps_per_second(job, RULE)
@@ -118,9 +118,6 @@ class MjxEngine(EngineEntry):
             raise ValueError("terminate: a callable over the observations runs where the "
                              "simulation steps from Python, which MJX's jitted scan does not; "
                              "use backend='cpu' or 'warp', or rules of simloader.terminate")
-        if config.terminate is not None and config.policy is not None:
-            raise ValueError("terminate: MJX ends episodes in the open loop only for now; with "
-                             "policy= use backend='cpu' or 'warp', or terminate=None")
         from simloader.backends.mjx import options as mjx_options, runtime
         if config.deterministic:  # before anything below starts JAX
             runtime.configure_determinism()
