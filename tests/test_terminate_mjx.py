@@ -111,9 +111,13 @@ def test_a_fresh_episode_is_mujocos_physics_within_float32(mjx_batch):
     assert checked >= 4
 
 
-def test_a_walker_falls_by_its_own_kinematics():
+@pytest.mark.parametrize("backend", ["mjx", "warp"])
+def test_a_walker_falls_by_its_own_kinematics(backend, request):
+    if backend == "warp":  # its CPU kernels where no GPU is
+        pytest.importorskip("mujoco_warp")
+        request.getfixturevalue("warp_on_cpu")
     ds = simloader.SimDataset("examples/models/walker/walker.xml", nbatch=3, nstep=120,
-                              seed=1, backend="mjx",
+                              seed=1, backend=backend,
                               control=controls.OrnsteinUhlenbeck(std=0.6, tau=0.05),
                               terminate=T.Below("torso", 0.9))
     batch = host(next(iter(ds)))
