@@ -312,3 +312,36 @@ def test_mjx_refuses_a_callable_by_name():
     with pytest.raises(ValueError, match="terminate: a callable over the observations runs "
                                          "where the simulation steps from Python"):
         simloader.SimDataset("cartpole", nbatch=4, nstep=5, backend="mjx", terminate=hinge_out)
+
+
+SEEN_OBS: list = []  # what WalkerPolicy was given
+
+
+class WalkerPolicy(torch.nn.Module):
+    """Zero controls; keeps every observation it was given."""
+
+    def forward(self, obs):
+        SEEN_OBS.append({k: v.clone() for k, v in obs.items()})
+        return torch.zeros(obs["state"].shape[0], 6, dtype=obs["state"].dtype,
+                           device=obs["state"].device)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "warp"])
+def test_a_body_rule_leaves_a_policys_observations_as_they_are(backend, request):
+    # a body rule computes the kinematics of each frame's own state; what the policy sees
+    # after a step stays what mj_step left (xpos of the step's start, every sensor current),
+    # as the frame records it and as a stream without the rule shows it
+    if backend == "warp":
+        pytest.importorskip("mujoco_warp")
+        request.getfixturevalue("warp_on_cpu")
+    SEEN_OBS.clear()
+    ds = simloader.SimDataset(WALKER, nbatch=3, nstep=80, seed=2, backend=backend,
+                              record=("state", "sensordata", "xpos"), policy=WalkerPolicy(),
+                              policy_noise=controls.Normal(std=0.8),
+                              terminate=T.Below("torso", 0.9))
+    batch = next(iter(ds))
+    assert batch["first"].any()
+    for t in range(79):  # (the policy picks no row after the last step)
+        for key in ("state", "sensordata", "xpos"):
+            torch.testing.assert_close(SEEN_OBS[t + 1][key].cpu(), batch[key][:, t].cpu(),
+                                       rtol=0, atol=0, msg=f"{key} after step {t}")

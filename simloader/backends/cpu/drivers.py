@@ -154,8 +154,9 @@ class ClosedLoop:
                 frame = rules.frame_index(t, k)
                 live.record(out, frame)
                 if episodes is not None:  # the fresh rows' frames, the rules, the resets
-                    episodes.after_frame(held, {s: a[:, frame:frame + 1]
-                                                for s, a in out.items()}, frame)
+                    return episodes.after_frame(held, {s: a[:, frame:frame + 1]
+                                                       for s, a in out.items()}, frame,
+                                                observe=True)
             return live.observations()
 
         b.forward()

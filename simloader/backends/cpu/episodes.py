@@ -18,10 +18,11 @@ The rules read the frame's own state: its positions from the state rows, and wha
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Optional
 
 import mujoco
 import numpy as np
+import torch
 
 from simloader import layout
 
@@ -77,10 +78,16 @@ class Episodes:
             self.batch.state[rows] = self.reset_to
         return rows
 
-    def after_frame(self, rows: np.ndarray, frame: dict, index: int) -> None:
+    def after_frame(self, rows: np.ndarray, frame: dict, index: int,
+                    observe: bool = False) -> Optional[dict[str, torch.Tensor]]:
         """After frame `index` was stepped and recorded into `frame` ({source: (nbatch, 1,
         ...)}): the rows reset at it hold their fresh state and record what mj_forward
-        computes there; then every row's frame is checked against the rules."""
+        computes there; then every row's frame is checked against the rules.
+
+        Returns the observations a policy gets after this frame where asked (`observe`), or
+        None: taken before the body rules' position-stage forward, which refreshes MuJoCo's
+        bound outputs with the frame's own kinematics (and leaves later stages stale), so that
+        a policy sees what it sees without rules."""
         c, batch, live, flags = self.config, self.batch, self.live, self.flags
         k = c.record_every
         if len(rows):
@@ -89,6 +96,7 @@ class Episodes:
             for source, buffer in frame.items():
                 buffer[rows, 0] = live.value(source)[rows]
             flags["first"][rows, index] = True
+        obs = (live.observations() if observe or self.rules.check is not None else None)
         self.episode_steps += k
         self.episode_steps[rows] = 0
         fields = {}
@@ -100,11 +108,12 @@ class Episodes:
         like = np.zeros(c.nbatch, dtype=bool)
         terminated = self.rules.terminated(np, fields, like)
         if self.rules.check is not None:  # a callable over the observations a policy gets
-            terminated |= self.rules.checked(live.observations(), index, c.nbatch).numpy()
+            terminated |= self.rules.checked(obs, index, c.nbatch).numpy()
         truncated = self.rules.truncated(self.episode_steps, like, np)
         flags["terminated"][:, index] = terminated
         flags["truncated"][:, index] = truncated
         self.pending = terminated | truncated
+        return obs if observe else None
 
     def unapplied(self, control: np.ndarray) -> None:
         """The control rows of the fresh frames were not applied: delivered as NaN."""

@@ -188,6 +188,9 @@ class WarpSimulation:
         self.episodes = (warp_episodes.Episodes(
             c, self.d, lambda: self.mjw.kinematics(self.m, self.d), self.device)
             if c.terminate is not None else None)
+        # whether anything reads a step's observations: a policy, or a callable terminate=
+        self.read_obs = self.loop.observes or (c.terminate is not None
+                                               and c.terminate.check is not None)
 
     def _capture(self) -> Any:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
@@ -371,11 +374,13 @@ class WarpSimulation:
             obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
             for key, value in obs.items():
                 self.frames[key].index_copy_(1, frame, value[:, None])
+            if self.read_obs and (self.cameras is not None or (
+                    self.episodes is not None and self.episodes.kinematics is not None)):
+                # rendering, and body rules, bring the poses to the state: the policy (or a
+                # callable terminate=) sees what mj_step left in the fields the observations
+                # view (poses of the step's start), as without them
+                obs = {k: v.clone() for k, v in obs.items()}
             if self.cameras is not None:
-                if self.loop.observes:
-                    # rendering brings the poses to the state: the policy sees what mj_step
-                    # left in the fields the observations view (poses of the step's start)
-                    obs = {k: v.clone() for k, v in obs.items()}
                 # images go straight into their frames; the policy gets this step's
                 obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
             if self.episodes is not None:  # the frame's flags; at its end, the resets
