@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from simloader import randomize as dr
-from simloader import seeds, sharding
+from simloader import seeds, sharding, terminate
 from simloader.config import SimConfig
 
 
@@ -102,6 +102,24 @@ class Backend(abc.ABC):
         if c.randomization is not None:
             drawn.update(c.randomization.sample(seed, c.nbatch))
         return drawn
+
+    def fresh_draw(self, index: int, draw: int) -> np.ndarray:
+        """(nbatch, nstate): batch `index`'s `draw`-th set of fresh initial states from the
+        initial-state generator, one per trajectory (`terminate=`'s autoreset: a
+        trajectory's e-th reset of the batch takes its row of draw `e % FRESH_DRAWS`), the
+        same on every engine."""
+        c = self.config
+        return c.initial.sample(seeds.reset_seed(c.seed, self.shard, index, draw), c.nbatch)
+
+    def fresh_draws(self, index: int) -> Optional[np.ndarray]:
+        """(nbatch, FRESH_DRAWS, nstate): all of batch `index`'s `fresh_draw`s, for the
+        engines that hand them to the device at once; None without `terminate=` or without
+        an initial-state generator (a reset restarts from the trajectory's own state)."""
+        c = self.config
+        if c.terminate is None or c.initial.generator is None:
+            return None
+        return np.stack([self.fresh_draw(index, d) for d in range(terminate.FRESH_DRAWS)],
+                        axis=1)
 
     @abc.abstractmethod
     def produce(self, index: int) -> Any:

@@ -162,8 +162,8 @@ class CpuBackend(Backend):
 
     def _fresh_rows(self, index: int):
         """`episodes.FreshRows` of batch `index`: each row's fresh initial state after a reset,
-        from its initial-state source (the generator seeded by batch, row and episode), as
-        the row of mj_resetData with zero warmstart."""
+        from its initial-state source (a generator's `fresh_draw`s), as the row of
+        mj_resetData with zero warmstart."""
         c, t = self.config, self.trajectories
 
         draws: dict[int, np.ndarray] = {}  # a generator's sets of fresh states, drawn when needed
@@ -172,10 +172,9 @@ class CpuBackend(Backend):
             out = t.per_trajectory(self.reset_rows)[rows].copy()
             if c.initial.generator is not None:
                 sets = episodes % terminate.FRESH_DRAWS
-                for e in np.unique(sets):
+                for e in np.unique(sets):  # drawn when a reset first needs them
                     if e not in draws:
-                        draws[e] = c.initial.sample(
-                            seeds.reset_seed(c.seed, self.shard, index, int(e)), c.nbatch)
+                        draws[e] = self.fresh_draw(index, int(e))
                 x0 = np.stack([draws[e][r] for r, e in zip(rows, sets)])
             elif self.variant_states is not None:
                 x0 = t.per_trajectory(self.variant_states)[rows]

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 import torch
 
-from simloader import handoff, layout, resume, seeds, sharding, terminate
+from simloader import handoff, layout, resume, seeds, sharding
 from simloader import randomize as dr
 from simloader.backends.base import Backend, Stats
 from simloader.backends.mjx import drivers, runtime
@@ -101,12 +101,9 @@ class MjxBackend(Backend):
                          randomize_seed.generate_state(2, np.uint32)])
         variant = None if c.variants is None else dr.draw_variants(
             randomize_seed, len(c.variants), c.nbatch).astype(np.int32)
-        fresh = None
-        if c.terminate is not None and c.initial.generator is not None:
-            # a generator's fresh states for the autoreset, as the CPU engine draws them
-            fresh = np.stack([c.initial.sample(seeds.reset_seed(c.seed, self.shard, index, e),
-                                               c.nbatch)
-                              for e in range(terminate.FRESH_DRAWS)], axis=1).astype(p.dtype)
+        fresh = self.fresh_draws(index)
+        if fresh is not None:
+            fresh = fresh.astype(p.dtype)
         return BatchArgs(p.model, p.data0, p.inputs0, x0, p.control, p.bounds, keys, variant,
                          self.carry, self.restart, fresh, p.reset_control)
 

@@ -22,7 +22,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from simloader import handoff, policy, resume, seeds, sharding, terminate
+from simloader import handoff, policy, resume, seeds, sharding
 from simloader.backends.base import Backend, Stats, refuse_forked_worker, slow_notice
 from simloader.backends.warp import options as warp_options
 from simloader.backends.warp import runtime
@@ -108,12 +108,7 @@ class WarpBackend(Backend):
         # reset could read them before they arrived)
         x0 = c.initial.sample(self.seed(index, seeds.INITIAL), c.nbatch)
         drawn = self.draw_models(index)
-        fresh = None
-        if c.terminate is not None and c.initial.generator is not None:
-            # a generator's fresh states for the autoreset, as the CPU engine draws them
-            fresh = np.stack([c.initial.sample(seeds.reset_seed(c.seed, self.shard, index, d),
-                                               c.nbatch)
-                              for d in range(terminate.FRESH_DRAWS)], axis=1)
+        fresh = self.fresh_draws(index)  # a generator's, for the autoreset
         # the weights this batch runs with, one version of them (a copy taken now)
         weights = self.snapshot.take() if self.snapshot is not None else None
         dispatched = time.perf_counter()
