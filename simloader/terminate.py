@@ -224,8 +224,7 @@ class TimeLimit(Rule):
             raise ValueError(f"terminate: TimeLimit(steps)'s steps must be an int >= 1, got "
                              f"{self.steps!r}")
 
-    def met(self, xp, fields):
-        return fields["episode_steps"] >= self.steps
+    # (no `met`: a time limit reads no state; `Episodes.truncated` counts the steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -277,9 +276,9 @@ class Episodes:
             out = out | rule.met(xp, fields)
         return out
 
-    def truncated(self, episode_steps: Any, like: Any, xp: Any) -> Any:
+    def truncated(self, xp: Any, episode_steps: Any, like: Any) -> Any:
         """(nbatch,) bool: the time limit ends the episode at a frame after `episode_steps`
-        steps."""
+        steps (`like`: as `terminated`'s)."""
         if self.time_limit is None:
             return xp.zeros_like(like)
         return episode_steps >= self.time_limit

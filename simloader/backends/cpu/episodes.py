@@ -109,7 +109,7 @@ class Episodes:
         terminated = self.rules.terminated(np, fields, like)
         if self.rules.check is not None:  # a callable over the observations a policy gets
             terminated |= self.rules.checked(obs, index, c.nbatch).numpy()
-        truncated = self.rules.truncated(self.episode_steps, like, np)
+        truncated = self.rules.truncated(np, self.episode_steps, like)
         flags["terminated"][:, index] = terminated
         flags["truncated"][:, index] = truncated
         self.pending = terminated | truncated

@@ -42,7 +42,6 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
 
         `previous`: the last batch's data, donated so the new one takes its buffers."""
         del previous
-        source = x0
         m, data, defaults, variant, params = P.begin(m, d0, inputs0, x0, defaults, seeds,
                                                      variant, carry, restart)
         initial = P.physics(m, data)
@@ -63,10 +62,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         if noise is not None:
             loop["noise"] = noise
         if E is not None:
-            if P.x0_per_variant:
-                source = source[variant]
-            if reset_control.shape[0] > 1 and P.variants:  # per model of the pool
-                reset_control = reset_control[variant]
+            source, reset_control = P.episode_inputs(x0, reset_control, variant)
             n = P.nbatch
             pending = (carry["pending"] & ~restart if P.continuing else jnp.zeros(n, bool))
             loop["episode"] = {
@@ -74,9 +70,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                 "steps": (jnp.where(restart, 0, carry["episode_steps"]) if P.continuing
                           else jnp.zeros(n, jnp.int32)),
                 "resets": jnp.zeros(n, jnp.int32),
-                "at": jnp.zeros_like(initial), "source": source,
-                "fresh": jnp.zeros((n, 0, initial.shape[1]), P.dtype) if fresh is None
-                else fresh,
+                "at": jnp.zeros_like(initial), "source": source, "fresh": fresh,
                 "reset_control": jnp.broadcast_to(reset_control, shape[::2]).astype(P.dtype),
                 "flags": jnp.zeros((n, nframes), jnp.uint8)}
         return m, loop, obs, {"initial_state": initial, "params": params}
@@ -88,10 +82,8 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         e, d = loop["episode"], loop["d"]
         boundary = t % every == 0
         take = boundary & e["pending"]
-        draws = e["fresh"].shape[1]
-        fresh_state = (e["source"] if draws == 0 else
-                       e["fresh"][jnp.arange(P.nbatch), e["resets"] % max(draws, 1)])
-        at = jnp.where(take[:, None], fresh_state, e["at"])
+        at = jnp.where(take[:, None], P.fresh_state(e["source"], e["fresh"], e["resets"]),
+                       e["at"])
         e = {**e, "at": at, "resets": e["resets"] + take,
              "held": jnp.where(boundary, e["pending"], e["held"])}
         return e, P.hold(d, take, at)
@@ -134,10 +126,9 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
             steps = jnp.where(e["held"], 0, e["steps"] + 1)
             no = jnp.zeros(P.nbatch, bool)
             terminated = E.terminated(jnp, P.kinematics(m, d), no)
-            truncated = E.truncated(steps, no, jnp)
-            bits = (terminated.astype(jnp.uint8) | truncated.astype(jnp.uint8) << 1
-                    | e["held"].astype(jnp.uint8) << 2)
-            flags = jax.lax.dynamic_update_index_in_dim(e["flags"], bits, j, axis=1)
+            truncated = E.truncated(jnp, steps, no)
+            flags = jax.lax.dynamic_update_index_in_dim(
+                e["flags"], P.pack_flags(terminated, truncated, e["held"]), j, axis=1)
             pending = jnp.where(rules.frame_due(t, every), terminated | truncated, e["pending"])
             loop["episode"] = {**e, "steps": steps, "flags": flags, "pending": pending}
         return loop, obs
@@ -155,11 +146,8 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
                   "params": params} if P.continuing else None)  # as the open loop's
         if E is not None:
             e = loop["episode"]
-            bits = e["flags"]
-            outputs.update(terminated=(bits & 1) != 0, truncated=(bits & 2) != 0,
-                           first=(bits & 4) != 0)
-            unapplied = jnp.repeat(outputs["first"], every, axis=1)[..., None]
-            outputs["control"] = jnp.where(unapplied, jnp.nan, outputs["control"])
+            flags, outputs["control"] = P.unpack_flags(e["flags"], outputs["control"])
+            outputs.update(flags)
             if carry is not None:
                 carry.update(pending=e["pending"], episode_steps=e["steps"])
         return outputs, carry, d

@@ -12,7 +12,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from simloader import layout
 from simloader.backends import gpu_state
 from simloader.backends.mjx.runtime import mjx
 from simloader.config import SimConfig
