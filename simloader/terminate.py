@@ -44,7 +44,6 @@ class Rule:
     trajectory, whether the frame's state meets it."""
 
     reads: tuple[str, ...] = ()
-    truncates = False  # a time limit truncates an episode; the others terminate it
 
     def row(self) -> tuple[int, int, float, float]:
         """The resolved rule as one row of a table an engine's kernel reads: (kind, index,
@@ -216,7 +215,6 @@ class TimeLimit(Rule):
     """
 
     steps: int
-    truncates = True
 
     def __post_init__(self):
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) \

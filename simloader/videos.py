@@ -94,7 +94,7 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
     if key is not None:
         frames = _recorded_frames(items[key], shown)
     else:
-        mj_model, model_of = _renderer_models(model, config, source, items)
+        mj_model, model_of = _renderer_models(model, config, items)
         frames = _rendered_frames(mj_model, model_of, states, shown, camera, size)
     with _Writer(path, fps, lossless) as writer:
         bar = _progress(len(shown), progress, path)
@@ -190,7 +190,7 @@ def _recorded_frames(images: np.ndarray, shown: np.ndarray):
         yield images[:, shown[start:start + CHUNK]]
 
 
-def _renderer_models(model: Any, config: Any, source: Any, items: dict):
+def _renderer_models(model: Any, config: Any, items: dict):
     """(the model renderers are made from, model_of(i) for shown row i)."""
     if config is not None:
         params = {k[len("params/"):]: v for k, v in items.items() if k.startswith("params/")}
