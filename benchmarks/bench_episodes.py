@@ -60,98 +60,56 @@ def rule_torch(rule, model, views):
     return xpos[:, model.body(rule.body).id, 2] < rule.height
 
 
-class RawWarpReset(bench.RawWarp):
-    """`RawWarp`, same work, plus the rule and the reset after every step (a body rule's
-    kinematics inside the captured graph, after the step)."""
+def raw_warp_reset(model, w, seed, rule, sizes):
+    """`RawWarp`, same work, plus the rule and the reset after every step: torch `where` on
+    MuJoCo Warp's arrays between graph replays (a body rule's kinematics inside the graph,
+    after the step)."""
+    held = {}  # the data's views, the initial state, the flags: made at the first step
 
-    def __init__(self, model, w, seed, rule, sizes):
-        self.rule, self.model = rule, model
-        super().__init__(model, w, seed, sizes=sizes)
+    def reset(raw, t):
+        if not held:
+            n = raw.w.nbatch
+            held["views"] = {k: raw.wp.to_torch(getattr(raw.d, k)).reshape(n, -1) for k in
+                             ("time", "qpos", "qvel", "act", "qacc_warmstart", "xpos")}
+            # the state mj_resetData leaves: qpos0, all else zero
+            held["x0"] = {k: torch.zeros_like(v[:1]) for k, v in held["views"].items()
+                          if k != "xpos"}
+            held["x0"]["qpos"][0] = torch.as_tensor(model.qpos0, device=raw.device)
+            held["done"] = torch.empty((n, raw.w.nstep), dtype=torch.bool, device=raw.device)
+        done = rule_torch(rule, model, held["views"])
+        held["done"][:, t] = done
+        for k, x0 in held["x0"].items():
+            view = held["views"][k]
+            view.copy_(torch.where(done[:, None], x0, view))
 
-    def _physics(self) -> None:
-        self.mjw.step(self.m, self.d)
-        if isinstance(self.rule, T.Below):
-            self.mjw.kinematics(self.m, self.d)
-
-    def __call__(self):
-        wp, n = self.wp, self.w.nbatch
-        if not hasattr(self, "views"):
-            t = lambda a: wp.to_torch(a).reshape(n, -1)  # noqa: E731
-            self.views = {k: t(getattr(self.d, k)) for k in
-                          ("time", "qpos", "qvel", "act", "qacc_warmstart", "xpos")}
-            self.x0 = {k: v[:1].clone() for k, v in self.views.items() if k != "xpos"}
-            self.x0["time"].zero_()
-            self.done = torch.empty((n, self.w.nstep), dtype=torch.bool, device=self.device)
-        with torch.cuda.stream(self.stream):
-            torch.rand(self.controls.shape, generator=self.gen, device=self.device,
-                       out=self.controls)
-            self.controls.mul_(self.high - self.low).add_(self.low)
-            for t in range(self.w.nstep):
-                self.ctrl.copy_(self.controls[:, t])
-                wp.capture_launch(self.graph, stream=self.warp_stream)
-                torch.cat(self.parts, dim=1, out=self.state[:, t])
-                self.sensors[:, t] = self.sensordata
-                done = rule_torch(self.rule, self.model, self.views)
-                self.done[:, t] = done
-                for k, x0 in self.x0.items():
-                    view = self.views[k]
-                    view.copy_(torch.where(done[:, None], x0, view))
-        self.stream.synchronize()
-        return {"state": self.state, "sensordata": self.sensors, "control": self.controls,
-                "done": self.done}
+    return bench.RawWarp(model, w, seed, sizes=sizes, kinematics=isinstance(rule, T.Below),
+                         after_step=reset)
 
 
 def raw_mjx_reset(model, w, seed, rule):
-    """`RawMjx`, same work, plus the rule and the reset inside the scan (`jnp.where`)."""
+    """`RawMjx`, same work, plus the rule and the reset inside the scan (`jnp.where` over
+    what a step reads), after each step's state is recorded."""
     import jax
     import jax.numpy as jnp
     from simloader.backends.mjx.runtime import mjx
 
-    class RawMjxReset(bench.RawMjx):
-        def __init__(self):
-            self.w = w
-            self.render = None
-            self.mx = mjx.put_model(model, impl="jax")
-            self.key = jax.random.key(seed)
-            low, high = (jnp.asarray(b, jnp.float32) for b in bench.ctrl_bounds(model))
-            step = jax.vmap(mjx.step, in_axes=(None, 0))
-            kinematics = jax.vmap(mjx.kinematics, in_axes=(None, 0))
-            nbatch, nstep, nu = w.nbatch, w.nstep, model.nu
-            self.d0 = mjx.make_data(self.mx, impl="jax")
-            adr = (int(model.jnt_qposadr[model.joint(rule.joint).id])
-                   if isinstance(rule, T.Outside) else None)
-            body = model.body(rule.body).id if isinstance(rule, T.Below) else None
+    kinematics = jax.vmap(mjx.kinematics, in_axes=(None, 0))
+    start = mjx.make_data(mjx.put_model(model, impl="jax"), impl="jax")  # mj_resetData's
+    adr = (int(model.jnt_qposadr[model.joint(rule.joint).id])
+           if isinstance(rule, T.Outside) else None)
+    body = model.body(rule.body).id if isinstance(rule, T.Below) else None
 
-            def batch(mx, d0, key, index):
-                ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
-                                          minval=low, maxval=high)
-                start = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
+    def reset(mx, d):
+        if adr is not None:
+            done = (d.qpos[:, adr] < rule.low) | (d.qpos[:, adr] > rule.high)
+        else:
+            done = kinematics(mx, d).xpos[:, body, 2] < rule.height
+        rows = lambda x: done.reshape((-1,) + (1,) * (x.ndim - 1))  # noqa: E731
+        return d.replace(**{n: jnp.where(rows(getattr(d, n)), getattr(start, n),
+                                         getattr(d, n)) for n in bench.STEP_READS}), \
+            {"done": done}
 
-                def body_fn(d, u):
-                    d = step(mx, d.replace(ctrl=u))
-                    if adr is not None:
-                        done = (d.qpos[:, adr] < rule.low) | (d.qpos[:, adr] > rule.high)
-                    else:
-                        done = kinematics(mx, d).xpos[:, body, 2] < rule.height
-                    state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
-                    d = d.replace(**{n: jnp.where(
-                        done.reshape((-1,) + (1,) * (getattr(d, n).ndim - 1)),
-                        getattr(start, n), getattr(d, n)) for n in bench.STEP_READS})
-                    return d, (state, d.sensordata, done)
-
-                _, (state, sensordata, done) = jax.lax.scan(body_fn, start, ctrl)
-                return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
-                        "control": ctrl.swapaxes(0, 1), "done": done.swapaxes(0, 1)}
-
-            import time
-            t0 = time.perf_counter()
-            with jax.default_matmul_precision("float32"):
-                self.fn = jax.jit(batch).lower(self.mx, self.d0, self.key, 0).compile()
-            self.compile_s = time.perf_counter() - t0
-            self.index = 0
-            self._time_first_batch()
-
-    return RawMjxReset()
+    return bench.RawMjx(model, w, seed, after_step=reset)
 
 
 def run_case(case: Case, args) -> tuple[list, dict]:
@@ -164,8 +122,8 @@ def run_case(case: Case, args) -> tuple[list, dict]:
     if case.engine == "mjx":
         raw_reset = raw_mjx_reset(model, w, args.seed, case.rule)
     else:
-        raw_reset = RawWarpReset(model, w, args.seed, case.rule,
-                                 sizes=(options.naconmax, options.njmax))
+        raw_reset = raw_warp_reset(model, w, args.seed, case.rule,
+                                   sizes=(options.naconmax, options.njmax))
     nbatches = common.batches_for(args, max(raw.batch_s, raw_reset.batch_s))
     s = bench.interleave({
         "simloader, no rule": lambda: plain.measure(nbatches),

@@ -287,8 +287,9 @@ class RawMjx(RawBaseline):
       controls: draw uniform controls for every step (True), or step with none.
       check: after each step, put back rows whose state is not finite (a per-row select over
         what a step reads, as simloader's divergence check does).
-      render: after each step, `render(mx, d) -> (d, {key: images})` on the batched data;
-        the images are returned batch-major with the rest.
+      after_step: after each step (and its state recorded), `after_step(mx, d) -> (d,
+        {key: per-step output})` on the batched data: rendered images, or a reset and its
+        flags; the outputs are returned batch-major with the rest.
 
     Attributes:
       compile_s: seconds to trace and compile; first_s: to the first batch in hand;
@@ -301,13 +302,14 @@ class RawMjx(RawBaseline):
 
     def __init__(self, model: mujoco.MjModel, w: Workload, seed: int, controls: bool = True,
                  check: bool = False,
-                 render: Optional[Callable[[Any, Any], tuple[Any, dict]]] = None):
+                 after_step: Optional[Callable[[Any, Any], tuple[Any, dict]]] = None):
         import jax
         import jax.numpy as jnp
         from simloader.backends.mjx.runtime import mjx  # (imports MJX without its warp print)
 
         self.w = w
-        self.render = render  # alive as long as the compiled function (it may own buffers)
+        # alive as long as the compiled function (it may own buffers)
+        self.after_step = after_step
         self.mx = mjx.put_model(model, impl="jax")
         self.key = jax.random.key(seed)
         low, high = (jnp.asarray(b, jnp.float32) for b in ctrl_bounds(model))
@@ -332,16 +334,16 @@ class RawMjx(RawBaseline):
                                                   getattr(d, n), 0 * getattr(d, n))
                                      for n in STEP_READS})
                 state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
-                images = {}
-                if render is not None:
-                    d, images = render(mx, d)
-                return d, (state, d.sensordata, images)
+                extra = {}
+                if after_step is not None:
+                    d, extra = after_step(mx, d)
+                return d, (state, d.sensordata, extra)
 
-            _, (state, sensordata, images) = jax.lax.scan(body, d, ctrl)
+            _, (state, sensordata, extra) = jax.lax.scan(body, d, ctrl)
             # batch-major, as simloader delivers
             return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
                     "control": ctrl.swapaxes(0, 1),
-                    **{k: v.swapaxes(0, 1) for k, v in images.items()}}
+                    **{k: v.swapaxes(0, 1) for k, v in extra.items()}}
 
         start = time.perf_counter()
         # the same matmul precision as simloader's (JAX's GPU default is TF32)
@@ -382,6 +384,10 @@ class RawWarp(RawBaseline):
         (per world): a simloader dataset's resolved `options.naconmax, options.njmax`, so that
         both run with the same buffers (None: MuJoCo Warp's defaults).
       cameras: also render camera 0 at 64x64 RGB every step and copy its pixels out.
+      kinematics: also compute MuJoCo Warp's kinematics of the new state inside the graph,
+        after the step (what `after_step` may read).
+      after_step: with same work, `after_step(self, t)` after step `t`'s state is copied out,
+        in torch on the baseline's stream (a reset of the rows a rule ends, for example).
 
     Attributes:
       compile_s: seconds to build the model and data, compile the kernels and capture the
@@ -394,7 +400,8 @@ class RawWarp(RawBaseline):
 
     def __init__(self, model: mujoco.MjModel, w: Workload, seed: int,
                  sizes: tuple[Optional[int], Optional[int]] = (None, None),
-                 same_work: bool = True, cameras: bool = False):
+                 same_work: bool = True, cameras: bool = False, kinematics: bool = False,
+                 after_step: Optional[Callable[[Any, int], None]] = None):
         # imported here: the package (and `simloader bench` on the CPU engine) runs
         # without Warp installed
         import mujoco_warp as mjw
@@ -402,6 +409,7 @@ class RawWarp(RawBaseline):
         wp.config.quiet = True
         start = time.perf_counter()
         self.mjw, self.wp, self.w, self.same_work = mjw, wp, w, same_work
+        self.kinematics, self.after_step = kinematics, after_step
         if not torch.cuda.is_available():
             raise RuntimeError("RawWarp needs a CUDA GPU (it replays a CUDA graph), and torch "
                                "sees none")
@@ -450,6 +458,8 @@ class RawWarp(RawBaseline):
     def _physics(self) -> None:
         mjw = self.mjw
         mjw.step(self.m, self.d)
+        if self.kinematics:
+            mjw.kinematics(self.m, self.d)
         if self.rc is not None:
             mjw.kinematics(self.m, self.d)
             mjw.camlight(self.m, self.d)
@@ -470,6 +480,8 @@ class RawWarp(RawBaseline):
                 if self.same_work:
                     torch.cat(self.parts, dim=1, out=self.state[:, t])
                     self.sensors[:, t] = self.sensordata
+                    if self.after_step is not None:
+                        self.after_step(self, t)
                 if self.pixels is not None:
                     self.pixels[:, t] = wp.to_torch(self.rc.rgb_data)
         self.stream.synchronize()
