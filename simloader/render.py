@@ -225,7 +225,7 @@ class RenderPool:
     def __init__(self, model: mujoco.MjModel, images: Sequence[observe.CameraImage],
                  nthread: int):
         _check_not_forked_after_gl()
-        self.gl, self.platform = gl_platform()
+        gl_platform()  # no OpenGL here: said now, not in a render thread
         self.model = model
         self.images = tuple(images)
         self.local = threading.local()

@@ -42,9 +42,11 @@ class _Produced:
     """A batch queued on the device: its outputs (maybe not computed yet) and when."""
 
     def __init__(self, outputs: dict, params: dict, extras: dict, rows_after: Any,
-                 ready: Any, dispatched: float):
+                 ready: Any, dispatched: float, episodes: Optional[tuple] = None):
         self.outputs, self.params, self.extras = outputs, params, extras
         self.rows_after, self.ready, self.dispatched = rows_after, ready, dispatched
+        # terminate= with continue_episodes: (pending, episode steps) after this batch
+        self.episodes = episodes
 
 
 class WarpBackend(Backend):
@@ -140,8 +142,9 @@ class WarpBackend(Backend):
             episodes = None
             if e.episodes is not None:
                 outputs.update(e.episodes.finish(outputs["control"]))
-                episodes = (e.episodes.pending.clone(), e.episodes.steps.clone())
-                self.episodes_after = episodes
+                if c.continue_episodes:  # what the next batch (or a checkpoint) takes on
+                    episodes = (e.episodes.pending.clone(), e.episodes.steps.clone())
+                    self.episodes_after = episodes
             params = {k: v.clone() for k, v in self.trajectories.params.items()}
             rows_after = e.integration() if c.continue_episodes else None
             self.rows = rows_after
@@ -151,8 +154,7 @@ class WarpBackend(Backend):
             ready = torch.cuda.Event() if e.gpu else None
             if ready is not None:
                 ready.record()
-        produced = _Produced(outputs, params, extras, rows_after, ready, dispatched)
-        produced.episodes = episodes
+        produced = _Produced(outputs, params, extras, rows_after, ready, dispatched, episodes)
         self.last = produced
         return produced
 
