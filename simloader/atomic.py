@@ -19,22 +19,48 @@ def atomic_write(path: str, parts: Sequence[Any], durable: bool = False) -> None
     fsyncs the file before the rename (a power loss after the rename cannot leave it empty);
     the caller fsyncs the directories (`sync_directories`) before it records the file as
     committed, once for all the files of a commit."""
+    temporary = write_temporary(path, parts)
+    try:
+        if durable:
+            fsync_file(temporary)
+        os.replace(temporary, path)
+    except BaseException:
+        discard(temporary)
+        raise
+
+
+def write_temporary(path: str, parts: Sequence[Any]) -> str:
+    """Writes `parts` to a new temporary name beside `path` (NAME.<32 hex>.partial, which a
+    resumed writer removes) and returns that name. The caller makes it durable
+    (`fsync_file`) and renames it over `path` (`os.replace`): the store's write pipeline
+    does so for all of a slot's files at once."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
     temporary = f"{path}.{uuid.uuid4().hex}{PARTIAL}"
     try:
         with open(temporary, "wb") as f:
             for part in parts:
                 f.write(part)
-            if durable:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(temporary, path)
     except BaseException:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
+        discard(temporary)
         raise
+    return temporary
+
+
+def fsync_file(path: str) -> None:
+    """fsyncs a written file's data and size (its name is the directory's: `sync_directories`)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def discard(path: str) -> None:
+    """Removes a temporary file, if it is there."""
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
 
 
 def sync_directories(directories: Iterable[str]) -> None:

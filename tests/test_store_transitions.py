@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import simloader
-from simloader.store import order as orders, reader, zarr_format as store_format
+from simloader.store import order as orders, pipeline, reader, zarr_format as store_format
 
 pytest.importorskip("zarr")
 
@@ -186,14 +186,14 @@ def test_transitions_of_a_store_without_a_committed_slot_say_so(tmp_path, monkey
         for mark in glob.glob(os.path.join(path, store_format.WRITTEN.name, "c", "*")):
             os.unlink(mark)
     else:
-        real = store_format.atomic_write
+        real = pipeline.write_temporary
 
-        def full(where, parts, durable=False):
-            if "/c/0" in where:
+        def full(where, parts):  # every slot's (slot 1 commits beside slot 0, pipelined)
+            if "/c/" in where:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
-            return real(where, parts, durable)
+            return real(where, parts)
 
-        monkeypatch.setattr(store_format, "atomic_write", full)
+        monkeypatch.setattr(pipeline, "write_temporary", full)
         with pytest.raises(OSError):
             simloader.write(cartpole(), path, batches=2, progress=False)
     stored = simloader.StoredDataset(path)  # readable: nothing in it yet

@@ -2,7 +2,7 @@
 what it is, its writer and how to read it back. A new format is one more entry here.
 
 Each writer is called as `write(dataset, path, batches=, num_workers=, progress=, replace=)`
-after `simloader.store.front.write` has checked those arguments. The zarr writer is imported
+(and `compression=` where the format says it takes it) after `simloader.store.front.write` has checked those arguments. The zarr writer is imported
 with this table; Minari's only when its format is written (Minari is an extra). No writer
 imports this table or the front back.
 """
@@ -22,6 +22,7 @@ class Format:
     description: str
     write: Callable[..., str]  # (dataset, path, *, batches, num_workers, progress, replace)
     read_hint: Optional[str] = None  # how to read it back, "{path!r}" filled in, if simloader can
+    compresses: bool = False  # takes `compression=`
 
 
 def _write_minari(dataset: Any, path: str, **kwargs: Any) -> str:
@@ -32,7 +33,8 @@ def _write_minari(dataset: Any, path: str, **kwargs: Any) -> str:
 FORMATS: dict[str, Format] = {f.name: f for f in (
     Format("zarr", "a zarr v3 group (`simloader.store.zarr_format`), read by StoredDataset",
            writer.write_zarr,
-           read_hint="read them with simloader.StoredDataset({path!r}) or any zarr v3 reader"),
+           read_hint="read them with simloader.StoredDataset({path!r}) or any zarr v3 reader",
+           compresses=True),
     Format("minari", "a Minari dataset (`simloader.store.minari`, extra `minari`)",
            _write_minari),
 )}

@@ -26,7 +26,7 @@ from typing import Any, Optional
 import numpy as np
 
 from simloader.store.zarr_format import (_NO_CHUNK, _ZARR_DTYPES, DamagedStore,
-                                         raw_shard_bytes, shard_key, zstd)
+                                         raw_shard_bytes, shard_key, zstd, blosc)
 
 # Open shards per process: each is one map or one descriptor. Small enough to stay far below
 # the common `ulimit -n` of 256 to 1024 with DataLoader workers' pipes beside it, large enough
@@ -46,6 +46,7 @@ class ArrayLayout:
     nbatch: int  # rows per shard
     chunk: tuple
     compressed: bool
+    shuffled: bool  # blosc (`write(compression="zstd")`), else zstd where compressed
     attributes: dict
 
     @property
@@ -97,7 +98,7 @@ class ArrayLayout:
             raise refuse(f"not the zarr v3 array metadata simloader writes ({e!r} missing or "
                          f"malformed)") from None
         if sharding.get("name") != "sharding_indexed" or config.get("index_location") != "end" \
-                or index != ["bytes"] or inner[:1] != ["bytes"] or inner[1:] not in ([], ["zstd"]):
+                or index != ["bytes"] or inner[:1] != ["bytes"] or inner[1:] not in ([], ["zstd"], ["blosc"]):
             raise refuse(f"codecs {meta['codecs']} are not the ones simloader writes")
         dtypes = {v: k for k, v in _ZARR_DTYPES.items()}
         if data_type not in dtypes:
@@ -117,7 +118,8 @@ class ArrayLayout:
                          f"{list(grid)} into trajectories")
         if not isinstance(attributes, dict):
             raise refuse(f"attributes {attributes!r} are not a mapping")
-        return cls(path, file, shape, dtype, nbatch, chunk, inner[1:] == ["zstd"], attributes)
+        return cls(path, file, shape, dtype, nbatch, chunk, inner[1:] != [],
+                   inner[1:] == ["blosc"], attributes)
 
 
 class ShardFile:
@@ -193,7 +195,7 @@ class ShardFile:
             return self.rows[row]
         layout = self.layout
         per = layout.nchunks // layout.nbatch  # chunks per trajectory (frame blocks)
-        codec = zstd() if layout.compressed else None
+        codec = (None if not layout.compressed else blosc() if layout.shuffled else zstd())
         blocks = []
         for k in range(row * per, (row + 1) * per):
             offset, length = (int(v) for v in self.index[k])

@@ -7,18 +7,19 @@ import math
 import os
 import re
 import sys
-from collections.abc import Iterator, Mapping
+import time
+from collections.abc import Iterator
 from typing import Any, Optional
 
 import numpy as np
 import torch
 
-from simloader import sharding
+from simloader import sharding, threads
 from simloader.atomic import parents, sync_directories
-from simloader.store import integrity, lock, ownership
-from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, PROVENANCE, WRITTEN,
-                                         ArraySpec, checksum_spec, inside, leaves, read_json,
-                                         specs_of, store_path, write_json, write_shard, zstd)
+from simloader.store import integrity, lock, ownership, pipeline
+from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, ArraySpec,
+                                         checksum_spec, inside, read_json, specs_of,
+                                         write_json, zstd)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
 
@@ -132,17 +133,18 @@ def slots_of(rank: int, world: int, batches: int) -> int:
 
 
 class _Writer(torch.utils.data.IterableDataset):
-    """Simulates this worker's missing slots and writes each, yielding a receipt per batch
-    (slot, trajectories, diverged): the batches themselves never cross the worker's queue."""
+    """Simulates this worker's missing slots and commits each through the write pipeline,
+    yielding a receipt per slot (slot, trajectories, diverged, the seconds each stage took
+    since the last receipt): the batches themselves never cross the worker's queue."""
 
     def __init__(self, dataset: Any, path: str, batches: int, rank: tuple[int, int],
-                 done: np.ndarray):
+                 done: np.ndarray, compression: Optional[str]):
         """`done`: the slots complete when `write` began (each slot has one writer, so no
         other writer completes one of this worker's meanwhile)."""
         self.dataset, self.path, self.batches, self.rank = dataset, path, batches, rank
-        self.done = done
+        self.done, self.compression = done, compression
 
-    def __iter__(self) -> Iterator[tuple[int, int, int]]:
+    def __iter__(self) -> Iterator[tuple[int, int, int, dict]]:
         ds, done = self.dataset, self.done
         shard = sharding.current_shard(self.rank)
         count = slots_of(shard.rank, shard.world_size, self.batches)
@@ -152,53 +154,49 @@ class _Writer(torch.utils.data.IterableDataset):
             i for i in mine if not done[i * shard.world_size + shard.rank]]
         if not todo:
             return
-        specs: Optional[dict[str, ArraySpec]] = None
-        backend = ds.make_backend(shard)
-        for index, batch, _ in ds.stream(backend, todo):
-            slot = index * shard.world_size + shard.rank
-            if done[slot]:
-                continue
-            if specs is None:
-                specs = {s.name: s for s in specs_of(batch, ds.config.nbatch)}
-                for spec in specs.values():
-                    _ensure_array(self.path, spec, self.batches * ds.config.nbatch)
-                _ensure_array(self.path, checksum_spec(list(specs.values())), self.batches)
-            _write_slot(self.path, specs, slot, batch, ds.config.nbatch,
-                        (shard.rank, index, shard.num_workers))
-            yield slot, ds.config.nbatch, int(batch["diverged"].sum())
+        stages = pipeline.Stages()
+        slots: Optional[pipeline.SlotPipeline] = None
+        batches = ds.stream(ds.make_backend(shard), todo)
+        try:
+            while True:
+                with stages.timed("simulate"):
+                    got = next(batches, None)
+                if got is None:
+                    break
+                index, batch, _ = got
+                slot = index * shard.world_size + shard.rank
+                if done[slot]:
+                    continue
+                if slots is None:
+                    specs = {s.name: s for s in specs_of(batch, ds.config.nbatch,
+                                                         self.compression)}
+                    for spec in specs.values():
+                        _ensure_array(self.path, spec, self.batches * ds.config.nbatch)
+                    _ensure_array(self.path, checksum_spec(list(specs.values())),
+                                  self.batches)
+                    slots = pipeline.SlotPipeline(self.path, specs, ds.config.nbatch, stages)
+                slots.submit(slot, batch, (shard.rank, index, shard.num_workers))
+                del batch, got  # the pipeline holds it while it needs it
+                for receipt in slots.completed():
+                    yield (*receipt, stages.take())
+            if slots is not None:
+                for receipt in slots.finish():
+                    yield (*receipt, stages.take())
+        finally:
+            batches.close()
+            if slots is not None:
+                slots.close()
 
 
-def _write_slot(path: str, specs: dict[str, ArraySpec], slot: int, batch: Mapping[str, Any],
-                nbatch: int, where: tuple[int, int, int]) -> None:
-    """Commits one batch slot: its shards (each fsync'd, then renamed), the directories that
-    name them, the shards' sizes and checksums, and last the mark that it is complete."""
-    rank, index, num_workers = where
-    rows_of = {}
-    for name, value in leaves(batch):
-        spec = specs[store_path(name)]
-        rows = value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else value
-        if spec.trailing == () and np.ndim(rows) == 0:  # one per batch: one per trajectory
-            rows = np.full(nbatch, rows, dtype=spec.dtype)
-        rows_of[spec.name] = rows
-    for p, value in zip(PROVENANCE, (rank, index, None, num_workers)):
-        rows_of["provenance/" + p] = np.arange(nbatch) if p == "row" else np.full(nbatch, value)
-    checksums = checksum_spec(list(specs.values()))
-    names = dict(checksums.attributes)["arrays"]
-    recorded = np.zeros((1, len(names), 2), dtype=np.uint64)
-    directories: set[str] = set()
-    for k, name in enumerate(names):
-        size, crc, changed = write_shard(path, specs[name], slot, rows_of[name])
-        recorded[0, k] = (size, crc)
-        directories.update(changed)
-    sync_directories(directories)  # the shards are on the disk under their names
-    _, _, changed = write_shard(path, checksums, slot, recorded)
-    sync_directories(changed)
-    _, _, changed = write_shard(path, WRITTEN, slot, np.ones(1, dtype=bool))  # last
-    sync_directories(changed)
+class Written(str):
+    """The path of a written store, with what the write spent where (`report`, a
+    `pipeline.WriteReport`: the seconds of each stage and which one bounded the run)."""
+
+    report: pipeline.WriteReport
 
 
 def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progress: bool,
-               replace: bool) -> str:
+               replace: bool, compression: Optional[str] = None) -> Written:
     """`write(format="zarr")`, its arguments checked.
 
     Nothing is opened for writing before the path is known to be the store's to write
@@ -236,13 +234,16 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
         mine = [i * rank[1] + rank[0] for i in range(total)]
         done = _committed(path, mine, progress)
         already = int(done[mine].sum())
+        start = time.perf_counter()
+        stages = pipeline.Stages()
         loader = torch.utils.data.DataLoader(
-            _Writer(dataset, path, batches, rank, done), batch_size=None,
+            _Writer(dataset, path, batches, rank, done, compression), batch_size=None,
             num_workers=num_workers,
             multiprocessing_context=_worker_start(dataset) if num_workers else None)
         bar = _progress(progress, total, already, path)
         try:
-            for _, _, diverged in loader:
+            for _, _, diverged, seconds in loader:
+                stages.merge(seconds)
                 bar.update(1)
                 if diverged:
                     bar.set_postfix(diverged=diverged, refresh=False)
@@ -258,7 +259,13 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
     finally:
         if held is not None:
             held.release()
-    return path
+    written = Written(path)
+    config = dataset.config
+    written.report = pipeline.WriteReport(
+        batches=int(total - already), steps=int(total - already) * config.nbatch * config.nstep,
+        seconds=time.perf_counter() - start, writers=workers, stages=dict(stages.seconds),
+        threads=min(8, threads.available_cpus()))
+    return written
 
 
 def _writer_rank() -> tuple[int, int]:

@@ -39,6 +39,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import time
 import zlib
 from collections.abc import Iterator, Mapping
 from typing import Any, Optional
@@ -70,6 +71,7 @@ class ArraySpec:
     nbatch: int
     chunk_frames: Optional[int] = None  # images: frames per chunk; None: all
     compressed: bool = False
+    shuffled: bool = False  # compressed by blosc's zstd after a byte shuffle (`compression=`)
     attributes: tuple = ()  # (name, value) pairs: the array's zarr attributes
 
     @property
@@ -88,9 +90,10 @@ class ArraySpec:
     def metadata(self, ntrajectories: int) -> dict:
         byte_order = ({"name": "bytes", "configuration": {"endian": "little"}}
                       if self.dtype.itemsize > 1 else {"name": "bytes"})
-        inner = [byte_order] + ([{"name": "zstd", "configuration": {"level": 1,
-                                                                    "checksum": False}}]
-                                if self.compressed else [])
+        inner = [byte_order] + ([] if not self.compressed else
+                                [_blosc_codec(self.dtype.itemsize)] if self.shuffled else
+                                [{"name": "zstd", "configuration": {"level": 1,
+                                                                    "checksum": False}}])
         return {
             "zarr_format": 3, "node_type": "array",
             "shape": [ntrajectories, *self.trailing],
@@ -109,6 +112,14 @@ class ArraySpec:
 
     def shard_key(self, slot: int) -> str:
         return shard_key(self.name, len(self.trailing), slot)
+
+
+def _blosc_codec(typesize: int) -> dict:
+    """zarr v3's blosc codec as `compression="zstd"` writes it: zstd level 1 over the bytes
+    shuffled by their place in each value (a float's exponent bytes side by side)."""
+    return {"name": "blosc", "configuration": {"cname": "zstd", "clevel": 1,
+                                               "shuffle": "shuffle", "typesize": typesize,
+                                               "blocksize": 0}}
 
 
 def raw_shard_bytes(nbatch: int, trailing: tuple, chunk: tuple, dtype: np.dtype) -> int:
@@ -180,9 +191,15 @@ def _encode_part(part: str, key: str) -> str:
     return out
 
 
-def specs_of(batch: Mapping[str, Any], nbatch: int) -> list[ArraySpec]:
+COMPRESSIONS = (None, "zstd")  # `write(compression=)`: of the arrays stored raw by default
+
+
+def specs_of(batch: Mapping[str, Any], nbatch: int,
+             compression: Optional[str] = None) -> list[ArraySpec]:
     """The stored arrays of a batch: every tensor key, `policy/version` (one per batch) made
-    one per trajectory, and the provenance arrays."""
+    one per trajectory, and the provenance arrays. Integer and boolean chunks of 4 KiB or more
+    (images) are compressed with zstd; the others are raw unless `compression="zstd"`, which
+    compresses every chunk of 4 KiB or more (states: byte shuffle, then zstd)."""
     specs = []
     for name, value in leaves(batch):
         if isinstance(value, torch.Tensor):  # shape and dtype, without a copy off the GPU
@@ -198,9 +215,11 @@ def specs_of(batch: Mapping[str, Any], nbatch: int) -> list[ArraySpec]:
             chunk_frames = largest_divisor(trailing[0], max(1, _IMAGE_CHUNK_BYTES // frame_bytes))
         chunk_bytes = (int(np.prod(trailing)) * dtype.itemsize if chunk_frames is None else
                        chunk_frames * int(np.prod(trailing[1:])) * dtype.itemsize)
-        compressed = dtype.kind in "biu" and chunk_bytes >= _COMPRESS_MIN_BYTES
+        large = chunk_bytes >= _COMPRESS_MIN_BYTES
+        compressed = dtype.kind in "biu" and large
+        shuffled = not compressed and large and compression == "zstd"
         specs.append(ArraySpec(store_path(name), dtype, trailing, nbatch, chunk_frames,
-                               compressed, (("key", name),)))
+                               compressed or shuffled, shuffled, (("key", name),)))
     specs += [ArraySpec("provenance/" + p, np.dtype(np.int64), (), nbatch) for p in PROVENANCE]
     return specs
 
@@ -265,6 +284,17 @@ def zstd():
     return Zstd(level=1)
 
 
+def blosc():
+    """The codec of shuffled arrays (`compression="zstd"`); its frames say their own type
+    size, so one decoder reads them all."""
+    try:
+        from numcodecs import Blosc
+    except ImportError:
+        raise ImportError("simloader: compression='zstd' needs numcodecs: "
+                          "pip install 'simloader[zarr]'") from None
+    return Blosc(cname="zstd", clevel=1, shuffle=Blosc.SHUFFLE)
+
+
 _POOL: Optional[tuple[int, Any]] = None
 
 
@@ -280,29 +310,28 @@ def _encoders():
     return _POOL[1]
 
 
-def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray,
-                durable: bool = True) -> tuple[int, int, list[str]]:
-    """One batch slot of one array, in zarr's sharding format: the inner chunks in C order of
-    the chunk grid, then one (offset, length) pair of little-endian uint64 per chunk.
-
-    Returns the file's size, its CRC-32, and the directories to fsync before the slot is
-    committed (`durable`: the file itself is fsync'd before its rename)."""
-    if spec.empty:
-        return 0, 0, []
+def encode_shard(spec: ArraySpec, rows: np.ndarray, clock: Any = None) -> tuple[list, int, int]:
+    """One batch slot of one array in zarr's sharding format: the inner chunks in C order of
+    the chunk grid (compressed over threads where the spec says so), then one (offset,
+    length) pair of little-endian uint64 per chunk. Returns the parts to write, their size
+    and their CRC-32. `clock` (`pipeline.Stages`) is told the seconds spent compressing and
+    checksumming."""
     rows = np.ascontiguousarray(rows, dtype=spec.dtype.newbyteorder("<"))
     if spec.chunk_frames is None:
         chunks = [rows] if not spec.compressed else [rows[i] for i in range(len(rows))]
     else:  # camera frames: (trajectory, frame block) in C order
         f = spec.chunk_frames
         chunks = [rows[i, j:j + f] for i in range(len(rows)) for j in range(0, rows.shape[1], f)]
+    start = time.perf_counter()
     if spec.compressed:
-        codec = zstd()
+        codec = blosc() if spec.shuffled else zstd()
         parts = list(_encoders().map(lambda c: codec.encode(np.ascontiguousarray(c)), chunks))
         lengths = [len(p) for p in parts]
     else:  # raw: every trajectory's chunk is its rows, back to back
         parts = [memoryview(rows).cast("B")]
         size = rows[0].nbytes if len(rows) else 0
         lengths = [size] * len(rows) if spec.chunk_frames is None else [c.nbytes for c in chunks]
+    encoded = time.perf_counter()
     offsets = np.concatenate([[0], np.cumsum(lengths[:-1])]).astype("<u8") if lengths else []
     index = np.stack([np.asarray(offsets, dtype="<u8"), np.asarray(lengths, dtype="<u8")],
                      axis=1)
@@ -310,10 +339,25 @@ def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray,
     crc = 0
     for part in parts:  # zlib releases the GIL: other writer threads run meanwhile
         crc = zlib.crc32(part, crc)
+    if clock is not None:
+        clock.add("compress", encoded - start if spec.compressed else 0.0)
+        clock.add("checksum", time.perf_counter() - encoded)
+    return parts, sum(memoryview(p).nbytes for p in parts), crc
+
+
+def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray,
+                durable: bool = True) -> tuple[int, int, list[str]]:
+    """One batch slot of one array (`encode_shard`) written to its file at once (the
+    checksums' and the marks' small shards; the write pipeline stages the others).
+
+    Returns the file's size, its CRC-32, and the directories to fsync before the slot is
+    committed (`durable`: the file itself is fsync'd before its rename)."""
+    if spec.empty:
+        return 0, 0, []
+    parts, size, crc = encode_shard(spec, rows)
     file = inside(root, spec.shard_key(slot))
     atomic_write(file, parts, durable)
-    return sum(memoryview(p).nbytes for p in parts), crc, parents(file, os.path.join(
-        root, spec.name))
+    return size, crc, parents(file, os.path.join(root, spec.name))
 
 
 def inside(root: str, key: str) -> str:
