@@ -54,7 +54,7 @@ class _Schedule:
         self._cdf = np.cumsum(weights) / weights.sum()
         self._cdf[-1] = 1.0  # no uniform in [0, 1) can fall past the last member by rounding
         self._block: Optional[int] = None
-        self._members: Optional[np.ndarray] = None
+        self._members: np.ndarray = np.zeros(0, np.int64)
 
     def member(self, p: int) -> int:
         block = p // _BLOCK
@@ -62,7 +62,8 @@ class _Schedule:
             rng = np.random.default_rng(np.random.SeedSequence(
                 self._seed, spawn_key=(_SCHEDULE_KEY, block)))
             # side="right": a member of weight 0 (an empty interval) is never drawn
-            self._members = np.searchsorted(self._cdf, rng.random(_BLOCK), side="right")
+            self._members = np.asarray(np.searchsorted(self._cdf, rng.random(_BLOCK),
+                                                       side="right"))
             self._block = block
         return int(self._members[p % _BLOCK])
 
@@ -225,13 +226,13 @@ class Mixture(torch.utils.data.IterableDataset):
         # own sharding gives this worker its part of the member's stream
         iterators = []
         for name, ds in zip(self.names, self.datasets):
-            if start is not None:
+            if loaded is not None and start is not None:
                 ds.load_state_dict(loaded["members"][name])
             iterators.append(iter(ds))
         return self._batches(shard, start, iterators)
 
     def _batches(self, shard: sharding.Shard, start: Optional[int],
-                 iterators: list[Iterator[Batch]]) -> Iterator[Batch]:
+                 iterators: list[Any]) -> Iterator[Batch]:
         schedule = _Schedule(self.seed, self.weights)
         try:
             for position in shard.indices(None, start):
@@ -250,6 +251,7 @@ class Mixture(torch.utils.data.IterableDataset):
                 it.close()
 
     def _padded(self, draws: list[int], batches: list[Batch]) -> Batch:
+        assert self._plan is not None  # made with pad=True
         return _pad(self._plan, [self.names[i] for i in draws], draws, batches)
 
 
@@ -378,9 +380,9 @@ def _pad_plan(names: tuple[str, ...], datasets: tuple[SimDataset, ...]
         if keys != recorded[0]:
             refuse("recorded keys", name, sorted(recorded[0]), sorted(keys))
     plan: dict[str, tuple[tuple[int, ...], list, bool]] = {}
-    keys = list(datasets[0].layout.keys)
-    keys += [k for ds in datasets[1:] for k in ds.layout.keys if k not in keys]
-    for key in dict.fromkeys(keys):
+    ordered = list(datasets[0].layout.keys)
+    ordered += [k for ds in datasets[1:] for k in ds.layout.keys if k not in ordered]
+    for key in dict.fromkeys(ordered):
         shapes = [ds.layout.keys.get(key) for ds in datasets]
         present = [tuple(s) for s in shapes if s is not None]
         if len({len(s) for s in present}) > 1:
@@ -439,49 +441,21 @@ def _pad(plan: dict, names: list[str], tasks: list[int], batches: list[Batch]) -
     starts = np.concatenate([[0], np.cumsum(rows)]).tolist()
     nrows = starts[-1]
     out = Batch()
-    masks = {}
+    masks: dict[str, torch.Tensor] = {}
     keys = list(dict.fromkeys(k for f in flats for k in f))
     for key in keys:
-        if key in plan:
-            widest, shapes, padded = plan[key]
-            mine = [shapes[t] for t in tasks]
-        else:  # not in the layouts (diverged, flags, policy/...): the same shape everywhere
-            widest, padded, mine = None, False, None
-        have = [f[key] for f in flats if key in f]
-        if mine is None and len(have) != len(flats):
-            lacking = [n for n, f in zip(names, flats) if key not in f]
-            raise ValueError(f"pad=True: key {key!r} is delivered by some members but not by "
-                             f"{lacking}: padded batches need the same keys from every member")
         values = [f.get(key) for f in flats]
         # a 0-d key (policy/version) becomes one value per row
         values = [v.expand(r) if v is not None and v.dim() == 0 else v
                   for v, r in zip(values, rows)]
-        if widest is None:
-            shapes_seen = {tuple(v.shape[1:]) for v in values}
-            if len(shapes_seen) > 1:
-                raise ValueError(f"pad=True: key {key!r} has shapes "
-                                 f"{dict(zip(names, (tuple(v.shape) for v in values)))} in the "
-                                 f"members: only the recorded keys are padded")
-            out_value = torch.cat(values)
-        else:
-            sample = next(v for v in values if v is not None)
-            lead = tuple(sample.shape[1:sample.dim() - len(widest)])  # nframes / nstep / ()
-            dtype = sample.dtype
-            for v in values:
-                if v is not None:
-                    dtype = torch.promote_types(dtype, v.dtype)
-            if not padded:
-                out_value = torch.cat([v.to(dtype) for v in values])
-            else:
-                out_value = torch.zeros((nrows, *lead, *widest), dtype=dtype, device=device)
-                mask = torch.zeros((nrows, *widest), dtype=torch.bool, device=device)
-                for v, s, a, b in zip(values, mine, starts[:-1], starts[1:]):
-                    if v is None:
-                        continue  # a member without this key (params it does not randomize)
-                    cols = tuple(slice(0, n) for n in s)
-                    out_value[(slice(a, b), *[slice(None)] * len(lead), *cols)] = v
-                    mask[slice(a, b)] = True
+        if key in plan:
+            widest, shapes, padded = plan[key]
+            out_value, mask = _pad_key(values, [shapes[t] for t in tasks], widest, padded,
+                                       starts, device)
+            if mask is not None:
                 masks["mask/" + key] = mask
+        else:  # not in the layouts (diverged, flags, policy/...): the same shape everywhere
+            out_value = _same_key(key, names, values)
         if key.startswith(PARAMS):
             out.setdefault(PARAMS[:-1], {})[key[len(PARAMS):]] = out_value
         else:
@@ -499,6 +473,46 @@ def _pad(plan: dict, names: list[str], tasks: list[int], batches: list[Batch]) -
                              for r, t in zip(rows, tasks)])
     out.update(masks)
     return out
+
+
+def _same_key(key: str, names: list[str], values: list[Optional[torch.Tensor]]
+              ) -> torch.Tensor:
+    """A key no layout describes, concatenated: every member must deliver it, in one shape."""
+    lacking = [n for n, v in zip(names, values) if v is None]
+    if lacking:
+        raise ValueError(f"pad=True: key {key!r} is delivered by some members but not by "
+                         f"{lacking}: padded batches need the same keys from every member")
+    present = [v for v in values if v is not None]
+    if len({tuple(v.shape[1:]) for v in present}) > 1:
+        raise ValueError(f"pad=True: key {key!r} has shapes "
+                         f"{dict(zip(names, (tuple(v.shape) for v in present)))} in the "
+                         f"members: only the keys of their layouts (recorded keys, control, "
+                         f"initial_state, params) are padded")
+    return torch.cat(present)
+
+
+def _pad_key(values: list[Optional[torch.Tensor]], shapes: list[Optional[tuple[int, ...]]],
+             widest: tuple[int, ...], padded: bool, starts: list[int], device: torch.device
+             ) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    """A layout key's values (None: a member without it) in one tensor padded to `widest`,
+    and the mask of its real columns (None where no member needs padding)."""
+    present = [v for v in values if v is not None]
+    sample = present[0]
+    lead = tuple(sample.shape[1:sample.dim() - len(widest)])  # (nframes,), (nstep,) or ()
+    dtype = sample.dtype
+    for v in present:
+        dtype = torch.promote_types(dtype, v.dtype)
+    if not padded:  # every member has it, as wide as the widest
+        return torch.cat([v.to(dtype) for v in present]), None
+    value = torch.zeros((starts[-1], *lead, *widest), dtype=dtype, device=device)
+    mask = torch.zeros((starts[-1], *widest), dtype=torch.bool, device=device)
+    for v, s, a, b in zip(values, shapes, starts[:-1], starts[1:]):
+        if v is None or s is None:
+            continue  # a member without this key (params it does not randomize)
+        cols = tuple(slice(0, n) for n in s)
+        value[(slice(a, b), *[slice(None)] * len(lead), *cols)] = v
+        mask[slice(a, b)] = True
+    return value, mask
 
 
 def _float_dtype(batch: Mapping) -> torch.dtype:

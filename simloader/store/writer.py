@@ -115,15 +115,25 @@ def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
             ("arrays", "metadata") if "metadata" in kept else ("arrays",)
         same = all(kept.get(k) == wanted["attributes"][k] for k in compared)
         if not same or {**existing, **ignored} != {**wanted, **ignored}:
-            raise StoreMismatch(f"the store's array {spec.name!r} ({where}) has shape "
-                                f"{existing.get('shape')}, dtype {existing.get('data_type')} "
-                                f"and attributes {existing.get('attributes')}; this dataset's "
-                                f"batches give {wanted['shape']}, {wanted['data_type']} and "
-                                f"{wanted['attributes']}")
+            raise StoreMismatch(
+                f"the store's array {spec.name!r} ({where}) has shape "
+                f"{existing.get('shape')}, dtype {existing.get('data_type')}, codecs "
+                f"{_codecs(existing)} and attributes {existing.get('attributes')}; this "
+                f"dataset's batches give {wanted['shape']}, {wanted['data_type']}, "
+                f"{_codecs(wanted)} and {wanted['attributes']} (a store keeps the "
+                f"compression= it was written with)")
         if existing["shape"][0] >= ntrajectories:
             return
     write_json(where, wanted, durable=True)
     sync_directories(parents(where, path))
+
+
+def _codecs(meta: dict) -> list:
+    """The names of an array's codecs inside its shards (bytes, then zstd or blosc)."""
+    try:
+        return [c.get("name") for c in meta["codecs"][0]["configuration"]["codecs"]]
+    except (KeyError, IndexError, TypeError, AttributeError):
+        return [meta.get("codecs")]
 
 
 def slots_of(rank: int, world: int, batches: int) -> int:
