@@ -9,6 +9,7 @@
 from simloader import controls, initial, layout, observe, policy, randomize
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
+from simloader.mixture import Mixture
 from simloader.observe import Camera
 from simloader.store import StoredDataset, write
 from simloader.videos import video
@@ -19,6 +20,7 @@ __version__ = "0.1.0"
 __all__ = [
     "Batch",
     "Camera",
+    "Mixture",
     "SimDataset",
     "StoredDataset",
     "builtin_models",

@@ -511,7 +511,7 @@ def _pad_key(values: list[Optional[torch.Tensor]], shapes: list[Optional[tuple[i
             continue  # a member without this key (params it does not randomize)
         cols = tuple(slice(0, n) for n in s)
         value[(slice(a, b), *[slice(None)] * len(lead), *cols)] = v
-        mask[slice(a, b)] = True
+        mask[(slice(a, b), *cols)] = True
     return value, mask
 
 
