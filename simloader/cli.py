@@ -190,12 +190,17 @@ def write(args: argparse.Namespace) -> None:
         # write's argument checks (a system folder, a non-empty folder that is no store, ...)
         # raise ValueError/TypeError: a usage error, without a traceback
         with from_arguments():
+            options = {"compression": args.compression} if args.compression else {}
             path = simloader.write(ds, args.out, batches=args.batches, format=args.format,
-                                   num_workers=args.num_workers, replace=args.replace)
+                                   num_workers=args.num_workers, replace=args.replace,
+                                   **options)
     except StoreLocked as e:  # another job writes it: a message, not a traceback
         raise SystemExit(f"simloader write: {e}") from None
     print(f"simloader {simloader.__version__}: wrote {args.batches} x {args.nbatch} "
           f"trajectories of {args.nstep} steps of {args.model!r} to {path} ({args.format})")
+    report = getattr(path, "report", None)
+    if report is not None:  # where the time went, and what bounded the run
+        print(f"write: {report}")
     hint = formats.read_hint(args.format, path)
     if hint:
         print(hint)
@@ -358,6 +363,10 @@ def main(argv: list[str] | None = None) -> None:
                          "normal(mean, std, low=, high=) (default: no randomization)")
     wr.add_argument("--num-workers", type=int, default=0,
                     help="DataLoader workers that simulate and write in parallel")
+    wr.add_argument("--compression", choices=("zstd",), default=None,
+                    help="compress the states too (zarr's blosc codec: byte shuffle, zstd): "
+                         "pays where the disk bounds the write (default: states raw, images "
+                         "zstd)")
     wr.add_argument("--replace", action="store_true",
                     help="replace a store (or Minari dataset) of other settings at --out "
                          "instead of refusing it")

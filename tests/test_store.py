@@ -6,6 +6,7 @@ import errno
 import glob
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -309,7 +310,12 @@ def test_cli_writes_a_store_and_refuses_another_configuration(tmp_path, capsys):
     common = ["write", "cartpole", "--out", out, "--backend", "cpu", "--nbatch", "4",
               "--batches", "2", "--record", "qpos,qvel"]
     cli.main(common + ["--nstep", "5"])
-    assert "wrote 2 x 4 trajectories of 5 steps" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "wrote 2 x 4 trajectories of 5 steps" in said
+    # the closing line: each stage's time and what bounded the run
+    assert re.search(r"write: 2 batches, 40 steps .* seconds per batch: simulate [0-9.e-]+, "
+                     r"copy to host .*sync [0-9.e-]+; .* bound by the (simulator|disk|CPU|copy)",
+                     said), said
     stored = simloader.StoredDataset(out)
     assert len(stored) == 8 and set(stored[0]) >= {"qpos", "qvel", "control"}
     with pytest.raises(SystemExit) as exit:

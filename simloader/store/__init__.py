@@ -12,6 +12,8 @@ read them back, and the regeneration of any stored trajectory from its provenanc
     formats.py          the table of formats: each one's name, writer and how to read it back
     writer.py           `write(format="zarr")`: workers and ranks fill their own batch slots under
                         one lock
+    pipeline.py         a writer's slots from the simulator to a durable commit, its stages
+                        overlapped; the per-stage report
     reader.py           `StoredDataset`, `Transitions`, `StoredDataset.regenerate`
     minari.py           `write(format="minari")`: a Minari dataset instead; `write_minari`, `status`
     minari_episodes.py  a batch's trajectories as Minari episodes, the action space

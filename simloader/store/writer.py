@@ -19,7 +19,7 @@ from simloader.atomic import parents, sync_directories
 from simloader.store import integrity, lock, ownership, pipeline
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, ArraySpec,
                                          checksum_spec, inside, read_json, specs_of,
-                                         write_json, zstd)
+                                         write_json, zstd, blosc)
 from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
 
 
@@ -214,6 +214,8 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
     store holds no link; `replace=True` then removes the store's own entries only."""
     if any(o.rendered for o in dataset.config.observations):
         zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
+    if compression == "zstd":
+        blosc()  # the same for compressed states
     rank = _writer_rank()
     job = _job_id(rank)
     workers = max(1, num_workers)

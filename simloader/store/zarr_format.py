@@ -15,11 +15,12 @@ Layout, chosen for writers that never coordinate and readers that never decode t
   by one writer, to a temporary name and renamed (a killed writer leaves no torn file).
 - Inside a shard every trajectory is its own chunk (camera images: a block of frames), so a
   reader fetches one trajectory without reading its neighbours. Floating point chunks are
-  stored raw: MuJoCo's float64 states compress by about 1.13x with zstd at 87 MB/s per core,
-  which would cost more generation throughput than the disk it saves; integer and boolean
-  chunks of 4 KiB or more (images, segmentation) are compressed with zstd.
-- A slot is committed as SQLite and git commit: every shard file fsync'd and renamed, the
-  directories that name them fsync'd, then `provenance/checksum[s]` (each shard's size and
+  stored raw by default: MuJoCo's states compress by 1.05-1.4x, which costs more CPU than a
+  fast disk saves; `write(compression="zstd")` compresses them with zarr's blosc codec (byte
+  shuffle, zstd). Integer and boolean chunks of 4 KiB or more (images, segmentation) are
+  compressed with zstd.
+- A slot is committed as SQLite and git commit (`simloader.store.pipeline`): every shard file
+  fsync'd and renamed, the directories that name them fsync'd, then `provenance/checksum[s]` (each shard's size and
   CRC-32, in the order of that array's attribute `arrays`), then `provenance/written[s]`
   last. A reader sees complete slots only; a resumed `write` checks every committed slot
   against its checksums and redoes the missing and the damaged ones.
