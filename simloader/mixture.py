@@ -158,6 +158,12 @@ class Mixture(torch.utils.data.IterableDataset):
                 lines.append(f"  {key} {shape}{' mask/' + key if padded else ''}: {fills}")
         return "\n".join(lines)
 
+    def members(self, draws: int) -> np.ndarray:
+        """The member index of each of the first `draws` draws (batches, or with `pad=True`
+        groups of `len(datasets)` rows of a batch), as the schedule draws them."""
+        schedule = _Schedule(self.seed, self.weights)
+        return np.array([schedule.member(p) for p in range(draws)], dtype=np.int64)
+
     # -- checkpoints -----------------------------------------------------------------------
 
     def _config(self) -> dict[str, Any]:

@@ -47,6 +47,11 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
     written are removed), and a larger `batches` appends. One of another configuration or
     simulator version is refused, naming what differs; `replace=True` removes it first.
 
+    `dataset` may be a `simloader.Mixture`: each task's batches (those the mixture yields with
+    `num_workers=0`) go into a store of their own under `path/tasks/`, and
+    `StoredDataset(path)` reads them back as one dataset with `"task"` (see
+    `simloader.store.mixture_store`).
+
     `format="minari"`: a Minari dataset (see `simloader.store.minari`), named after the last
     component of `path`, under its parent directory.
 
@@ -68,6 +73,9 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
                          f"{compression!r}")
     path = os.fspath(path)
     chosen = formats.get(format)
+    if format != "zarr" and type(dataset).__name__ == "Mixture":
+        raise ValueError(f"format={format!r}: a Mixture is written as a zarr store of its "
+                         f"tasks' stores (format='zarr'); write each member for {format!r}")
     options = {} if compression is None else {"compression": compression}
     if options and not chosen.compresses:
         raise ValueError(f"compression={compression!r}: the {format!r} format keeps its own "

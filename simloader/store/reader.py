@@ -54,6 +54,14 @@ class StoredDataset(torch.utils.data.Dataset):
         slots are named.
     """
 
+    def __new__(cls, path: Any = None, *args: Any, **kwargs: Any) -> Any:
+        # a mixture's store (`write(Mixture(...))`) reads as one dataset of its tasks' stores
+        if cls is StoredDataset and isinstance(path, (str, os.PathLike)):
+            from simloader.store import mixture_store
+            if mixture_store.mixture_root(os.fspath(path)) is not None:
+                return mixture_store.StoredMixture(path, *args, **kwargs)
+        return super().__new__(cls)
+
     def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None,
                  verify: bool = False):
         self.path = os.fspath(path)

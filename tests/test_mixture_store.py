@@ -1,0 +1,110 @@
+"""A `Mixture` written to a store and read back (`simloader.store.mixture_store`, CPU engine):
+each task's store holds exactly the batches the mixture delivered for it, items and
+transitions carry `task` (padded with masks across tasks of other widths), `regenerate` works
+per trajectory, a larger `batches` extends it, another mixture is refused."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import simloader
+from simloader.store import mixture_store
+
+pytest.importorskip("zarr")
+
+
+def member(model, nbatch, **kwargs):
+    return simloader.SimDataset(model, backend="cpu", nbatch=nbatch, nstep=6, nthread=1,
+                                seed=2, control=simloader.controls.Uniform(), **kwargs)
+
+
+def mixture(**kwargs):
+    return simloader.Mixture({"cartpole": member("cartpole", 4),
+                              "humanoid": member("humanoid", 2)}, **kwargs)
+
+
+def test_a_written_mixture_holds_the_batches_the_mixture_delivered(tmp_path):
+    mix = mixture(weights=[1, 2], seed=3)
+    path = simloader.write(mix, tmp_path / "m.zarr", batches=8, progress=False)
+    stored = simloader.StoredDataset(path)
+    assert isinstance(stored, mixture_store.StoredMixture)
+    delivered = {0: [], 1: []}
+    for _, batch in zip(range(8), mixture(weights=[1, 2], seed=3)):
+        delivered[int(batch["task"])].append(batch)
+    assert stored.info["counts"] == [len(delivered[0]), len(delivered[1])]
+    assert 0 < len(delivered[0]) < 8  # both tasks drawn
+    assert len(stored) == 4 * len(delivered[0]) + 2 * len(delivered[1])
+    i = 0
+    for task, name in enumerate(("cartpole", "humanoid")):
+        for batch in delivered[task]:
+            for row in range(len(batch["state"])):
+                item = stored[i]
+                assert int(item["task"]) == task
+                for key in ("state", "control", "sensordata", "initial_state"):
+                    assert torch.equal(item[key], batch[key][row]), (name, key)
+                i += 1
+    assert i == len(stored)
+    # each trajectory regenerates from its member, bit for bit
+    again = stored.regenerate(mixture(weights=[1, 2], seed=3), len(stored) - 1)
+    assert torch.equal(again["state"], stored[len(stored) - 1]["state"])
+    assert int(again["task"]) == 1
+    assert "humanoid" in stored.describe() and "cartpole" in stored.describe()
+
+
+def test_transitions_mix_the_tasks_padded_with_masks(tmp_path):
+    path = simloader.write(mixture(seed=1), tmp_path / "t.zarr", batches=6, progress=False)
+    stored = simloader.StoredDataset(path)
+    transitions = stored.transitions()
+    parts = [stored.tasks[n].transitions() for n in ("cartpole", "humanoid")]
+    assert len(transitions) == sum(len(p) for p in parts)
+    ks = np.arange(0, len(transitions), 5)
+    batch = transitions.gather(ks)
+    assert batch["state"].shape == (len(ks), 56) and batch["control"].shape == (len(ks), 21)
+    cart = batch["task"] == 0
+    assert cart.any() and (~cart).any()
+    # a cart-pole row: its 5 state columns real, the rest zero and masked out
+    assert batch["mask/state"][cart][:, :5].all() and not batch["mask/state"][cart][:, 5:].any()
+    assert not batch["state"][cart][:, 5:].any() and batch["mask/state"][~cart].all()
+    first = parts[0].gather(ks[ks < len(parts[0])])
+    assert torch.equal(batch["state"][cart][:, :5], first["state"])
+    assert torch.equal(batch["next/state"][cart][:, :5], first["next/state"])
+    loader = transitions.loader(32, order="random", seed=0)
+    seen = sum(len(b["task"]) for b in loader)
+    assert seen == len(transitions)
+    # a batch of one task's rows has the keys and widths of any other
+    alone = transitions.gather(np.arange(3))
+    assert (alone["task"] == 0).all() and alone["state"].shape == (3, 56)
+    assert set(alone) == set(batch)
+
+
+def test_a_padded_mixtures_store_pads_its_items(tmp_path):
+    path = simloader.write(mixture(pad=True), tmp_path / "p.zarr", batches=2, progress=False)
+    stored = simloader.StoredDataset(path)
+    assert stored.pad
+    items = [stored[i] for i in range(len(stored))]
+    assert {tuple(it["state"].shape) for it in items} == {(6, 56)}
+    cart = [it for it in items if int(it["task"]) == 0]
+    assert cart and not cart[0]["mask/state"][:, 5:].any() and cart[0]["mask/state"][:, :5].all()
+    batch = torch.utils.data.default_collate(items)  # one DataLoader batch of both tasks
+    assert batch["state"].shape == (len(items), 6, 56)
+
+
+def test_writing_again_extends_and_another_mixture_is_refused(tmp_path):
+    path = str(tmp_path / "e.zarr")
+    simloader.write(mixture(seed=4), path, batches=3, progress=False)
+    small = len(simloader.StoredDataset(path))
+    simloader.write(mixture(seed=4), path, batches=7, progress=False)
+    big = simloader.StoredDataset(path)
+    counts = mixture_store.counts(mixture(seed=4), 7)
+    assert big.info["counts"] == counts and len(big) == 4 * counts[0] + 2 * counts[1] > small
+    with pytest.raises(ValueError, match=r"another mixture.*seed: stored 4, given 5"):
+        simloader.write(mixture(seed=5), path, batches=7, progress=False)
+    with pytest.raises(ValueError, match=r"not a mixture's|holds one dataset's batches"):
+        simloader.write(mixture(seed=4), simloader.write(
+            member("cartpole", 4), tmp_path / "one.zarr", batches=1, progress=False),
+            batches=1, progress=False)
+    with pytest.raises(ValueError, match=r"format='minari'.*a Mixture is written as a zarr"):
+        simloader.write(mixture(), tmp_path / "x-v0", batches=1, format="minari")
+    assert os.path.isdir(os.path.join(path, "tasks", "humanoid"))
