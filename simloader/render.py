@@ -278,6 +278,21 @@ class _swapped_gl:
         self._lock.release()
 
 
+def integration_rows(model: mujoco.MjModel, states: np.ndarray) -> np.ndarray:
+    """The `mjSTATE_INTEGRATION` rows `Renderers.draw` takes, of `mjSTATE_FULLPHYSICS`
+    `states` (..., nstate): the physics and every input a scene shows (mocap poses, equality
+    activations) from the states, the other inputs (controls, applied forces, warmstart) as
+    `mj_resetData` leaves them, which change no pixel."""
+    from simloader import layout
+    data = mujoco.MjData(model)
+    reset = np.empty(mujoco.mj_stateSize(model, layout.INTEGRATION))
+    mujoco.mj_getState(model, data, reset, layout.INTEGRATION)
+    columns = layout.component_columns(model, layout.INTEGRATION, layout.FULLPHYSICS)
+    rows = np.broadcast_to(reset, (*states.shape[:-1], reset.size)).copy()
+    rows[..., columns] = states
+    return rows
+
+
 def model_of(config: Any, params: dict[str, np.ndarray]) -> Callable[[int], mujoco.MjModel]:
     """`model_of(i)`: trajectory i's model as it ran, from the configuration and the batch's
     `params` ({key: (nbatch, ...)} NumPy arrays: "variant", randomized values), for render

@@ -222,19 +222,12 @@ def _rendered_frames(model: mujoco.MjModel, model_of: Any, states: np.ndarray,
     image = records.camera_images(model, records.Camera(
         -1 if camera is None else camera, height=height, width=width))[0]
     render.check(model, [image])
-    # the renderer draws mjSTATE_INTEGRATION rows: the inputs a scene shows (mocap poses,
-    # equality activations) as mj_resetData leaves them, the physics from the states
-    data = mujoco.MjData(model)
-    reset = np.empty(mujoco.mj_stateSize(model, layout.INTEGRATION))
-    mujoco.mj_getState(model, data, reset, layout.INTEGRATION)
-    columns = layout.component_columns(model, layout.INTEGRATION, layout.FULLPHYSICS)
     # rendered in this thread, with renderers made and freed here (a GL context belongs to
     # the thread that made it)
     with render.Renderers(model, [image]) as renderers:
         for start in range(0, len(shown), CHUNK):
             frames = shown[start:start + CHUNK]
-            rows = np.broadcast_to(reset, (states.shape[0], len(frames), reset.size)).copy()
-            rows[..., columns] = states[:, frames]
+            rows = render.integration_rows(model, states[:, frames])
             out = np.empty((states.shape[0], len(frames), height, width, 3), np.uint8)
             renderers.draw(range(states.shape[0]), rows, model_of, {image.key: out})
             yield out

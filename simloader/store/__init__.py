@@ -14,6 +14,8 @@ read them back, and the regeneration of any stored trajectory from its provenanc
                         one lock
     pipeline.py         a writer's slots from the simulator to a durable commit, its stages
                         overlapped; the per-stage report
+    mixture_store.py    a Mixture in a store: one store per task under tasks/, read back as one
+                        dataset with "task"
     reader.py           `StoredDataset`, `Transitions`, `StoredDataset.regenerate`
     minari.py           `write(format="minari")`: a Minari dataset instead; `write_minari`, `status`
     minari_episodes.py  a batch's trajectories as Minari episodes, the action space

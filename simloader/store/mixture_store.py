@@ -135,7 +135,7 @@ class StoredMixture(torch.utils.data.Dataset):
     `StoredDataset`; `regenerate` and `transitions` work across them."""
 
     def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None,
-                 verify: bool = False):
+                 verify: bool = False, **options: Any):
         from simloader.store.reader import StoredDataset
         self.path = os.fspath(path)
         root = mixture_root(self.path)
@@ -148,7 +148,8 @@ class StoredMixture(torch.utils.data.Dataset):
         for name in self.names:
             where = task_path(self.path, name)
             if os.path.exists(os.path.join(where, "zarr.json")):
-                self.tasks[name] = StoredDataset(where, keys=keys, verify=verify)
+                # cameras= and the renderer's options: each task's store renders its own
+                self.tasks[name] = StoredDataset(where, keys=keys, verify=verify, **options)
         self._index = {n: i for i, n in enumerate(self.names)}
         self._present = list(self.tasks)
         self._starts = np.cumsum([0] + [len(self.tasks[n]) for n in self._present]).tolist()

@@ -6,7 +6,8 @@ writing, the target must be one of:
 - a path that does not exist yet, or an empty folder (a new store);
 - a simloader store (a root `zarr.json` with the `simloader` attribute): resumed, extended,
   or with `replace=True` replaced;
-- what a killed creation left (the lock and `provenance/` only): taken over.
+- what a killed creation left (the lock and `provenance/` only: the slots' array and the
+  models): taken over.
 
 Anything else (a project folder, another tool's zarr group, a file) is refused, naming what is
 there, and so are system folders (`/`, `/usr`, the home folder, ...), whatever they hold. A
@@ -123,7 +124,9 @@ def _creation(path: str, entries: list[str]) -> bool:
     if "provenance" in entries:
         if os.path.islink(folder) or not os.path.isdir(folder):
             return False
-        return all(n in (ROOT, "written") or LEFTOVER.search(n) for n in os.listdir(folder))
+        # the slots' array, and the models kept for rendering on read (`pixels.MODELS`)
+        return all(n in (ROOT, "written", "models") or LEFTOVER.search(n)
+                   for n in os.listdir(folder))
     return True
 
 

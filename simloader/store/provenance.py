@@ -48,7 +48,11 @@ def provenance(dataset: Any, batches: int) -> dict:
     return {"format": FORMAT, "fingerprint": fingerprint(dataset),
             "describe": dataset.describe(), "seed": c.seed, "nbatch": c.nbatch,
             "nstep": c.nstep, "record_every": c.record_every, "batches": batches,
-            "versions": versions()}
+            "versions": versions(),
+            # the models it simulated, kept as MJB files (`pixels.save_models`): a store of
+            # states renders its cameras on read with them
+            "models": {"kind": "models" if c.models else "variants" if c.variants else "model",
+                       "count": len(c.pool)}}
 
 
 class StoreMismatch(ValueError):

@@ -52,7 +52,27 @@ class StoredDataset(torch.utils.data.Dataset):
         all of `params/`.
       verify: also read every committed shard and check its CRC-32 (as `git fsck`); damaged
         slots are named.
+      cameras: a `simloader.Camera` or a sequence of them: each item (and each transitions
+        batch, for `s_t` and `next/` for `s_t+1`) then carries `"camera/NAME/rgb"` (and
+        depth/segmentation as asked), rendered on access from the stored states with the
+        model the store was simulated with (`simloader.store.pixels`): the pixels a
+        streamed `Camera` of the CPU engine delivered for the same frames, bit for bit.
+      backend: the renderer: "cpu" (`mujoco.Renderer`, in this process or each DataLoader
+        worker) or "auto" (the CPU renderer).
+      device: where the images are delivered (None or "cpu").
+      model: the model the store was simulated with (a name, an MJCF path, an MjModel, or
+        the list of a `models=` / variants pool), for stores written before simloader kept
+        it; checked against the store's digest.
     """
+
+    def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None,
+                 verify: bool = False, cameras: Any = None, backend: str = "auto",
+                 device: Any = None, model: Any = None):
+        self._open(path, keys, verify)
+        self.cameras = None
+        if cameras is not None:
+            from simloader.store import pixels
+            self.cameras = pixels.StoredCameras(self, cameras, backend, device, model)
 
     def __new__(cls, path: Any = None, *args: Any, **kwargs: Any) -> Any:
         # a mixture's store (`write(Mixture(...))`) reads as one dataset of its tasks' stores
@@ -62,8 +82,8 @@ class StoredDataset(torch.utils.data.Dataset):
                 return mixture_store.StoredMixture(path, *args, **kwargs)
         return super().__new__(cls)
 
-    def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None,
-                 verify: bool = False):
+    def _open(self, path: str | os.PathLike, keys: Optional[Sequence[str]],
+              verify: bool) -> None:
         self.path = os.fspath(path)
         if not isinstance(verify, bool):
             raise ValueError(f"verify: expected True or False, got {verify!r}")
@@ -125,8 +145,13 @@ class StoredDataset(torch.utils.data.Dataset):
         return {n: arrays[n].trajectory(slot, row) for n in names}
 
     def __getitem__(self, i: int) -> dict[str, Any]:
-        return _nest({n: torch.from_numpy(np.array(a))
-                      for n, a in self.read(i, self.keys).items()})
+        item = {n: torch.from_numpy(np.array(a)) for n, a in self.read(i, self.keys).items()}
+        if self.cameras is not None:
+            states = self.read(i, ["state"])["state"]
+            i %= len(self)
+            for key, frames in self.cameras.frames(states[None], np.array([i])).items():
+                item[key] = torch.from_numpy(frames[0])
+        return _nest(item)
 
     def provenance(self, i: int) -> dict[str, int]:
         """Where stored trajectory `i` comes from in the seeded stream: rank, batch (the
@@ -469,11 +494,33 @@ class Transitions(torch.utils.data.Dataset):
             for key in self.context:  # nbatch x ...: the trajectory's row
                 seq = arrays[key].slot(slot, self.will_need)
                 _take(seq.reshape(seq.shape[0], -1), r, filled[key][a:b])
+        cameras = self.stored.cameras
+        if cameras is not None:  # the frames of s_t and s_t+1, rendered from the states
+            now, after = self._states(filled, slots, rows, frames)
+            pair = np.stack([now, after], axis=1)  # (n, 2, nstate)
+            for key, images in cameras.frames(pair, trajectories).items():
+                columns[key] = torch.from_numpy(np.ascontiguousarray(images[:, 0]))
+                columns["next/" + key] = torch.from_numpy(np.ascontiguousarray(images[:, 1]))
         if order is not None:  # back to the order asked for
             inverse = np.empty_like(order)
             inverse[order] = np.arange(len(order))
             columns = {k: v[torch.from_numpy(inverse)] for k, v in columns.items()}
         return columns
+
+    def _states(self, filled: Mapping[str, np.ndarray], slots: np.ndarray, rows: np.ndarray,
+                frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The FULLPHYSICS states of each transition's two frames (`state` and `next/state`
+        where the view pairs them, else read; frame 0's predecessor is the initial state)."""
+        if "state" in self.keys:
+            return filled["state"], filled["next/state"]
+        arrays = self.stored.arrays()
+        now = np.empty((len(rows), arrays["state"].layout.trailing[-1]))
+        after = np.empty_like(now)
+        for k, (slot, r, f) in enumerate(zip(slots, rows, frames)):
+            seq = arrays["state"].slot(int(slot))
+            after[k] = seq[r, f]
+            now[k] = seq[r, f - 1] if f > 0 else arrays["initial_state"].slot(int(slot))[r]
+        return now, after
 
     def _allocate(self, n: int, arrays: Mapping[str, StoredArray]) -> dict[str, torch.Tensor]:
         """The batch's tensors, those of one dtype laid back to back in one storage: a

@@ -16,7 +16,7 @@ import torch
 
 from simloader import sharding, threads
 from simloader.atomic import parents, sync_directories
-from simloader.store import integrity, lock, mixture_store, ownership, pipeline
+from simloader.store import integrity, lock, mixture_store, ownership, pipeline, pixels
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, ArraySpec,
                                          checksum_spec, inside, read_json, specs_of,
                                          write_json, zstd, blosc)
@@ -75,8 +75,13 @@ def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int, workers
                                 f"or write to a new path")
         mine["batches"] = max(batches, stored["batches"])
         mine["describe"] = stored["describe"]
+        if "models" not in stored:  # written before the models were kept: stays so
+            mine.pop("models")
     if create and (root is None or mine["batches"] != stored["batches"]):
-        # the slots' array first: a root never names more slots than `written` holds
+        # the models, and the slots' array, before the root: a root never names models
+        # or more slots than the store holds
+        if "models" in mine:  # not in a store written before the models were kept
+            pixels.save_models(path, dataset.config.pool)
         _ensure_array(path, WRITTEN, mine["batches"])
         write_json(os.path.join(path, "zarr.json"), {
             "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: mine}},

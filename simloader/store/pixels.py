@@ -1,0 +1,201 @@
+"""Pixels from stored states: a store of states renders its cameras on read.
+
+A frame is a pure function of the state and the model, so a store that keeps the states
+(`record=("state",)`) needs no images: `StoredDataset(path, cameras=...)` renders them when an
+item or a transitions batch is read, with the model the writer simulated (kept in the store's
+`provenance/models/`, one MJB file per model of its pool: the model, the model list or the
+structural variants) and each trajectory's stored randomized values (`params/...`) written into
+it, as the CPU engine's own cameras render each trajectory with its own model.
+
+The CPU renderer draws exactly what a streamed `Camera` of the CPU engine drew: the engine
+renders each frame's `mjSTATE_INTEGRATION` row after `mj_forward`; here the row is made from the
+stored `mjSTATE_FULLPHYSICS` state (every input a scene shows, mocap poses and equality
+activations, is part of it; the others, controls and applied forces, as `mj_resetData` leaves
+them, do not change the picture), then drawn by the same code (`simloader.render`). Renderers
+are made per process and thread at the first read, so DataLoader workers render in parallel.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import threading
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import mujoco
+import numpy as np
+
+from simloader import identity, layout, records, render
+from simloader import randomize as dr
+
+MODELS = "provenance/models"  # the pool's MJB files: 0.mjb, 1.mjb, ...
+BACKENDS = ("auto", "cpu")
+
+
+def save_models(root: str, pool: Sequence[mujoco.MjModel]) -> None:
+    """The writer's pool of models, as MJB files (the compiled models, bit for bit)."""
+    from simloader.atomic import atomic_write, sync_directories
+    folder = os.path.join(root, MODELS)
+    for k, model in enumerate(pool):
+        buffer = np.empty(mujoco.mj_sizeModel(model), dtype=np.uint8)
+        mujoco.mj_saveModel(model, None, buffer)
+        atomic_write(os.path.join(folder, f"{k}.mjb"), [buffer.tobytes()], durable=True)
+    sync_directories([folder, os.path.dirname(folder)])
+
+
+def pool_kind(config: Any) -> str:
+    return "models" if config.models else "variants" if config.variants else "model"
+
+
+class StoredCameras:
+    """The cameras a `StoredDataset` renders on read, checked against its store at
+    construction: the model (from the store, or `model=` checked against the store's
+    digest), the camera names, and the stored keys rendering needs."""
+
+    def __init__(self, stored: Any, cameras: Any, backend: str = "auto",
+                 device: Any = None, model: Any = None):
+        self.stored = stored
+        if backend not in BACKENDS:
+            raise ValueError(f"backend: expected one of {list(BACKENDS)} to render stored "
+                             f"states, got {backend!r}")
+        if device is not None and str(device) != "cpu":
+            raise ValueError(f"device: the CPU renderer delivers on 'cpu', got {device!r}")
+        self.pool, self.kind = _models(stored, model)
+        base = self.pool[0]
+        asked = [cameras] if isinstance(cameras, records.Camera) else list(cameras)
+        if not asked or not all(isinstance(c, records.Camera) for c in asked):
+            raise TypeError(f"cameras: expected a simloader.Camera or a sequence of them, got "
+                            f"{cameras!r}")
+        images = []
+        for camera in asked:
+            try:
+                images += records.camera_images(base, camera)
+            except ValueError as e:
+                raise ValueError(f"cameras: {str(e).removeprefix('record: ')}") from None
+        render.check(base, images)
+        self.images = tuple(images)
+        self.keys = [o.key for o in images]
+        nstate = mujoco.mj_stateSize(base, layout.FULLPHYSICS)
+        if "state" not in stored.layouts:
+            raise ValueError(
+                f"cameras: rendering needs every frame's positions (and mocap poses), and the "
+                f"store at {stored.path!r} has no 'state' (it holds {sorted(stored.layouts)}); "
+                f"write it with record=(\"state\",) (simloader write --record state)")
+        width = stored.layouts["state"].trailing[-1]
+        if width != nstate:
+            raise ValueError(f"model: its mjSTATE_FULLPHYSICS state has {nstate} columns, the "
+                             f"store's 'state' {width}: not the store's model")
+        self.plan = _plan(stored, base)
+        self.params = [k for k in stored.layouts if k.startswith("params/")]
+        self.local = threading.local()
+        self.pid: Optional[int] = None
+
+    def frames(self, states: np.ndarray, trajectories: np.ndarray) -> dict[str, np.ndarray]:
+        """{image key: (n, nframes, *image shape)} of `states` ((n, nframes, nstate)
+        FULLPHYSICS rows of stored trajectories `trajectories`), rendered here."""
+        base = self.pool[0]
+        rows = render.integration_rows(base, states)
+        out = {o.key: np.empty((len(states), states.shape[1], *o.shape), o.dtype)
+               for o in self.images}
+        renderers = self._renderers()
+        model_of = self._model_of(np.asarray(trajectories))
+        renderers.draw(range(len(states)), rows, model_of, out)
+        return out
+
+    def _renderers(self) -> render.Renderers:
+        # a thread's renderers, made at its first frame (a GL context is the thread's); a
+        # DataLoader worker makes its own
+        if getattr(self.local, "pid", None) != os.getpid():
+            self.local.renderers = render.Renderers(self.pool[0], self.images)
+            self.local.pid = os.getpid()
+        return self.local.renderers
+
+    def _model_of(self, trajectories: np.ndarray) -> Any:
+        stored = self.stored
+        params = {k[len("params/"):]: np.stack([stored.read(int(t), [k])[k]
+                                                for t in trajectories])
+                  for k in self.params}
+        if self.kind == "models":  # a model per row of the batch
+            rows = trajectories % stored.nbatch
+            return lambda i: self.pool[int(rows[i])]
+        if self.kind == "variants":
+            variant = params["variant"]
+            return lambda i: self.pool[int(variant[i])]
+        if self.plan is None:
+            return lambda i: self.pool[0]
+        plan = self.plan
+        if not hasattr(self.local, "model"):  # this thread's copy, the values written in
+            self.local.model = copy.copy(self.pool[0])
+            self.local.data = mujoco.MjData(self.local.model)
+
+        def model(i: int) -> mujoco.MjModel:
+            m = self.local.model
+            for r in plan.resolved:
+                if not r.field.startswith("opt."):  # options change nothing a camera sees
+                    dr._field_array(m, r.field).reshape(-1)[r.elements] = params[r.param.key][i]
+            if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
+                mujoco.mj_setConst(m, self.local.data)
+            return m
+        return model
+
+
+def _models(stored: Any, model: Any) -> tuple[list[mujoco.MjModel], str]:
+    """The store's pool of models (or `model=`, checked against the store's digest)."""
+    kept = stored.info.get("models")
+    digest = stored.info["fingerprint"]["model"]
+    if model is not None:
+        from simloader.models import load_model
+        given = (list(model) if isinstance(model, (list, tuple)) else
+                 [model if isinstance(model, mujoco.MjModel) else load_model(model)])
+        kind = kept["kind"] if isinstance(kept, dict) else "model"
+        mine = given if kind != "variants" else given[:1]
+        if _digest(mine) != digest:
+            raise ValueError(f"model: not the model the store at {stored.path!r} was "
+                             f"simulated with (digest {_digest(mine)}, the store's {digest})")
+        return given, kind
+    if not isinstance(kept, dict):
+        raise ValueError(f"cameras: the store at {stored.path!r} was written before simloader "
+                         f"kept the model in its stores: pass the model that wrote it, "
+                         f"model= (a name, an MJCF path or an MjModel; checked against the "
+                         f"store's digest)")
+    folder = os.path.join(stored.path, MODELS)
+    pool = []
+    for k in range(int(kept["count"])):
+        file = os.path.join(folder, f"{k}.mjb")
+        if os.path.islink(file) or not os.path.isfile(file):
+            raise ValueError(f"cameras: the store's model {file} is missing (or a link); pass "
+                             f"model= (the model that wrote it)")
+        pool.append(mujoco.MjModel.from_binary_path(file))
+    if _digest(pool if kept["kind"] != "variants" else pool[:1]) != digest and \
+            kept["kind"] != "variants":
+        raise ValueError(f"cameras: the store's model files in {folder} do not match its "
+                         f"digest {digest}: they were edited; pass model=")
+    return pool, kept["kind"]
+
+
+def _digest(models: Sequence[mujoco.MjModel]) -> str:
+    import hashlib
+    return hashlib.sha256("".join(identity.model_digest(m) for m in models).encode()
+                          ).hexdigest()[:16]
+
+
+def _plan(stored: Any, model: mujoco.MjModel) -> Optional[dr.RandomizationPlan]:
+    """The randomization the writer applied, rebuilt from the store's fingerprint (which
+    fields of which objects each stored `params/KEY` holds); None without one."""
+    spec = stored.info["fingerprint"].get("randomize")
+    if not isinstance(spec, list):
+        return None
+    params = []
+    for p in spec:
+        params.append(dr.Param(p["field"], dr.Uniform(0, 0), p["op"], p["on"],
+                               index=p.get("index"), shared=p.get("shared", False),
+                               name=p.get("name")))
+    plan = dr.RandomizationPlan(model, params)
+    missing = [r.param.key for r in plan.resolved
+               if "params/" + r.param.key not in stored.layouts]
+    if missing:
+        raise ValueError(f"cameras: the store lacks the randomized values {missing} its "
+                         f"trajectories were simulated with; rendering would draw another "
+                         f"model")
+    return plan
