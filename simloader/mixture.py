@@ -337,16 +337,12 @@ def _weights(weights: Any, names: tuple[str, ...], named: bool) -> np.ndarray:
     return np.asarray(out) / total
 
 
-def _effective(ds: SimDataset) -> tuple[Optional[torch.device], torch.dtype]:
-    """Where and in which float dtype a member delivers: `device`/`dtype` as given, or the
-    documented defaults (the CPU engine delivers float64 on the CPU; the GPU engines float32,
-    on a device only they know: None)."""
+def _effective(ds: SimDataset) -> tuple[Optional[torch.device], Optional[torch.dtype]]:
+    """Where and in which float dtype a member delivers, where the member says (`device=`,
+    `dtype=`); None where its engine decides (the mixture knows no engine: a member's batch
+    then says, and `_pad` refuses other devices and promotes dtypes)."""
     c = ds.config
-    device = c.device if c.device is not None else (
-        torch.device("cpu") if c.backend == "cpu" else None)
-    dtype = c.dtype if c.dtype is not None else (
-        torch.float64 if c.backend == "cpu" else torch.float32)
-    return (torch.device(device) if device is not None else None), dtype
+    return (torch.device(c.device) if c.device is not None else None), c.dtype
 
 
 def _pad_plan(names: tuple[str, ...], datasets: tuple[SimDataset, ...]
@@ -371,7 +367,7 @@ def _pad_plan(names: tuple[str, ...], datasets: tuple[SimDataset, ...]
         device, dtype = _effective(ds)
         if device is not None and d0[0] is not None and device != d0[0]:
             refuse("device", name, d0[0], device)
-        if dtype != d0[1]:
+        if dtype is not None and d0[1] is not None and dtype != d0[1]:
             refuse("dtype", name, d0[1], dtype)
         if (c.terminate is None) != (c0.terminate is None):
             refuse("terminate= rules (keys terminated/truncated/first)", name,

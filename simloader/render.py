@@ -213,6 +213,43 @@ class Renderers:
         self.close()
 
 
+class StoredFrames:
+    """Stored states rendered where they are read (`StoredDataset(cameras=)` on the CPU
+    engine): each thread's renderers made at its first frame, in its own process (a
+    DataLoader worker makes its own), drawing exactly what `RenderPool` drew while streaming.
+
+    Args:
+      model: the store's model (renderers are made from it).
+      images: the camera images to render.
+    """
+
+    def __init__(self, model: mujoco.MjModel, images: Sequence[observe.CameraImage]):
+        check(model, images)
+        gl_platform()  # no OpenGL here: said now, not at the first read
+        self.model, self.images = model, tuple(images)
+        self.local = threading.local()
+
+    def __getstate__(self) -> dict:
+        # to a DataLoader worker: its threads make their own renderers
+        return {k: v for k, v in self.__dict__.items() if k != "local"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, local=threading.local())
+
+    def frames(self, states: np.ndarray, model_of: Callable[[int], mujoco.MjModel]) -> dict:
+        """{image key: (n, nframes, *shape) tensor} of FULLPHYSICS `states` (n, nframes,
+        nstate), trajectory i drawn with `model_of(i)`."""
+        import torch
+        if getattr(self.local, "pid", None) != os.getpid():
+            self.local.renderers = Renderers(self.model, self.images)
+            self.local.pid = os.getpid()
+        rows = integration_rows(self.model, states)
+        out = {o.key: np.empty((len(states), states.shape[1], *o.shape), o.dtype)
+               for o in self.images}
+        self.local.renderers.draw(range(len(states)), rows, model_of, out)
+        return {k: torch.from_numpy(v) for k, v in out.items()}
+
+
 class RenderPool:
     """Threads that render recorded states into image buffers.
 

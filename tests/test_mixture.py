@@ -312,9 +312,17 @@ def test_describe_names_each_tasks_columns():
      r"datasets\['b'\] has terminate= rules"),
 ])
 def test_padding_refuses_members_it_cannot_pad(change, message):
+    # members that say their dtype (the mixture knows no engine's default)
     with pytest.raises(ValueError, match=r"pad=True: " + message):
-        Mixture({"a": member(), "b": member(**change)}, pad=True)
+        Mixture({"a": member(dtype=torch.float64), "b": member(**{"dtype": torch.float64,
+                                                                  **change})}, pad=True)
     Mixture({"a": member(), "b": member(**change)})  # one member per batch: fine
+
+
+def test_padding_promotes_a_members_dtype_its_engine_chose():
+    mix = Mixture({"a": member(), "b": member(dtype=torch.float32)}, pad=True)
+    batch = next(iter(mix))
+    assert batch["state"].dtype == torch.float64  # the wider of the two
 
 
 def test_padding_refuses_members_on_different_devices():
@@ -323,7 +331,7 @@ def test_padding_refuses_members_on_different_devices():
     other.config = dataclasses.replace(other.config, device=torch.device("cuda", 1))
     with pytest.raises(ValueError, match=r"pad=True: datasets\['b'\] has device cuda:1, "
                                          r"datasets\['a'\] cpu"):
-        Mixture({"a": member(), "b": other}, pad=True)
+        Mixture({"a": member(device="cpu"), "b": other}, pad=True)
 
 
 # -- bad input -----------------------------------------------------------------------------

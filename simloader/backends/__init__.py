@@ -149,3 +149,30 @@ def prepare(backend: str, options: dict[str, Any]) -> None:
     (`auto` may ask JAX for its GPUs): each engine that may run this dataset sets its own."""
     for name in (ENGINES if backend == "auto" else [backend]):
         engine(name).prepare(options)
+
+
+# `StoredDataset(cameras=, backend="auto")`: the engine that renders stored states where the
+# images are delivered (a CUDA device: MuJoCo Warp's renderer; the host: the CPU engine's)
+_RENDERS_ON = {"cuda": "warp", "cpu": "cpu"}
+
+
+def stored_renderer(backend: str, model: Any, images: Any, device: Any,
+                    randomized: bool) -> Any:
+    """The renderer of stored states of engine `backend` ("auto": by `device`'s type, the
+    host without one), from the engine's `stored_renderer`.
+
+    Raises:
+      ValueError: an unknown engine, or one that cannot render them here (it says why).
+    """
+    import torch
+    if backend == "auto":
+        kind = torch.device(device).type if device is not None else "cpu"
+        backend = _RENDERS_ON.get(kind, "cpu")
+    if backend not in ENGINES:
+        raise ValueError(f"backend: expected 'auto' or one of {list(ENGINES)} to render "
+                         f"stored states, got {backend!r}")
+    chosen = engine(backend)
+    why = chosen.missing()
+    if why is not None:
+        raise ValueError(f"backend={backend!r} cannot render stored states here: {why}")
+    return chosen.stored_renderer(model, images, device, randomized)

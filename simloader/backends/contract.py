@@ -145,6 +145,16 @@ class EngineEntry:
     def refuses_sim_device(self) -> Optional[str]:
         return f"backend={self.name!r} simulates on no device of its own"
 
+    def stored_renderer(self, model: Any, images: Any, device: Any,
+                        randomized: bool) -> Any:
+        """A renderer of stored states for `StoredDataset(cameras=)` (`store/pixels.py`):
+        an object whose `frames(states, model_of)` renders `(n, nframes, nstate)`
+        mjSTATE_FULLPHYSICS states, trajectory i with `model_of(i)`, as this engine's
+        streamed cameras render them, into `{image key: (n, nframes, *shape) tensor}` on
+        `device`. `randomized`: trajectories have models of their own. Raises ValueError
+        naming what it cannot render; this default renders nothing."""
+        raise ValueError(f"backend={self.name!r} does not render stored states")
+
     def refuses_determinism(self, model: Any) -> Optional[str]:
         return (f"backend={self.name!r} does not promise bit-identical batches; "
                 f"backend='cpu' does")

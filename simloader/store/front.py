@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from typing import Any, Optional
 
-from simloader.store import formats
+from simloader.store import formats, mixture_store
 from simloader.store.zarr_format import COMPRESSIONS
 
 
@@ -73,9 +73,14 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
                          f"{compression!r}")
     path = os.fspath(path)
     chosen = formats.get(format)
-    if format != "zarr" and type(dataset).__name__ == "Mixture":
-        raise ValueError(f"format={format!r}: a Mixture is written as a zarr store of its "
-                         f"tasks' stores (format='zarr'); write each member for {format!r}")
+    if mixture_store.is_mixture(dataset):
+        if format != "zarr":
+            raise ValueError(f"format={format!r}: a Mixture is written as a zarr store of its "
+                             f"tasks' stores (format='zarr'); write each member for "
+                             f"{format!r}")
+        return mixture_store.write_mixture(dataset, path, batches=batches,
+                                           num_workers=num_workers, progress=progress,
+                                           replace=replace, compression=compression)
     options = {} if compression is None else {"compression": compression}
     if options and not chosen.compresses:
         raise ValueError(f"compression={compression!r}: the {format!r} format keeps its own "

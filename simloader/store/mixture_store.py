@@ -24,6 +24,7 @@ import torch
 from simloader.atomic import sync_directories
 from simloader.store import lock, ownership, pipeline
 from simloader.store.provenance import StoreMismatch, versions
+from simloader.store.reader import OPENERS, StoredDataset
 from simloader.store.zarr_format import ATTRIBUTE, FORMAT, read_json, store_path, write_json
 
 KIND = "mixture"
@@ -136,7 +137,6 @@ class StoredMixture(torch.utils.data.Dataset):
 
     def __init__(self, path: str | os.PathLike, keys: Optional[Sequence[str]] = None,
                  verify: bool = False, **options: Any):
-        from simloader.store.reader import StoredDataset
         self.path = os.fspath(path)
         root = mixture_root(self.path)
         if root is None:
@@ -338,3 +338,6 @@ class MixtureTransitions(torch.utils.data.Dataset):
         except ImportError:
             Loader = torch.utils.data.DataLoader
         return Loader(self, batch_size=None, sampler=sampler, **kwargs)
+
+
+OPENERS[KIND] = (lambda path: mixture_root(path) is not None, StoredMixture)

@@ -26,11 +26,10 @@ from typing import Any, Optional
 import mujoco
 import numpy as np
 
-from simloader import identity, layout, records, render
+from simloader import identity, layout, records
 from simloader import randomize as dr
 
 MODELS = "provenance/models"  # the pool's MJB files: 0.mjb, 1.mjb, ...
-BACKENDS = ("auto", "cpu")
 
 
 def save_models(root: str, pool: Sequence[mujoco.MjModel]) -> None:
@@ -44,26 +43,21 @@ def save_models(root: str, pool: Sequence[mujoco.MjModel]) -> None:
     sync_directories([folder, os.path.dirname(folder)])
 
 
-def pool_kind(config: Any) -> str:
-    return "models" if config.models else "variants" if config.variants else "model"
-
-
 class StoredCameras:
     """The cameras a `StoredDataset` renders on read, checked against its store at
     construction: the model (from the store, or `model=` checked against the store's
-    digest), the camera names, and the stored keys rendering needs."""
+    digest), the camera names, the stored keys rendering needs, and the engine that renders
+    (`backends.stored_renderer`: `backend="auto"` takes the CPU renderer on the host and
+    MuJoCo Warp's on a CUDA `device`)."""
 
     def __init__(self, stored: Any, cameras: Any, backend: str = "auto",
                  device: Any = None, model: Any = None):
+        from simloader import backends
         self.stored = stored
-        if backend not in BACKENDS:
-            raise ValueError(f"backend: expected one of {list(BACKENDS)} to render stored "
-                             f"states, got {backend!r}")
-        if device is not None and str(device) != "cpu":
-            raise ValueError(f"device: the CPU renderer delivers on 'cpu', got {device!r}")
         self.pool, self.kind = _models(stored, model)
         base = self.pool[0]
-        asked = [cameras] if isinstance(cameras, records.Camera) else list(cameras)
+        asked = [cameras] if isinstance(cameras, records.Camera) else (
+            list(cameras) if isinstance(cameras, (list, tuple)) else None)
         if not asked or not all(isinstance(c, records.Camera) for c in asked):
             raise TypeError(f"cameras: expected a simloader.Camera or a sequence of them, got "
                             f"{cameras!r}")
@@ -73,7 +67,6 @@ class StoredCameras:
                 images += records.camera_images(base, camera)
             except ValueError as e:
                 raise ValueError(f"cameras: {str(e).removeprefix('record: ')}") from None
-        render.check(base, images)
         self.images = tuple(images)
         self.keys = [o.key for o in images]
         nstate = mujoco.mj_stateSize(base, layout.FULLPHYSICS)
@@ -89,41 +82,35 @@ class StoredCameras:
         self.plan = _plan(stored, base)
         self.params = [k for k in stored.layouts if k.startswith("params/")]
         self.local = threading.local()
-        self.pid: Optional[int] = None
+        randomized = self.kind != "model" or self.plan is not None
+        self.renderer = backends.stored_renderer(backend, base, self.images, device,
+                                                 randomized)
 
-    def frames(self, states: np.ndarray, trajectories: np.ndarray) -> dict[str, np.ndarray]:
-        """{image key: (n, nframes, *image shape)} of `states` ((n, nframes, nstate)
-        FULLPHYSICS rows of stored trajectories `trajectories`), rendered here."""
-        base = self.pool[0]
-        rows = render.integration_rows(base, states)
-        out = {o.key: np.empty((len(states), states.shape[1], *o.shape), o.dtype)
-               for o in self.images}
-        renderers = self._renderers()
-        model_of = self._model_of(np.asarray(trajectories))
-        renderers.draw(range(len(states)), rows, model_of, out)
-        return out
+    def __getstate__(self) -> dict[str, Any]:
+        # to a DataLoader worker: its threads make their own model copies
+        return {k: v for k, v in self.__dict__.items() if k != "local"}
 
-    def _renderers(self) -> render.Renderers:
-        # a thread's renderers, made at its first frame (a GL context is the thread's); a
-        # DataLoader worker makes its own
-        if getattr(self.local, "pid", None) != os.getpid():
-            self.local.renderers = render.Renderers(self.pool[0], self.images)
-            self.local.pid = os.getpid()
-        return self.local.renderers
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state, local=threading.local())
+
+    def frames(self, states: np.ndarray, trajectories: np.ndarray) -> dict[str, Any]:
+        """{image key: (n, nframes, *image shape) tensor} of `states` ((n, nframes, nstate)
+        FULLPHYSICS rows of stored trajectories `trajectories`)."""
+        return self.renderer.frames(states, self._model_of(np.asarray(trajectories)))
 
     def _model_of(self, trajectories: np.ndarray) -> Any:
         stored = self.stored
-        params = {k[len("params/"):]: np.stack([stored.read(int(t), [k])[k]
-                                                for t in trajectories])
-                  for k in self.params}
         if self.kind == "models":  # a model per row of the batch
             rows = trajectories % stored.nbatch
             return lambda i: self.pool[int(rows[i])]
+        if self.kind == "model" and self.plan is None:
+            return lambda i: self.pool[0]
+        params = {k[len("params/"):]: np.stack([stored.read(int(t), [k])[k]
+                                                for t in trajectories])
+                  for k in self.params}
         if self.kind == "variants":
             variant = params["variant"]
             return lambda i: self.pool[int(variant[i])]
-        if self.plan is None:
-            return lambda i: self.pool[0]
         plan = self.plan
         if not hasattr(self.local, "model"):  # this thread's copy, the values written in
             self.local.model = copy.copy(self.pool[0])

@@ -6,7 +6,7 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
@@ -19,6 +19,11 @@ from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedS
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.shards import MAX_OPEN, StoredArray
+
+
+# kinds of stores that read as another dataset than `StoredDataset`: {kind: (is_kind(path),
+# opener(path, *args, **kwargs))}, filled by their modules (`mixture_store`)
+OPENERS: dict[str, tuple[Callable[[str], bool], Callable[..., Any]]] = {}
 
 
 def _nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
@@ -57,9 +62,11 @@ class StoredDataset(torch.utils.data.Dataset):
         depth/segmentation as asked), rendered on access from the stored states with the
         model the store was simulated with (`simloader.store.pixels`): the pixels a
         streamed `Camera` of the CPU engine delivered for the same frames, bit for bit.
-      backend: the renderer: "cpu" (`mujoco.Renderer`, in this process or each DataLoader
-        worker) or "auto" (the CPU renderer).
-      device: where the images are delivered (None or "cpu").
+      backend: the engine whose renderer draws them: "cpu" (`mujoco.Renderer`, in this
+        process or each DataLoader worker), "warp" (MuJoCo Warp's, on a CUDA device, every
+        frame of a read batch one world: read with num_workers=0, or workers started with
+        "spawn") or "auto" (by `device`).
+      device: where the images are delivered (None: the host; a CUDA device for "warp").
       model: the model the store was simulated with (a name, an MJCF path, an MjModel, or
         the list of a `models=` / variants pool), for stores written before simloader kept
         it; checked against the store's digest.
@@ -75,11 +82,12 @@ class StoredDataset(torch.utils.data.Dataset):
             self.cameras = pixels.StoredCameras(self, cameras, backend, device, model)
 
     def __new__(cls, path: Any = None, *args: Any, **kwargs: Any) -> Any:
-        # a mixture's store (`write(Mixture(...))`) reads as one dataset of its tasks' stores
+        # a store of another kind (a mixture's store of stores: `mixture_store`) reads as
+        # the dataset its kind registered in `OPENERS`
         if cls is StoredDataset and isinstance(path, (str, os.PathLike)):
-            from simloader.store import mixture_store
-            if mixture_store.mixture_root(os.fspath(path)) is not None:
-                return mixture_store.StoredMixture(path, *args, **kwargs)
+            for kind, (is_kind, opener) in OPENERS.items():
+                if is_kind(os.fspath(path)):
+                    return opener(path, *args, **kwargs)
         return super().__new__(cls)
 
     def _open(self, path: str | os.PathLike, keys: Optional[Sequence[str]],
@@ -150,7 +158,7 @@ class StoredDataset(torch.utils.data.Dataset):
             states = self.read(i, ["state"])["state"]
             i %= len(self)
             for key, frames in self.cameras.frames(states[None], np.array([i])).items():
-                item[key] = torch.from_numpy(frames[0])
+                item[key] = frames[0]
         return _nest(item)
 
     def provenance(self, i: int) -> dict[str, int]:
@@ -499,8 +507,8 @@ class Transitions(torch.utils.data.Dataset):
             now, after = self._states(filled, slots, rows, frames)
             pair = np.stack([now, after], axis=1)  # (n, 2, nstate)
             for key, images in cameras.frames(pair, trajectories).items():
-                columns[key] = torch.from_numpy(np.ascontiguousarray(images[:, 0]))
-                columns["next/" + key] = torch.from_numpy(np.ascontiguousarray(images[:, 1]))
+                columns[key] = images[:, 0].contiguous()
+                columns["next/" + key] = images[:, 1].contiguous()
         if order is not None:  # back to the order asked for
             inverse = np.empty_like(order)
             inverse[order] = np.arange(len(order))

@@ -16,7 +16,7 @@ import torch
 
 from simloader import sharding, threads
 from simloader.atomic import parents, sync_directories
-from simloader.store import integrity, lock, mixture_store, ownership, pipeline, pixels
+from simloader.store import integrity, lock, ownership, pipeline, pixels
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, ArraySpec,
                                          checksum_spec, inside, read_json, specs_of,
                                          write_json, zstd, blosc)
@@ -216,12 +216,7 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
 
     Nothing is opened for writing before the path is known to be the store's to write
     (`ownership.check_target`: a new or empty folder, a store, a killed creation) and the
-    store holds no link; `replace=True` then removes the store's own entries only. A
-    `Mixture` is written as a store of stores, one per task (`mixture_store`)."""
-    if mixture_store.is_mixture(dataset):
-        return mixture_store.write_mixture(dataset, path, batches=batches,
-                                           num_workers=num_workers, progress=progress,
-                                           replace=replace, compression=compression)
+    store holds no link; `replace=True` then removes the store's own entries only."""
     if any(o.rendered for o in dataset.config.observations):
         zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
     if compression == "zstd":

@@ -52,6 +52,15 @@ class CpuEngine(EngineEntry):
         from simloader.backends.cpu import options as cpu_options
         return cpu_options.check_options(config, options, reason)
 
+    def stored_renderer(self, model: Any, images: Any, device: Any,
+                        randomized: bool) -> Any:
+        """`mujoco.Renderer`s in each thread that reads (the engine's own renderer)."""
+        if device is not None and str(device) != "cpu":
+            raise ValueError(f"device: backend='cpu' renders on the host and delivers on "
+                             f"'cpu', got {device!r}")
+        from simloader import render
+        return render.StoredFrames(model, images)
+
     def create(self, config: Any, shard: Any, stats: Any) -> Any:
         from simloader.backends.cpu.backend import CpuBackend
         return CpuBackend(config, shard, stats)

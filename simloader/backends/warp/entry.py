@@ -64,6 +64,12 @@ class WarpEngine(EngineEntry):
         from simloader.backends.warp import options as warp_options
         return warp_options.check_options(config, options, reason)
 
+    def stored_renderer(self, model: Any, images: Any, device: Any,
+                        randomized: bool) -> Any:
+        """MuJoCo Warp's renderer on a GPU, every frame of a read batch one world."""
+        from simloader.backends.warp.stored import StoredRenderer
+        return StoredRenderer(model, images, device, randomized)
+
     def create(self, config: Any, shard: Any, stats: Any) -> Any:
         from simloader.backends.warp.backend import WarpBackend
         return WarpBackend(config, shard, stats, config.options)

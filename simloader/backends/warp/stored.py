@@ -1,0 +1,90 @@
+"""Stored states rendered on a GPU by MuJoCo Warp (`StoredDataset(cameras=, backend="warp")`):
+the engine's own cameras (`cameras.Cameras`) fed from states read from a store instead of
+simulated ones. Every frame of a read batch is one world of one render call: the positions and
+mocap poses are written into the worlds, then the poses are brought to them and the cameras
+drawn exactly as the engine does after a step (kinematics, centres of mass where tracked,
+cameras and lights, the BVH refit, the render).
+"""
+
+from __future__ import annotations
+
+import types
+from typing import Any, Callable
+
+import mujoco
+import numpy as np
+import torch
+
+from simloader import layout
+from simloader.backends.warp import cameras as warp_cameras
+from simloader.backends.warp import runtime
+
+S = mujoco.mjtState
+
+
+class StoredRenderer:
+    """MuJoCo Warp's renderer for stored states of one model, on `device` (default: the
+    current CUDA device); its worlds grow to the largest read batch (frames x trajectories).
+
+    Raises:
+      ValueError: no CUDA device; the free camera; per-trajectory models (randomized
+        geometry, variants or model lists render on the CPU renderer).
+    """
+
+    def __init__(self, model: mujoco.MjModel, images: Any, device: Any, randomized: bool):
+        if not torch.cuda.is_available():
+            raise ValueError("backend='warp' renders stored states on a CUDA GPU, and this "
+                             "machine has none; use backend='cpu' (the CPU renderer, in each "
+                             "DataLoader worker)")
+        why = warp_cameras.refusal(images)
+        if why is not None:
+            raise ValueError(f"cameras: {why}")
+        if randomized:
+            raise ValueError("backend='warp': this store's trajectories have models of their "
+                             "own (randomized parameters, variants or a model list), which "
+                             "MuJoCo Warp's renderer on read does not take yet; use "
+                             "backend='cpu'")
+        self.model, self.images = model, tuple(images)
+        self.device = torch.device(device if device is not None else "cuda")
+        if self.device.type != "cuda":
+            raise ValueError(f"device: backend='warp' renders on a CUDA device, got {device!r}")
+        if self.device.index is None:
+            self.device = torch.device("cuda", torch.cuda.current_device())
+        self.columns = {name: layout.component_columns(model, layout.FULLPHYSICS, spec)
+                        for name, spec in (("qpos", S.mjSTATE_QPOS),
+                                           ("mocap_pos", S.mjSTATE_MOCAP_POS),
+                                           ("mocap_quat", S.mjSTATE_MOCAP_QUAT))}
+        self.nworld = 0
+
+    def _grow(self, nworld: int) -> None:
+        """A model, data and render context of `nworld` worlds (made again only to grow)."""
+        import mujoco_warp as mjw
+        wp = runtime.warp()
+        wdevice = runtime.warp_device(self.device)
+        with wp.ScopedDevice(wdevice):
+            self.m = mjw.put_model(self.model)
+            self.d = mjw.make_data(self.model, nworld=nworld)
+            config = types.SimpleNamespace(model=self.model, nbatch=nworld, randomization=None)
+            self.cameras = warp_cameras.Cameras(config, self.images, self.m, self.d, wdevice)
+        self.fields = {name: wp.to_torch(getattr(self.d, name)) for name in self.columns}
+        self.frame = torch.zeros(1, dtype=torch.int64, device=self.device)
+        self.nworld = nworld
+
+    def frames(self, states: np.ndarray, model_of: Callable[[int], Any]) -> dict:
+        """{image key: (n, nframes, *shape) tensor on the device} of FULLPHYSICS `states`."""
+        n, nframes = states.shape[:2]
+        worlds = n * nframes
+        if worlds > self.nworld:
+            self._grow(worlds)
+        flat = torch.from_numpy(np.ascontiguousarray(states.reshape(worlds, -1)))
+        flat = flat.to(self.device, non_blocking=True)
+        wp = runtime.warp()
+        with wp.ScopedDevice(runtime.warp_device(self.device)):
+            for name, cols in self.columns.items():
+                field = self.fields[name].view(self.nworld, -1)
+                if len(cols):
+                    field[:worlds] = flat[:, torch.as_tensor(cols, device=self.device)].to(
+                        field.dtype)
+            buffers = self.cameras.frames(self.nworld, 1)
+            self.cameras.render(buffers, self.frame, want=False)
+        return {k: v[:worlds, 0].reshape(n, nframes, *v.shape[2:]) for k, v in buffers.items()}
