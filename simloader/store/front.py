@@ -33,8 +33,8 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
 
     `compression`: None stores floating-point arrays raw (MuJoCo's states compress little:
     1.05-1.4x); "zstd" compresses them too, with zarr's blosc codec (byte shuffle, zstd level
-    1), which pays where the disk is slower than the CPU's threads compress. Images are
-    compressed with zstd either way.
+    1), which costs CPU (about 40-300 MB/s per slot's chunks, measured) and pays only where
+    the disk is slower still. Images are compressed with zstd either way.
 
     One job writes a store at a time: the store's lock (`simloader.store.lock`) is held from
     start to end, and a second process is refused at once, naming the holder. A killed
