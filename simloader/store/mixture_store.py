@@ -119,9 +119,11 @@ def _root(mixture: Any, batches: int) -> dict:
 
 def mixture_root(path: str) -> Optional[dict]:
     """The root attribute of a mixture store at `path`, or None for any other folder."""
+    if not os.path.isdir(path):
+        return None  # a file or nothing: StoredDataset says which
     try:
         meta = read_json(os.path.join(path, "zarr.json"))
-    except ValueError:
+    except (ValueError, OSError):
         return None
     kept = ((meta or {}).get("attributes") or {}).get(ATTRIBUTE) if isinstance(meta, dict) \
         else None

@@ -35,7 +35,12 @@ MODELS = "provenance/models"  # the pool's MJB files: 0.mjb, 1.mjb, ...
 def save_models(root: str, pool: Sequence[mujoco.MjModel]) -> None:
     """The writer's pool of models, as MJB files (the compiled models, bit for bit)."""
     from simloader.atomic import atomic_write, sync_directories
+    from simloader.store.zarr_format import write_json
     folder = os.path.join(root, MODELS)
+    # a zarr group (with files of its own beside): zarr readers see it as the store's
+    write_json(os.path.join(folder, "zarr.json"), {"zarr_format": 3, "node_type": "group",
+                                                   "attributes": {"files": "MJB models"}},
+               durable=True)
     for k, model in enumerate(pool):
         buffer = np.empty(mujoco.mj_sizeModel(model), dtype=np.uint8)
         mujoco.mj_saveModel(model, None, buffer)
