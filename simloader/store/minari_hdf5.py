@@ -17,7 +17,7 @@ import uuid
 import warnings
 from typing import Any, Optional
 
-from simloader.atomic import PARTIAL, sync_directories
+from simloader.atomic import PARTIAL, fsync_file, sync_directories
 from simloader.store.minari_episodes import EPISODE_FLAGS, episodes
 from simloader.store.minari_folder import (BACKUP, CREATING, EPISODES, MAIN, MERGING, METADATA,
                                            datasets_root, read_json, root_of)
@@ -83,14 +83,6 @@ def create_empty(minari: Any, dataset_id: str, dataset_dir: str, description: st
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _fsync(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _need_space(folder: str, need: int, what: str) -> None:
     """Raises OSError(ENOSPC) when the file system of ``folder`` has less than ``need`` bytes
     free for this user: HDF5 may crash the process (not raise) when the disk fills under it."""
@@ -127,7 +119,7 @@ def commit_batch(dataset_dir: str, first: int, batch: dict, n: int) -> None:
                 f.create_dataset(key, data=batch[key][:n])
             for key, value in batch["params"].items():
                 f.create_dataset(f"params/{key}", data=value[:n])
-        _fsync(partial)
+        fsync_file(partial)
         os.replace(partial, final)
         sync_directories([folder])
     except BaseException:
@@ -221,7 +213,7 @@ def finish(dataset_dir: str, total: int) -> None:
             storage.update_episodes(list(episodes(_read_batch(path), stop - first)))
             written += stop - first
         counts = read_json(os.path.join(scratch, METADATA)) or {}
-        _fsync(os.path.join(scratch, MAIN))
+        fsync_file(os.path.join(scratch, MAIN))
         os.replace(os.path.join(scratch, MAIN), os.path.join(data_dir, MAIN))
         sync_directories([data_dir])
         raw = read_metadata(dataset_dir)

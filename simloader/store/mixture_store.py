@@ -24,7 +24,7 @@ import torch
 from simloader.atomic import sync_directories
 from simloader.store import lock, ownership, pipeline
 from simloader.store.provenance import StoreMismatch, versions
-from simloader.store.reader import OPENERS, StoredDataset
+from simloader.store.reader import OPENERS, StoredDataset, nest
 from simloader.store.zarr_format import ATTRIBUTE, FORMAT, read_json, store_path, write_json
 
 KIND = "mixture"
@@ -272,13 +272,7 @@ def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],
         out["mask/" + key] = mask
     out["task"] = torch.cat([torch.full((n,), t, dtype=torch.int64)
                              for (t, _), n in zip(parts, rows)])
-    nested: dict[str, Any] = {}
-    for key, value in out.items():
-        if key.startswith("params/"):
-            nested.setdefault("params", {})[key[len("params/"):]] = value
-        else:
-            nested[key] = value
-    return nested
+    return nest(out)
 
 
 class MixtureTransitions(torch.utils.data.Dataset):

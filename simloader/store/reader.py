@@ -26,7 +26,7 @@ from simloader.store.shards import MAX_OPEN, StoredArray
 OPENERS: dict[str, tuple[Callable[[str], bool], Callable[..., Any]]] = {}
 
 
-def _nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
+def nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     """`params/KEY` back into `{"params": {KEY: ...}}`, as the batch held them."""
     out: dict[str, Any] = {}
     for name, value in flat.items():
@@ -159,7 +159,7 @@ class StoredDataset(torch.utils.data.Dataset):
             i %= len(self)
             for key, frames in self.cameras.frames(states[None], np.array([i])).items():
                 item[key] = frames[0]
-        return _nest(item)
+        return nest(item)
 
     def provenance(self, i: int) -> dict[str, int]:
         """Where stored trajectory `i` comes from in the seeded stream: rank, batch (the
@@ -238,7 +238,7 @@ class StoredDataset(torch.utils.data.Dataset):
             value = flat[name]
             out[name] = value[row] if value.ndim and value.shape[0] == self.nbatch \
                 else value.expand(self.nbatch)[row]
-        return _nest({n: v.detach().cpu().clone() for n, v in out.items()})
+        return nest({n: v.detach().cpu().clone() for n, v in out.items()})
 
 
 def _take(rows: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:
