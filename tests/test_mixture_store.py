@@ -71,8 +71,18 @@ def test_transitions_mix_the_tasks_padded_with_masks(tmp_path):
     assert torch.equal(batch["state"][cart][:, :5], first["state"])
     assert torch.equal(batch["next/state"][cart][:, :5], first["next/state"])
     loader = transitions.loader(32, order="random", seed=0)
-    seen = sum(len(b["task"]) for b in loader)
-    assert seen == len(transitions)
+    batches = list(loader)
+    assert sum(len(b["task"]) for b in batches) == len(transitions)
+    # a store of an unpadded mixture: one task per batch, both tasks in the epoch, every
+    # transition once, the same keys and widths in every batch
+    assert all(len(set(b["task"].tolist())) == 1 for b in batches)
+    assert {int(b["task"][0]) for b in batches} == {0, 1}
+    assert all(set(b) == set(batch) and b["state"].shape[1] == 56 for b in batches)
+    rows = torch.cat([torch.cat([b["task"][:, None].double(), b["state"], b["next/state"]], 1)
+                      for b in batches])
+    assert len(torch.unique(rows, dim=0)) == len(transitions)
+    again = [b["state"] for b in transitions.loader(32, order="random", seed=0)]
+    assert all(torch.equal(a, b["state"]) for a, b in zip(again, batches))
     # a batch of one task's rows has the keys and widths of any other
     alone = transitions.gather(np.arange(3))
     assert (alone["task"] == 0).all() and alone["state"].shape == (3, 56)
@@ -108,3 +118,20 @@ def test_writing_again_extends_and_another_mixture_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"format='minari'.*a Mixture is written as a zarr"):
         simloader.write(mixture(), tmp_path / "x-v0", batches=1, format="minari")
     assert os.path.isdir(os.path.join(path, "tasks", "humanoid"))
+
+
+def test_a_mixture_stores_transitions_loader_resumes_mid_epoch(tmp_path):
+    pytest.importorskip("torchdata")
+    path = simloader.write(mixture(seed=2), tmp_path / "r.zarr", batches=6, progress=False)
+    transitions = simloader.StoredDataset(path).transitions()
+    loader = transitions.loader(16, seed=5)
+    it = iter(loader)
+    for _ in range(3):
+        next(it)
+    state = loader.state_dict()
+    rest = [b["state"] for b in it]
+    resumed = transitions.loader(16, seed=5)
+    resumed.load_state_dict(state)
+    again = [b["state"] for b in resumed]
+    assert len(again) == len(rest) > 0
+    assert all(torch.equal(a, b) for a, b in zip(again, rest))

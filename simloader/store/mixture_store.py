@@ -322,18 +322,89 @@ class MixtureTransitions(torch.utils.data.Dataset):
 
     def loader(self, batch_size: int, order: str = "quasi_random", drop_last: bool = False,
                seed: Optional[int] = None, **kwargs: Any) -> torch.utils.data.DataLoader:
-        """Batches of `batch_size` transitions of every task, in `order` (as
-        `Transitions.loader`: `"quasi_random"` blocks of one batch slot of one task,
-        `"random"`, `"sequential"`), each a padded batch with `"task"` per row."""
+        """Batches of `batch_size` transitions, as the store was written: a store of a
+        `pad=True` mixture mixes every task's rows in each batch (`order` over all of them,
+        as `Transitions.loader`); any other holds one task per batch, each task's batches in
+        its own `order` and the tasks interleaved in a seeded order (`TaskBatches`). Either
+        way a batch has `"task"` per row and every padded key's `"mask/KEY"`, so that all
+        batches have the same keys and shapes. Resumes as `Transitions.loader` does."""
         from simloader.store import order as orders
-        first = next(iter(self.parts.values()))
-        block = first.stored.nbatch * first.per
-        sampler = orders.BlockOrder(len(self), batch_size, order, block, 8, drop_last, seed)
+        if self.stored.pad:
+            first = next(iter(self.parts.values()))
+            block = first.stored.nbatch * first.per
+            sampler: Any = orders.BlockOrder(len(self), batch_size, order, block, 8,
+                                             drop_last, seed)
+        else:
+            sampler = TaskBatches([len(p) for p in self.parts.values()],
+                                  [p.stored.nbatch * p.per for p in self.parts.values()],
+                                  batch_size, order, drop_last, seed)
         try:
             from torchdata.stateful_dataloader import StatefulDataLoader as Loader
         except ImportError:
             Loader = torch.utils.data.DataLoader
         return Loader(self, batch_size=None, sampler=sampler, **kwargs)
+
+
+class TaskBatches(torch.utils.data.Sampler):
+    """Batches of one task each, over tasks of `sizes` transitions laid end to end: every
+    task's batches in its own `order.BlockOrder` (blocks of `blocks[i]`), and the tasks'
+    batches interleaved in a new seeded order each epoch (each task's own order kept), so
+    that an epoch reads every transition once. `state_dict()` / `load_state_dict()` resume
+    an epoch after its last batch handed out, as `BlockOrder`'s do."""
+
+    def __init__(self, sizes: Sequence[int], blocks: Sequence[int], batch_size: int,
+                 order: str, drop_last: bool, seed: Optional[int]):
+        from simloader.store import order as orders
+        self.seed = int(torch.empty((), dtype=torch.int64).random_().item()) \
+            if seed is None else seed
+        self.starts = np.cumsum([0, *sizes])[:-1]
+        self.tasks = [orders.BlockOrder(n, batch_size, order, b, 8, drop_last, self.seed + k)
+                      for k, (n, b) in enumerate(zip(sizes, blocks))]
+        self.epoch, self._resume = 0, 0
+        self._progress: Optional[list[int]] = None
+
+    def __len__(self) -> int:
+        return sum(len(t) for t in self.tasks)
+
+    def _plan(self, epoch: int) -> list[tuple[int, int]]:
+        """(task, its batch) of every batch of the epoch, in the epoch's order."""
+        labels = np.concatenate([np.full(len(t), k) for k, t in enumerate(self.tasks)])
+        labels = np.random.default_rng([self.seed, epoch]).permutation(labels)
+        seen = [0] * len(self.tasks)
+        out = []
+        for k in labels.tolist():
+            out.append((k, seen[k]))
+            seen[k] += 1
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        epoch, position = self._progress or (self.epoch, self._resume)
+        return {"epoch": epoch, "position": position, "seed": self.seed, "batches": len(self)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if not isinstance(state, dict) or state.get("batches") != len(self):
+            raise ValueError(f"state: expected a TaskBatches.state_dict() of an epoch of "
+                             f"{len(self)} batches, got {state!r}")
+        self.seed, self.epoch, self._resume = (int(state["seed"]), int(state["epoch"]),
+                                               int(state["position"]))
+        self._progress = None
+
+    def __iter__(self):
+        epoch, start = self.epoch, self._resume
+        self.epoch, self._resume = epoch + 1, 0
+        progress = self._progress = [epoch, start]
+        return self._batches(epoch, start, progress)
+
+    def _batches(self, epoch: int, start: int, progress: list[int]):
+        plan = self._plan(epoch)
+        # each task's batches of this epoch (its BlockOrder's epoch `epoch`)
+        per_task = []
+        for task in self.tasks:
+            task.epoch, task._resume = epoch, 0
+            per_task.append(list(iter(task)))
+        for k, b in plan[start:]:
+            progress[1] += 1
+            yield per_task[k][b] + self.starts[k]
 
 
 OPENERS[KIND] = (lambda path: mixture_root(path) is not None, StoredMixture)
