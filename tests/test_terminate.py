@@ -307,10 +307,11 @@ def test_a_callable_of_the_wrong_shape_is_refused_at_its_first_call():
         next(iter(ds))
 
 
-def test_mjx_refuses_a_callable_by_name():
+def test_mjx_refuses_a_callable_in_its_open_loop_by_name():
     pytest.importorskip("mujoco.mjx")
-    with pytest.raises(ValueError, match="terminate: a callable over the observations runs "
-                                         "where the simulation steps from Python"):
+    with pytest.raises(ValueError, match=r"terminate: a callable over the observations runs "
+                                         r"where the simulation steps from Python: on MJX, the "
+                                         r"closed loop \(policy=\)"):
         simloader.SimDataset("cartpole", nbatch=4, nstep=5, backend="mjx", terminate=hinge_out)
 
 

@@ -171,3 +171,12 @@ def test_episodes_run_across_batches_and_resume_exactly(backend, request):
 def test_a_policy_sees_the_fresh_states():
     from test_terminate import check_closed_loop
     check_closed_loop("mjx")
+
+
+def test_a_callable_ends_episodes_as_a_rule_does_in_the_closed_loop():
+    """On MJX a callable runs in the closed loop, after every frame, on the observations the
+    policy gets: the same flags, resets and states as the rule it spells."""
+    from test_terminate import check_callable
+    check_callable("mjx", policy=lambda obs: torch.zeros(4, 1, dtype=obs["state"].dtype,
+                                                         device=obs["state"].device),
+                   policy_noise=simloader.controls.Normal(std=1.0))

@@ -30,8 +30,25 @@ from simloader.backends.mjx.runtime import mjx
 
 
 def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callable]:
-    """The pure `start`, `advance` and `finish` of a closed-loop batch (`P`: `Pieces`)."""
+    """The pure `start`, `advance` and `finish` of a closed-loop batch (`P`: `Pieces`).
+
+    With a callable `terminate=`, `advance` and `finish` take `external`, (nbatch,) uint8:
+    the callable's verdict on the observations the previous `advance` returned (where that
+    step ended a frame; zeros otherwise). It ends those rows' episodes at that frame, as a
+    rule would have (`terminated`, and the autoreset at the next frame)."""
     every, nframes, E = P.every, P.nframes, P.episodes
+    checks = E is not None and E.check is not None
+
+    def apply_external(loop, external):
+        """The callable's verdict on the frame the last step ended (step `t - 1`)."""
+        e, t = loop["episode"], loop["t"]
+        last = jnp.maximum(t - 1, 0)
+        hit = (external != 0) & (t > 0) & rules.frame_due(last, every)
+        j = rules.frame_index(last, every)
+        old = jax.lax.dynamic_index_in_dim(e["flags"], j, axis=1, keepdims=False)
+        flags = jax.lax.dynamic_update_index_in_dim(
+            e["flags"], old | hit.astype(jnp.uint8), j, axis=1)  # bit 1: terminated
+        return {**loop, "episode": {**e, "flags": flags, "pending": e["pending"] | hit}}
 
     def start(m, d0, inputs0, x0, defaults, bounds, seeds, variant, carry, restart, fresh,
               reset_control, previous):
@@ -88,9 +105,11 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
              "held": jnp.where(boundary, e["pending"], e["held"])}
         return e, P.hold(d, take, at)
 
-    def advance(m, loop, u):
+    def advance(m, loop, u, external=None):
         """One step of every trajectory with the policy's rows `u` (nbatch, ncontrol): the
         loop state after it, and the observations the policy sees next."""
+        if checks:
+            loop = apply_external(loop, external)
         t = loop["t"]
         u = u.astype(P.dtype)
         if "noise" in loop:
@@ -133,10 +152,12 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
             loop["episode"] = {**e, "steps": steps, "flags": flags, "pending": pending}
         return loop, obs
 
-    def finish(m, loop, delivered):
+    def finish(m, loop, delivered, external=None):
         """The batch's outputs (frames, control, diverged, the initial state and parameters)
         and the carry of `continue_episodes`, from the loop state; and the final data (whose
         buffers the next batch's `start` takes)."""
+        if checks:  # the callable's verdict on the last frame
+            loop = apply_external(loop, external)
         d, params = loop["d"], delivered["params"]
         outputs = {**loop["frames"], "control": loop["control"], "diverged": loop["diverged"],
                    "initial_state": delivered["initial_state"]}
@@ -169,6 +190,10 @@ class ClosedLoop:
         # data of the batch's structure for the first batch's `start` to take: reset rows, as
         # `start` makes them
         self.blank = jax.jit(lambda *args: pieces.begin(*args)[1])
+        # a callable terminate=: run on the observations after every frame, here in Python
+        E = pieces.episodes
+        self.check = E if E is not None and E.check is not None else None
+        self.every, self.nbatch = pieces.every, pieces.nbatch
 
     def run(self, args: Any, previous: Any, drive: Callable[[dict, Callable], Any]
             ) -> tuple[dict[str, Any], Any, Any, Any]:
@@ -198,13 +223,32 @@ class ClosedLoop:
             leaves, loop_def = jax.tree.flatten(loop)
             advance = self._flat_advance(m_def, loop_def)
 
-            def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
-                nonlocal leaves
-                leaves, obs = advance(m_leaves, leaves, jax.dlpack.from_dlpack(rows.contiguous()))
-                return {k: torch.from_dlpack(v) for k, v in obs.items()}
+            first = {k: torch.from_dlpack(v) for k, v in obs.items()}
+            none = verdict = (None if self.check is None else jax.dlpack.from_dlpack(
+                torch.zeros(self.nbatch, dtype=torch.uint8,
+                            device=next(iter(first.values())).device)))
 
-            driven = drive({k: torch.from_dlpack(v) for k, v in obs.items()}, step)
-            return (*self.finish(m, jax.tree.unflatten(loop_def, leaves), delivered), driven)
+            def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
+                nonlocal leaves, verdict
+                u = jax.dlpack.from_dlpack(rows.contiguous())
+                if self.check is None:
+                    leaves, obs = advance(m_leaves, leaves, u)
+                else:
+                    leaves, obs = advance(m_leaves, leaves, u, verdict)
+                out = {k: torch.from_dlpack(v) for k, v in obs.items()}
+                if self.check is not None:  # after a frame: the callable's verdict
+                    verdict = none
+                    if (t + 1) % self.every == 0:
+                        frame = (t + 1) // self.every - 1
+                        ended = self.check.checked(out, frame, self.nbatch)
+                        verdict = jax.dlpack.from_dlpack(ended.to(torch.uint8).contiguous())
+                return out
+
+            driven = drive(first, step)
+            loop = jax.tree.unflatten(loop_def, leaves)
+            if self.check is None:
+                return (*self.finish(m, loop, delivered), driven)
+            return (*self.finish(m, loop, delivered, verdict), driven)
 
     def _flat_advance(self, m_def: Any, loop_def: Any) -> Callable:
         """`advance` jitted on lists of leaves, the loop's donated. MJX's Model and Data are
@@ -214,9 +258,9 @@ class ClosedLoop:
         if self.flat is None or self.flat[0] != (m_def, loop_def):
             advance = self.advance
 
-            def flat(m_leaves, leaves, u):
+            def flat(m_leaves, leaves, u, external=None):
                 loop, obs = advance(jax.tree.unflatten(m_def, m_leaves),
-                                    jax.tree.unflatten(loop_def, leaves), u)
+                                    jax.tree.unflatten(loop_def, leaves), u, external)
                 return jax.tree.leaves(loop), obs
 
             self.flat = ((m_def, loop_def), jax.jit(flat, donate_argnums=(1,)))

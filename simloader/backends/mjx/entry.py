@@ -114,10 +114,12 @@ class MjxEngine(EngineEntry):
         return runtime.determinism_refusal()
 
     def check_options(self, config: Any, options: dict[str, Any], reason: str) -> Any:
-        if config.terminate is not None and config.terminate.check is not None:
+        if config.terminate is not None and config.terminate.check is not None \
+                and config.policy is None:
             raise ValueError("terminate: a callable over the observations runs where the "
-                             "simulation steps from Python, which MJX's jitted scan does not; "
-                             "use backend='cpu' or 'warp', or rules of simloader.terminate")
+                             "simulation steps from Python: on MJX, the closed loop "
+                             "(policy=), not the open loop's jitted scan; use policy=, "
+                             "backend='cpu' or 'warp', or rules of simloader.terminate")
         from simloader.backends.mjx import options as mjx_options, runtime
         if config.deterministic:  # before anything below starts JAX
             runtime.configure_determinism()
