@@ -69,6 +69,13 @@ def test_transitions_mix_the_tasks_padded_with_masks(tmp_path):
     assert not batch["state"][cart][:, 5:].any() and batch["mask/state"][~cart].all()
     first = parts[0].gather(ks[ks < len(parts[0])])
     assert torch.equal(batch["state"][cart][:, :5], first["state"])
+    # any order, negative indices, as Transitions.gather
+    mixed = transitions.gather([len(parts[0]), 0, -1])
+    assert mixed["task"].tolist() == [1, 0, 1]
+    assert torch.equal(mixed["state"][1, :5], parts[0].gather([0])["state"][0])
+    assert torch.equal(mixed["state"][2], parts[1].gather([len(parts[1]) - 1])["state"][0])
+    with pytest.raises(IndexError, match="out of range"):
+        transitions.gather([len(transitions)])
     assert torch.equal(batch["next/state"][cart][:, :5], first["next/state"])
     loader = transitions.loader(32, order="random", seed=0)
     batches = list(loader)
@@ -96,7 +103,14 @@ def test_a_padded_mixtures_store_pads_its_items(tmp_path):
     items = [stored[i] for i in range(len(stored))]
     assert {tuple(it["state"].shape) for it in items} == {(6, 56)}
     cart = [it for it in items if int(it["task"]) == 0]
-    assert cart and not cart[0]["mask/state"][:, 5:].any() and cart[0]["mask/state"][:, :5].all()
+    # masks per row, as the mixture's (no frame axis)
+    assert cart and cart[0]["mask/state"].shape == (56,)
+    assert not cart[0]["mask/state"][5:].any() and cart[0]["mask/state"][:5].all()
+    streamed = next(iter(mixture(pad=True)))
+    assert streamed["mask/state"].shape[1:] == cart[0]["mask/state"].shape
+    # keys= keeps to the keys asked for
+    only = simloader.StoredDataset(path, keys=["control"])[0]
+    assert set(only) == {"control", "mask/control", "task"}
     batch = torch.utils.data.default_collate(items)  # one DataLoader batch of both tasks
     assert batch["state"].shape == (len(items), 6, 56)
 
@@ -111,6 +125,15 @@ def test_writing_again_extends_and_another_mixture_is_refused(tmp_path):
     assert big.info["counts"] == counts and len(big) == 4 * counts[0] + 2 * counts[1] > small
     with pytest.raises(ValueError, match=r"another mixture.*seed: stored 4, given 5"):
         simloader.write(mixture(seed=5), path, batches=7, progress=False)
+    # a member of another configuration is refused before anything is written
+    reseeded = simloader.SimDataset("cartpole", backend="cpu", nbatch=4, nstep=6, nthread=1,
+                                    seed=9, control=simloader.controls.Uniform())
+    other = simloader.Mixture({"cartpole": reseeded,
+                               "humanoid": member("humanoid", 2)}, seed=4)
+    root = open(os.path.join(path, "zarr.json")).read()
+    with pytest.raises(ValueError, match=r"task 'cartpole'.*seed: stored 2, given 9"):
+        simloader.write(other, path, batches=20, progress=False)
+    assert open(os.path.join(path, "zarr.json")).read() == root
     with pytest.raises(ValueError, match=r"not a mixture's|holds one dataset's batches"):
         simloader.write(mixture(seed=4), simloader.write(
             member("cartpole", 4), tmp_path / "one.zarr", batches=1, progress=False),

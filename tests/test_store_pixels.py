@@ -86,7 +86,8 @@ def test_what_cannot_be_rendered_is_refused_naming_it(written, tmp_path):
         simloader.StoredDataset(path, cameras=CAMERA, backend="opengl")
     with pytest.raises(TypeError, match=r"cameras: expected a simloader.Camera"):
         simloader.StoredDataset(path, cameras="fixed")
-    with pytest.raises(ValueError, match=r"model: not the model the store .* was simulated"):
+    with pytest.raises(ValueError,
+                       match=r"model: not the model\(s\) the store .* was simulated"):
         simloader.StoredDataset(path, cameras=CAMERA, model="humanoid")
 
 
@@ -99,3 +100,59 @@ def test_a_store_without_its_model_files_renders_with_the_model_given(written, t
         simloader.StoredDataset(copy, cameras=CAMERA)
     stored = simloader.StoredDataset(copy, cameras=CAMERA, model="cartpole")
     assert torch.equal(stored[7]["camera/front/rgb"], want[7])
+
+
+def longer_pole(spec, rng):
+    length = rng.uniform(0.5, 1.5)
+    spec.geom("pole").fromto = [0, 0, 0, 0, 0, length]
+    spec.site("tip").pos = [0, 0, length]
+    return spec
+
+
+@pytest.mark.parametrize("pool", ["variants", "models"])
+def test_structural_variants_and_model_lists_render_each_trajectorys_model(pool, tmp_path):
+    """A store of states of variants (or of a model list) renders every trajectory with its
+    own model, as streaming did; an older store without kept models needs them all given."""
+    if pool == "variants":
+        randomize = simloader.randomize.Variants(longer_pole, count=3)
+    else:
+        import mujoco
+        base = simloader.load_model("cartpole")
+        randomize = []
+        for k in range(6):
+            m = mujoco.MjModel.from_xml_path(str(simloader.builtin_path("cartpole")))
+            m.geom_rgba[-1] = [0.2 + 0.1 * k, 0.3, 0.9 - 0.1 * k, 1.0]
+            randomize.append(m)
+        assert base.ngeom == randomize[0].ngeom
+    path = simloader.write(cartpole(("state",), randomize=randomize), tmp_path / "v.zarr",
+                           batches=1, progress=False)
+    want = next(iter(cartpole(("state", CAMERA), randomize=randomize)))["camera/front/rgb"]
+    stored = simloader.StoredDataset(path, cameras=CAMERA)
+    for i in range(6):
+        assert torch.equal(stored[i]["camera/front/rgb"], want[i]), i
+    assert len({want[i, 0].numpy().tobytes() for i in range(6)}) > 1  # the models differ
+
+
+def test_an_older_store_of_a_model_list_renders_with_the_list_given(tmp_path):
+    import json
+    import mujoco
+    models = []
+    for k in range(6):
+        m = mujoco.MjModel.from_xml_path(str(simloader.builtin_path("cartpole")))
+        m.geom_rgba[-1] = [0.2 + 0.1 * k, 0.3, 0.9 - 0.1 * k, 1.0]
+        models.append(m)
+    path = simloader.write(cartpole(("state",), randomize=models), tmp_path / "o.zarr",
+                           batches=1, progress=False)
+    # as written before stores kept their models
+    shutil.rmtree(os.path.join(path, "provenance", "models"))
+    root = os.path.join(path, "zarr.json")
+    meta = json.load(open(root))
+    del meta["attributes"]["simloader"]["models"]
+    json.dump(meta, open(root, "w"))
+    want = next(iter(cartpole(("state", CAMERA), randomize=models)))["camera/front/rgb"]
+    with pytest.raises(ValueError, match=r"written before simloader kept the model"):
+        simloader.StoredDataset(path, cameras=CAMERA)
+    with pytest.raises(ValueError, match=r"model: not the model\(s\)"):
+        simloader.StoredDataset(path, cameras=CAMERA, model=models[0])
+    stored = simloader.StoredDataset(path, cameras=CAMERA, model=models)
+    assert all(torch.equal(stored[i]["camera/front/rgb"], want[i]) for i in range(6))

@@ -23,8 +23,8 @@ import torch
 
 from simloader.atomic import sync_directories
 from simloader.store import lock, ownership, pipeline
-from simloader.store.provenance import StoreMismatch, versions
-from simloader.store.reader import OPENERS, StoredDataset, nest
+from simloader.store.provenance import StoreMismatch, differences, fingerprint, versions
+from simloader.store.reader import OPENERS, StoredDataset, key_kinds, nest
 from simloader.store.zarr_format import ATTRIBUTE, FORMAT, read_json, store_path, write_json
 
 KIND = "mixture"
@@ -83,13 +83,12 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
                                     f"be appended to ({'; '.join(differ)})")
             if kept.get("batches", 0) > batches:
                 mine = _root(mixture, kept["batches"])
-        if stored is None or mine["batches"] != kept.get("batches"):
+        _check_members(mixture, path)  # before anything is written
+        if stored is None:  # the store's own root first (a new store: no batch yet)
             os.makedirs(tasks, exist_ok=True)
             write_json(os.path.join(tasks, "zarr.json"), {
                 "zarr_format": 3, "node_type": "group", "attributes": {}}, durable=True)
-            write_json(os.path.join(path, "zarr.json"), {
-                "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: mine}},
-                durable=True)
+            _write_root(path, _root(mixture, 0))
             sync_directories([tasks, path])
         reports = []
         for name, member, n in zip(mixture.names, mixture.datasets, mine["counts"]):
@@ -99,6 +98,10 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
                                             num_workers=num_workers, progress=progress,
                                             replace=False, **options)
                 reports.append(written.report)
+        # the batches every task now holds: said once all are written (a refused or killed
+        # write leaves the root as it was; each task's store says what it holds)
+        if stored is None or mine["batches"] != kept.get("batches"):
+            _write_root(path, mine)
     out = writer.Written(path)
     stages = pipeline.Stages()
     for r in reports:
@@ -108,6 +111,26 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
         seconds=time.perf_counter() - start, writers=max(1, num_workers),
         stages=dict(stages.seconds), threads=max([r.threads for r in reports] or [1]))
     return out
+
+
+def _write_root(path: str, attribute: dict) -> None:
+    write_json(os.path.join(path, "zarr.json"), {
+        "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: attribute}},
+        durable=True)
+
+
+def _check_members(mixture: Any, path: str) -> None:
+    """Every task's store that exists holds its member's configuration (refused otherwise,
+    naming the task and what differs), checked before any task is written."""
+    for name, member in zip(mixture.names, mixture.datasets):
+        meta = read_json(os.path.join(task_path(path, name), "zarr.json"))
+        kept = ((meta or {}).get("attributes") or {}).get(ATTRIBUTE)
+        if not isinstance(kept, dict) or "fingerprint" not in kept:
+            continue
+        differ = differences(kept["fingerprint"], fingerprint(member))
+        if differ:
+            raise StoreMismatch(f"the store at {path!r} holds another configuration for task "
+                                f"{name!r}; it cannot be appended to ({'; '.join(differ)})")
 
 
 def _root(mixture: Any, batches: int) -> dict:
@@ -201,21 +224,26 @@ class StoredMixture(torch.utils.data.Dataset):
         return MixtureTransitions(self, parts)
 
     @functools.cached_property
-    def _plan(self) -> dict[str, tuple[tuple, torch.dtype]]:
+    def _plan(self) -> dict[str, tuple[tuple, torch.dtype, int]]:
         """Per stored key whose shape differs between the tasks (or that some tasks lack):
         the widest trailing shape and the dtype, so that every padded item has the same keys
         and shapes."""
         shapes: dict[str, list] = {}
         dtypes: dict[str, torch.dtype] = {}
+        per_frame: set[str] = set()
         for stored in self.tasks.values():
-            for key, meta in stored.metas.items():
-                shapes.setdefault(key, []).append(tuple(meta["shape"][1:]))
+            per_frame.update(key_kinds(stored)[0])
+            for key in stored.keys:  # those asked for (keys=)
+                shapes.setdefault(key, []).append(tuple(stored.metas[key]["shape"][1:]))
                 dtypes[key] = torch.from_numpy(np.zeros(0, stored.layouts[key].dtype)).dtype
         out = {}
         for key, found in shapes.items():
             if len(set(found)) > 1 or len(found) < len(self.tasks):
                 widest = tuple(max(s[d] for s in found) for d in range(len(found[0])))
-                out[key] = (widest, dtypes[key])
+                # a per-frame key's mask is per row, not per frame (as the mixture's); control
+                # is one row per step
+                lead = 1 if key in per_frame or key == "control" else 0
+                out[key] = (widest, dtypes[key], lead)
         return out
 
 
@@ -236,13 +264,18 @@ def _batched(item: Mapping[str, Any]) -> dict[str, torch.Tensor]:
 
 
 def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],
-             plan: Optional[Mapping[str, tuple[tuple, torch.dtype]]] = None) -> dict[str, Any]:
+             plan: Optional[Mapping[str, tuple[tuple, torch.dtype, int]]] = None
+             ) -> dict[str, Any]:
     """Row batches of several tasks in one: each key's rows concatenated, padded with zeros
     at the end of every trailing axis to the widest, `"task"` per row and `"mask/KEY"` (True
     on real columns) for each padded key; `params/KEY` nested back into `params`. `plan`
-    ({key: (widest trailing shape, dtype)}) pads and masks those keys always, whatever the
-    parts hold, so that batches of any tasks have the same keys and shapes."""
+    ({key: (widest trailing shape, dtype, lead)}) pads and masks those keys always, whatever
+    the parts hold, so that batches of any tasks have the same keys and shapes; their masks
+    leave out the `lead` axes (frames, steps), as the mixture's batches do: `(rows,
+    *widest[lead:])`."""
     plan = plan or {}
+    if not parts:
+        return {"task": torch.zeros(0, dtype=torch.int64)}
     keys = list(dict.fromkeys([k for _, p in parts for k in p] + list(plan)))
     rows = [len(next(iter(p.values()))) for _, p in parts]
     out: dict[str, Any] = {}
@@ -251,22 +284,21 @@ def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],
         present = [v for v in values if v is not None]
         shapes = [tuple(v.shape[1:]) if v is not None else None for v in values]
         if key in plan:
-            widest, dtype = plan[key]
+            widest, dtype, lead = plan[key]
         else:
             rank = present[0].dim()
             widest = tuple(max(s[d] for s in shapes if s is not None) for d in range(rank - 1))
-            dtype = present[0].dtype
+            dtype, lead = present[0].dtype, 0
         if key not in plan and all(s == widest for s in shapes):
             out[key] = torch.cat(present)
             continue
         value = torch.zeros((sum(rows), *widest), dtype=dtype)
-        mask = torch.zeros((sum(rows), *widest), dtype=torch.bool)
+        mask = torch.zeros((sum(rows), *widest[lead:]), dtype=torch.bool)
         at = 0
         for v, s, n in zip(values, shapes, rows):
             if v is not None:
-                cols = tuple(slice(0, m) for m in s)
-                value[(slice(at, at + n), *cols)] = v
-                mask[(slice(at, at + n), *cols)] = True
+                value[(slice(at, at + n), *(slice(0, m) for m in s))] = v
+                mask[(slice(at, at + n), *(slice(0, m) for m in s[lead:]))] = True
             at += n
         out[key] = value
         out["mask/" + key] = mask
@@ -289,18 +321,33 @@ class MixtureTransitions(torch.utils.data.Dataset):
         return int(self.starts[-1])
 
     def gather(self, ks: Sequence[int]) -> dict[str, Any]:
-        ks = np.asarray(ks, dtype=np.int64)
+        """The transitions `ks` (negative counts from the end), in the order asked for."""
+        ks = np.asarray(ks, dtype=np.int64).reshape(-1)
+        n = len(self)
+        if len(ks) and (ks.min() < -n or ks.max() >= n):
+            bad = int(ks[(ks < -n) | (ks >= n)][0])
+            raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
+        ks = ks % max(n, 1)
         which = np.searchsorted(self.starts, ks, side="right") - 1
-        out = []
+        out, order = [], []
         for k, name in enumerate(self.names):
-            mine = ks[which == k] - self.starts[k]
-            if len(mine):
-                got = self.parts[name].gather(mine)
-                out.append((self.stored._index[name], got))
-        return pad_rows(out, self._plan)
+            at = np.flatnonzero(which == k)
+            if len(at):
+                out.append((self.stored._index[name],
+                            self.parts[name].gather(ks[at] - self.starts[k])))
+                order.append(at)
+        batch = pad_rows(out, self._plan)
+        if not order:
+            return batch
+        taken = np.concatenate(order)  # rows by task: back to the order of `ks`
+        if (taken == np.arange(len(taken))).all():
+            return batch
+        inverse = torch.from_numpy(np.argsort(taken, kind="stable"))
+        return {k: ({a: b[inverse] for a, b in v.items()} if isinstance(v, dict) else
+                    v[inverse]) for k, v in batch.items()}
 
     @functools.cached_property
-    def _plan(self) -> dict[str, tuple[tuple, torch.dtype]]:
+    def _plan(self) -> dict[str, tuple[tuple, torch.dtype, int]]:
         """The keys whose shapes differ between the tasks' transitions (or that some lack),
         with the widest shape: every batch then has the same keys and shapes, whichever
         tasks its rows come from (read from one transition of each task)."""
@@ -311,8 +358,10 @@ class MixtureTransitions(torch.utils.data.Dataset):
             found = [tuple(x[key].shape[1:]) for x in samples if key in x]
             if len(set(found)) > 1 or len(found) < len(samples):
                 dtype = next(x[key].dtype for x in samples if key in x)
+                # control with record_every > 1: (steps, ncontrol), masked per column
+                lead = len(found[0]) - 1 if key == "control" else 0
                 out[key] = (tuple(max(f[d] for f in found) for d in range(len(found[0]))),
-                            dtype)
+                            dtype, lead)
         return out
 
     def __getitem__(self, k: Any) -> dict[str, Any]:

@@ -135,6 +135,7 @@ class _HostCopies:
     def start(self, batch: Mapping[str, Any]) -> "_Copy":
         rows: dict[str, Any] = {}
         pinned: list[torch.Tensor] = []
+        sources: list[torch.Tensor] = []
         events = []
         for name, value in leaves(batch):
             if not isinstance(value, torch.Tensor) or not value.is_cuda:
@@ -152,11 +153,14 @@ class _HostCopies:
                 begin.record(stream)
                 buffer.copy_(value, non_blocking=True)
                 end.record(stream)
-            value.record_stream(stream)  # its memory outlives the copy, not only the batch
+            # the source must outlive the copy: record_stream tells torch's allocator, but
+            # an engine's own memory (JAX's, Warp's, through DLPack) is held by reference
+            value.record_stream(stream)
+            sources.append(value)
             pinned.append(buffer)
             events.append((begin, end))
             rows[name] = buffer.numpy()
-        return _Copy(self, rows, pinned, events)
+        return _Copy(self, rows, pinned, events, sources)
 
     def _take(self, shape: tuple, dtype: torch.dtype) -> torch.Tensor:
         with self.lock:
@@ -177,6 +181,7 @@ class _Copy:
     rows: dict[str, Any]
     pinned: list[torch.Tensor]
     events: list
+    sources: list  # the device tensors copied from, held until the copies are done
 
     def wait(self) -> float:
         """Waits for the copies; returns the seconds the copy engine spent on them."""
@@ -184,6 +189,7 @@ class _Copy:
         for begin, end in self.events:
             end.synchronize()
             seconds += begin.elapsed_time(end) / 1e3
+        self.sources = []
         return seconds
 
     def release(self) -> None:

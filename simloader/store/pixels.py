@@ -33,7 +33,8 @@ MODELS = "provenance/models"  # the pool's MJB files: 0.mjb, 1.mjb, ...
 
 
 def save_models(root: str, pool: Sequence[mujoco.MjModel]) -> None:
-    """The writer's pool of models, as MJB files (the compiled models, bit for bit)."""
+    """The writer's pool of models (`pool_of`), as MJB files (the compiled models, bit for
+    bit)."""
     from simloader.atomic import atomic_write, sync_directories
     from simloader.store.zarr_format import write_json
     folder = os.path.join(root, MODELS)
@@ -113,9 +114,9 @@ class StoredCameras:
         params = {k[len("params/"):]: np.stack([stored.read(int(t), [k])[k]
                                                 for t in trajectories])
                   for k in self.params}
-        if self.kind == "variants":
+        if self.kind == "variants":  # the pool: the base model, then each variant
             variant = params["variant"]
-            return lambda i: self.pool[int(variant[i])]
+            return lambda i: self.pool[1 + int(variant[i])]
         plan = self.plan
         if not hasattr(self.local, "model"):  # this thread's copy, the values written in
             self.local.model = copy.copy(self.pool[0])
@@ -132,25 +133,33 @@ class StoredCameras:
         return model
 
 
+def pool_of(config: Any) -> tuple[str, list[mujoco.MjModel]]:
+    """What a store keeps of a configuration's models, and its kind: "model" (the one),
+    "models" (one per batch row) or "variants" (the base model, then each variant)."""
+    if config.models:
+        return "models", list(config.models)
+    if config.variants:
+        return "variants", [config.model, *config.variants]
+    return "model", [config.model]
+
+
 def _models(stored: Any, model: Any) -> tuple[list[mujoco.MjModel], str]:
-    """The store's pool of models (or `model=`, checked against the store's digest)."""
+    """The store's pool of models (or `model=`), checked against the store's digests."""
     kept = stored.info.get("models")
-    digest = stored.info["fingerprint"]["model"]
     if model is not None:
         from simloader.models import load_model
-        given = (list(model) if isinstance(model, (list, tuple)) else
-                 [model if isinstance(model, mujoco.MjModel) else load_model(model)])
-        kind = kept["kind"] if isinstance(kept, dict) else "model"
-        mine = given if kind != "variants" else given[:1]
-        if _digest(mine) != digest:
-            raise ValueError(f"model: not the model the store at {stored.path!r} was "
-                             f"simulated with (digest {_digest(mine)}, the store's {digest})")
-        return given, kind
+        pool = (list(model) if isinstance(model, (list, tuple)) else
+                [model if isinstance(model, mujoco.MjModel) else load_model(model)])
+        pool = [m if isinstance(m, mujoco.MjModel) else load_model(m) for m in pool]
+        kind = kept["kind"] if isinstance(kept, dict) else _kind(stored, pool)
+        _check(stored, pool, kind, "model: not the model(s) the store at "
+                                   f"{stored.path!r} was simulated with")
+        return pool, kind
     if not isinstance(kept, dict):
         raise ValueError(f"cameras: the store at {stored.path!r} was written before simloader "
                          f"kept the model in its stores: pass the model that wrote it, "
-                         f"model= (a name, an MJCF path or an MjModel; checked against the "
-                         f"store's digest)")
+                         f"model= (a name, an MJCF path or an MjModel; the list of a "
+                         f"models= stream; checked against the store's digest)")
     folder = os.path.join(stored.path, MODELS)
     pool = []
     for k in range(int(kept["count"])):
@@ -159,11 +168,36 @@ def _models(stored: Any, model: Any) -> tuple[list[mujoco.MjModel], str]:
             raise ValueError(f"cameras: the store's model {file} is missing (or a link); pass "
                              f"model= (the model that wrote it)")
         pool.append(mujoco.MjModel.from_binary_path(file))
-    if _digest(pool if kept["kind"] != "variants" else pool[:1]) != digest and \
-            kept["kind"] != "variants":
-        raise ValueError(f"cameras: the store's model files in {folder} do not match its "
-                         f"digest {digest}: they were edited; pass model=")
+    _check(stored, pool, kept["kind"], f"cameras: the store's model files in {folder} do "
+                                        f"not match its digests (edited?); pass model=")
     return pool, kept["kind"]
+
+
+def _kind(stored: Any, pool: list) -> str:
+    """The kind of pool a store written before it kept its models had, from its
+    fingerprint: structural variants, a model list, or one model."""
+    randomize = stored.info["fingerprint"].get("randomize")
+    if isinstance(randomize, dict) and "variants" in randomize:
+        return "variants"
+    return "models" if len(pool) > 1 else "model"
+
+
+def _check(stored: Any, pool: list, kind: str, refusal: str) -> None:
+    """The pool's digests are the fingerprint's: the model (the base model of variants, or
+    the whole list of a model list), and each variant's."""
+    fp = stored.info["fingerprint"]
+    simulated = pool[:1] if kind != "models" else pool
+    wanted = fp["model"]
+    if _digest(simulated) != wanted:
+        raise ValueError(f"{refusal} (digest {_digest(simulated)}, the store's {wanted})")
+    if kind == "variants":
+        variants = [identity.model_digest(m) for m in pool[1:]]
+        if variants != list(fp["randomize"]["variants"]):
+            raise ValueError(f"{refusal}: its structural variants differ (pass the base model "
+                             f"and then every variant, in order)")
+    if kind == "models" and len(pool) != stored.nbatch:
+        raise ValueError(f"{refusal}: a models= store takes one model per batch row "
+                         f"({stored.nbatch}), got {len(pool)}")
 
 
 def _digest(models: Sequence[mujoco.MjModel]) -> str:

@@ -44,15 +44,16 @@ def differences(stored: dict, mine: dict) -> list[str]:
 
 def provenance(dataset: Any, batches: int) -> dict:
     """The store's root attribute: what made it, and how to make it again."""
+    from simloader.store.pixels import pool_of
     c = dataset.config
+    kind, pool = pool_of(c)
     return {"format": FORMAT, "fingerprint": fingerprint(dataset),
             "describe": dataset.describe(), "seed": c.seed, "nbatch": c.nbatch,
             "nstep": c.nstep, "record_every": c.record_every, "batches": batches,
             "versions": versions(),
             # the models it simulated, kept as MJB files (`pixels.save_models`): a store of
             # states renders its cameras on read with them
-            "models": {"kind": "models" if c.models else "variants" if c.variants else "model",
-                       "count": len(c.pool)}}
+            "models": {"kind": kind, "count": len(pool)}}
 
 
 class StoreMismatch(ValueError):

@@ -81,7 +81,7 @@ def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int, workers
         # the models, and the slots' array, before the root: a root never names models
         # or more slots than the store holds
         if "models" in mine:  # not in a store written before the models were kept
-            pixels.save_models(path, dataset.config.pool)
+            pixels.save_models(path, pixels.pool_of(dataset.config)[1])
         _ensure_array(path, WRITTEN, mine["batches"])
         write_json(os.path.join(path, "zarr.json"), {
             "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: mine}},

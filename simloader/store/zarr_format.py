@@ -40,6 +40,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import threading
 import time
 import zlib
 from collections.abc import Iterator, Mapping
@@ -297,6 +298,7 @@ def blosc():
 
 
 _POOL: Optional[tuple[int, Any]] = None
+_POOL_LOCK = threading.Lock()
 
 
 def _encoders():
@@ -304,11 +306,12 @@ def _encoders():
     300 MB/s per core, a GPU renders them faster. One pool per process (a forked worker's
     copy of the parent's pool has no threads)."""
     global _POOL
-    if _POOL is None or _POOL[0] != os.getpid():
-        from concurrent.futures import ThreadPoolExecutor
-        _POOL = (os.getpid(), ThreadPoolExecutor(threads.available_cpus(),
-                                                 thread_name_prefix="simloader-zstd"))
-    return _POOL[1]
+    with _POOL_LOCK:  # the write pipeline's threads encode at once: one pool for them all
+        if _POOL is None or _POOL[0] != os.getpid():
+            from concurrent.futures import ThreadPoolExecutor
+            _POOL = (os.getpid(), ThreadPoolExecutor(threads.available_cpus(),
+                                                     thread_name_prefix="simloader-zstd"))
+        return _POOL[1]
 
 
 def encode_shard(spec: ArraySpec, rows: np.ndarray, clock: Any = None) -> tuple[list, int, int]:
