@@ -2,9 +2,9 @@
 what it is, its writer and how to read it back. A new format is one more entry here.
 
 Each writer is called as `write(dataset, path, batches=, num_workers=, progress=, replace=)`
-(and `compression=` where the format says it takes it) after `simloader.store.front.write` has checked those arguments. The zarr writer is imported
-with this table; Minari's only when its format is written (Minari is an extra). No writer
-imports this table or the front back.
+(and `compression=` where the format says it takes it) after `simloader.store.front.write`
+has checked those arguments. The zarr writer is imported with this table; Minari's only when
+its format is written (Minari is an extra). No writer imports this table or the front back.
 """
 
 from __future__ import annotations

@@ -98,7 +98,8 @@ class ArrayLayout:
             raise refuse(f"not the zarr v3 array metadata simloader writes ({e!r} missing or "
                          f"malformed)") from None
         if sharding.get("name") != "sharding_indexed" or config.get("index_location") != "end" \
-                or index != ["bytes"] or inner[:1] != ["bytes"] or inner[1:] not in ([], ["zstd"], ["blosc"]):
+                or index != ["bytes"] or inner[:1] != ["bytes"] \
+                or inner[1:] not in ([], ["zstd"], ["blosc"]):
             raise refuse(f"codecs {meta['codecs']} are not the ones simloader writes")
         dtypes = {v: k for k, v in _ZARR_DTYPES.items()}
         if data_type not in dtypes:

@@ -20,10 +20,10 @@ Layout, chosen for writers that never coordinate and readers that never decode t
   shuffle, zstd). Integer and boolean chunks of 4 KiB or more (images, segmentation) are
   compressed with zstd.
 - A slot is committed as SQLite and git commit (`simloader.store.pipeline`): every shard file
-  fsync'd and renamed, the directories that name them fsync'd, then `provenance/checksum[s]` (each shard's size and
-  CRC-32, in the order of that array's attribute `arrays`), then `provenance/written[s]`
-  last. A reader sees complete slots only; a resumed `write` checks every committed slot
-  against its checksums and redoes the missing and the damaged ones.
+  fsync'd and renamed, the directories that name them fsync'd, then `provenance/checksum[s]`
+  (each shard's size and CRC-32, in the order of that array's attribute `arrays`), then
+  `provenance/written[s]` last. A reader sees complete slots only; a resumed `write` checks
+  every committed slot against its checksums and redoes the missing and the damaged ones.
 - Array paths come from batch keys, and batch keys from the model (sensor, camera and body
   names) and the user (policy extras): each part is percent-encoded (`store_path`), so no
   name can make a path outside the store, and the key itself is kept in the array's
