@@ -98,9 +98,10 @@ class WriteReport:
 
     @property
     def bound(self) -> str:
-        """Which part set the pace: "the simulator" when the writers waited for batches more
-        than for the store; otherwise the busiest of the store's stages: the disk (write +
-        sync), the CPU (compress + checksum, over its threads) or the copy to the host."""
+        """The part that set the pace. "the simulator" when the writers waited for batches
+        more than for the store; otherwise the busiest of the store's stages, the disk
+        (write + sync), the CPU (compress + checksum, over its threads) or the copy to the
+        host."""
         s, wall = self.stages, max(self.seconds * self.writers, 1e-12)
         if s.get("simulate", 0.0) >= s.get(_WAITED, 0.0):
             return "the simulator"
