@@ -220,6 +220,13 @@ def randomized_columns(model: mujoco.MjModel, specs: list[str]) -> dict:
 
 
 def info(args: argparse.Namespace) -> None:
+    if args.model and os.path.isfile(os.path.join(args.model, "zarr.json")):
+        # a store (one dataset's, or a mixture's of several tasks): what it holds
+        with from_arguments():
+            stored = simloader.StoredDataset(args.model)
+        print(f"the store at {args.model} ({len(stored)} trajectories):")
+        print(stored.describe())
+        return
     with from_arguments():
         description = simloader.describe(args.model, args.control_spec)
         if args.record or args.randomize:
@@ -373,7 +380,10 @@ def main(argv: list[str] | None = None) -> None:
     wr.set_defaults(run=write)
 
     i = sub.add_parser("info", help="print which state/control/sensor columns mean what")
-    add_model_argument(i)
+    i.add_argument("model", nargs="?", default=None,
+                   help=f"built-in model name or MJCF/MJB path (default: the built-in "
+                        f"{DEFAULT_MODEL}), or a store's folder (what it holds; a mixture's "
+                        f"store: which columns of each task mean what)")
     i.add_argument("--control-spec", type=parse_control_spec,
                    default=int(mujoco.mjtState.mjSTATE_CTRL),
                    help="components of the control vector, e.g. 'ctrl|xfrc_applied' (default ctrl)")

@@ -158,3 +158,16 @@ def test_a_mixture_stores_transitions_loader_resumes_mid_epoch(tmp_path):
     again = [b["state"] for b in resumed]
     assert len(again) == len(rest) > 0
     assert all(torch.equal(a, b) for a, b in zip(again, rest))
+
+
+def test_simloader_info_says_what_each_tasks_columns_mean(tmp_path, capsys):
+    from simloader import cli
+    path = simloader.write(mixture(pad=True), tmp_path / "i.zarr", batches=1, progress=False)
+    cli.main(["info", path])
+    said = capsys.readouterr().out
+    assert "task 0 'cartpole'" in said and "task 1 'humanoid'" in said
+    assert "mask/state" in said  # the padded columns of each task
+    one = simloader.write(member("cartpole", 4), tmp_path / "one.zarr", batches=1,
+                          progress=False)
+    cli.main(["info", one])
+    assert "(4 trajectories)" in capsys.readouterr().out

@@ -128,6 +128,11 @@ class StoredDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.slots) * self.nbatch
 
+    def describe(self) -> str:
+        """What the stored batches hold (the writer's dataset's `describe()`: which columns
+        of each key mean what)."""
+        return self.info["describe"]
+
     @functools.cached_property
     def _arrays(self) -> dict[str, StoredArray]:
         return {k: StoredArray(self.path, layout) for k, layout in self.layouts.items()}
