@@ -24,7 +24,8 @@ import torch
 from simloader.atomic import sync_directories
 from simloader.store import lock, ownership, pipeline
 from simloader.store.provenance import StoreMismatch, differences, fingerprint, versions
-from simloader.store.reader import OPENERS, StoredDataset, key_kinds, nest
+from simloader.store.reader import (OPENERS, StoredDataset, item_index, key_kinds, nest,
+                                    transition_indices)
 from simloader.store.zarr_format import ATTRIBUTE, FORMAT, read_json, store_path, write_json
 
 KIND = "mixture"
@@ -187,12 +188,7 @@ class StoredMixture(torch.utils.data.Dataset):
 
     def locate(self, i: int) -> tuple[str, int]:
         """(task name, its trajectory) of item `i`."""
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
-            raise TypeError(f"StoredDataset: index must be an int, got {type(i).__name__}")
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"StoredDataset: index {i} out of range for {len(self)} "
-                             f"trajectories")
-        i %= len(self)
+        i = item_index(i, len(self))
         k = bisect.bisect_right(self._starts, i) - 1
         return self._present[k], i - self._starts[k]
 
@@ -322,12 +318,7 @@ class MixtureTransitions(torch.utils.data.Dataset):
 
     def gather(self, ks: Sequence[int]) -> dict[str, Any]:
         """The transitions `ks` (negative counts from the end), in the order asked for."""
-        ks = np.asarray(ks, dtype=np.int64).reshape(-1)
-        n = len(self)
-        if len(ks) and (ks.min() < -n or ks.max() >= n):
-            bad = int(ks[(ks < -n) | (ks >= n)][0])
-            raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
-        ks = ks % max(n, 1)
+        ks = transition_indices(ks, len(self))
         which = np.searchsorted(self.starts, ks, side="right") - 1
         out, order = [], []
         for k, name in enumerate(self.names):

@@ -26,6 +26,26 @@ from simloader.store.shards import MAX_OPEN, StoredArray
 OPENERS: dict[str, tuple[Callable[[str], bool], Callable[..., Any]]] = {}
 
 
+def item_index(i: Any, n: int) -> int:
+    """Item `i` of `n` (negative counts from the end), or the TypeError / IndexError a
+    sequence raises, naming the dataset."""
+    if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
+        raise TypeError(f"StoredDataset: index must be an int, got {type(i).__name__}")
+    if not -n <= i < n:
+        raise IndexError(f"StoredDataset: index {i} out of range for {n} trajectories")
+    return int(i) % n
+
+
+def transition_indices(ks: Any, n: int) -> np.ndarray:
+    """Transitions `ks` of `n` as int64 indices in range (negative counts from the end), or
+    the IndexError naming the first out of range."""
+    ks = np.asarray(ks, dtype=np.int64).reshape(-1)
+    if len(ks) and (ks.min() < -n or ks.max() >= n):
+        bad = int(ks[(ks < -n) | (ks >= n)][0])
+        raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
+    return ks % max(n, 1)
+
+
 def nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     """`params/KEY` back into `{"params": {KEY: ...}}`, as the batch held them."""
     out: dict[str, Any] = {}
@@ -144,12 +164,7 @@ class StoredDataset(torch.utils.data.Dataset):
 
     def locate(self, i: int) -> tuple[int, int]:
         """(batch slot, row) of stored trajectory `i`."""
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
-            raise TypeError(f"StoredDataset: index must be an int, got {type(i).__name__}")
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"StoredDataset: index {i} out of range for {len(self)} "
-                             f"trajectories")
-        i %= len(self)
+        i = item_index(i, len(self))
         return int(self.slots[i // self.nbatch]), i % self.nbatch
 
     def read(self, i: int, names: Iterable[str]) -> dict[str, np.ndarray]:
@@ -161,7 +176,7 @@ class StoredDataset(torch.utils.data.Dataset):
         item = {n: torch.from_numpy(np.array(a)) for n, a in self.read(i, self.keys).items()}
         if self.cameras is not None:
             states = self.read(i, ["state"])["state"]
-            i %= len(self)
+            i = item_index(i, len(self))
             for key, frames in self.cameras.frames(states[None], np.array([i])).items():
                 item[key] = frames[0]
         return nest(item)
@@ -469,12 +484,7 @@ class Transitions(torch.utils.data.Dataset):
         """The transitions `ks` as a dict of tensors `len(ks) x ...`: per key and batch slot
         one `np.take` from the memory-mapped shard straight into the batch's tensor (indices
         in increasing order, as `loader` hands them, need no reordering afterwards)."""
-        ks = np.asarray(ks, dtype=np.int64).reshape(-1)
-        n = len(self)
-        if len(ks) and (ks.min() < -n or ks.max() >= n):
-            bad = int(ks[(ks < -n) | (ks >= n)][0])
-            raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
-        ks = ks % max(n, 1)
+        ks = transition_indices(ks, len(self))
         ascending = bool((ks[1:] >= ks[:-1]).all())
         order = None if ascending else np.argsort(ks, kind="stable")
         if order is not None:
