@@ -42,6 +42,11 @@ from simloader.store.zarr_format import (PROVENANCE, WRITTEN, ArraySpec, checksu
                                          encode_shard, inside, leaves, store_path, write_shard)
 
 IN_FLIGHT = 2  # slots between their copy to the host and their commit, per writer
+
+
+def shard_threads() -> int:
+    """Threads that encode and write a slot's shards, per writer (the CPU stages')."""
+    return min(8, threads.available_cpus())
 STAGES = ("simulate", "copy to host", "compress", "checksum", "write", "sync")
 _WAITED = "waited for the store"  # the writer blocked on a full pipeline
 
@@ -211,8 +216,7 @@ class SlotPipeline:
         self.copies = _HostCopies()
         self.pending: collections.deque[Future] = collections.deque()
         self.slots = ThreadPoolExecutor(IN_FLIGHT, thread_name_prefix="simloader-commit")
-        self.threads = min(8, threads.available_cpus())
-        self.arrays = ThreadPoolExecutor(self.threads, thread_name_prefix="simloader-shard")
+        self.arrays = ThreadPoolExecutor(shard_threads(), thread_name_prefix="simloader-shard")
 
     def submit(self, slot: int, batch: Mapping[str, Any], where: tuple[int, int, int]) -> None:
         """Starts committing `batch` as `slot` (`where`: rank, batch index, workers)."""

@@ -17,16 +17,15 @@ are made per process and thread at the first read, so DataLoader workers render 
 
 from __future__ import annotations
 
-import copy
 import os
-import threading
+import types
 from collections.abc import Sequence
 from typing import Any, Optional
 
 import mujoco
 import numpy as np
 
-from simloader import identity, layout, records
+from simloader import identity, layout, records, render
 from simloader import randomize as dr
 
 MODELS = "provenance/models"  # the pool's MJB files: 0.mjb, 1.mjb, ...
@@ -87,17 +86,9 @@ class StoredCameras:
                              f"store's 'state' {width}: not the store's model")
         self.plan = _plan(stored, base)
         self.params = [k for k in stored.layouts if k.startswith("params/")]
-        self.local = threading.local()
         randomized = self.kind != "model" or self.plan is not None
         self.renderer = backends.stored_renderer(backend, base, self.images, device,
                                                  randomized)
-
-    def __getstate__(self) -> dict[str, Any]:
-        # to a DataLoader worker: its threads make their own model copies
-        return {k: v for k, v in self.__dict__.items() if k != "local"}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state, local=threading.local())
 
     def frames(self, states: np.ndarray, trajectories: np.ndarray) -> dict[str, Any]:
         """{image key: (n, nframes, *image shape) tensor} of `states` ((n, nframes, nstate)
@@ -105,32 +96,21 @@ class StoredCameras:
         return self.renderer.frames(states, self._model_of(np.asarray(trajectories)))
 
     def _model_of(self, trajectories: np.ndarray) -> Any:
+        """Stored trajectory `trajectories[i]`'s model as it ran (`render.model_of`, as the
+        CPU engine's streamed cameras find it): its batch row's of a model list, its
+        variant, or the model with its randomized values written in."""
         stored = self.stored
-        if self.kind == "models":  # a model per row of the batch
-            rows = trajectories % stored.nbatch
-            return lambda i: self.pool[int(rows[i])]
-        if self.kind == "model" and self.plan is None:
-            return lambda i: self.pool[0]
-        params = {k[len("params/"):]: np.stack([stored.read(int(t), [k])[k]
-                                                for t in trajectories])
-                  for k in self.params}
-        if self.kind == "variants":  # the pool: the base model, then each variant
-            variant = params["variant"]
-            return lambda i: self.pool[1 + int(variant[i])]
-        plan = self.plan
-        if not hasattr(self.local, "model"):  # this thread's copy, the values written in
-            self.local.model = copy.copy(self.pool[0])
-            self.local.data = mujoco.MjData(self.local.model)
-
-        def model(i: int) -> mujoco.MjModel:
-            m = self.local.model
-            for r in plan.resolved:
-                if not r.field.startswith("opt."):  # options change nothing a camera sees
-                    dr._field_array(m, r.field).reshape(-1)[r.elements] = params[r.param.key][i]
-            if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
-                mujoco.mj_setConst(m, self.local.data)
-            return m
-        return model
+        rows = trajectories % stored.nbatch
+        params = ({} if self.kind == "models" or self.plan is None and self.kind == "model"
+                  else {k[len("params/"):]: np.stack([stored.read(int(t), [k])[k]
+                                                      for t in trajectories])
+                        for k in self.params})
+        # the pool: the model; one model per batch row; or the base model, then each variant
+        config = types.SimpleNamespace(
+            model=self.pool[0], randomization=self.plan,
+            models=[self.pool[int(r)] for r in rows] if self.kind == "models" else None,
+            variants=self.pool[1:] if self.kind == "variants" else None)
+        return render.model_of(config, params)
 
 
 def pool_of(config: Any) -> tuple[str, list[mujoco.MjModel]]:

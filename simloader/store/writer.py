@@ -14,7 +14,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from simloader import sharding, threads
+from simloader import sharding
 from simloader.atomic import parents, sync_directories
 from simloader.store import integrity, lock, ownership, pipeline, pixels
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, ArraySpec,
@@ -78,9 +78,9 @@ def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int, workers
         if "models" not in stored:  # written before the models were kept: stays so
             mine.pop("models")
     if create and (root is None or mine["batches"] != stored["batches"]):
-        # the models, and the slots' array, before the root: a root never names models
-        # or more slots than the store holds
-        if "models" in mine:  # not in a store written before the models were kept
+        # the models (once, when the store is made), and the slots' array, before the root:
+        # a root never names models or more slots than the store holds
+        if root is None:
             pixels.save_models(path, pixels.pool_of(dataset.config)[1])
         _ensure_array(path, WRITTEN, mine["batches"])
         write_json(os.path.join(path, "zarr.json"), {
@@ -281,7 +281,7 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
     written.report = pipeline.WriteReport(
         batches=int(total - already), steps=int(total - already) * config.nbatch * config.nstep,
         seconds=time.perf_counter() - start, writers=workers, stages=dict(stages.seconds),
-        threads=min(8, threads.available_cpus()))
+        threads=pipeline.shard_threads())
     return written
 
 
