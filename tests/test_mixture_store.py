@@ -171,3 +171,20 @@ def test_simloader_info_says_what_each_tasks_columns_mean(tmp_path, capsys):
                           progress=False)
     cli.main(["info", one])
     assert "(4 trajectories)" in capsys.readouterr().out
+
+
+def test_a_link_under_tasks_is_refused_and_what_it_points_to_untouched(tmp_path):
+    path = simloader.write(mixture(seed=4), tmp_path / "l.zarr", batches=6, progress=False)
+    outside = tmp_path / "precious"
+    outside.mkdir()
+    (outside / "notes.txt").write_text("mine")
+    task = os.path.join(path, "tasks", sorted(os.listdir(os.path.join(path, "tasks")))[0])
+    assert os.path.isdir(task) and not task.endswith("zarr.json")
+    import shutil
+    shutil.rmtree(task)
+    os.symlink(outside, task)
+    with pytest.raises(ValueError, match=r"holds links under tasks/"):
+        simloader.write(mixture(seed=4), path, batches=4, progress=False)
+    with pytest.raises(ValueError, match=r"holds links under tasks/"):
+        simloader.write(mixture(seed=4), path, batches=4, progress=False, replace=True)
+    assert os.listdir(outside) == ["notes.txt"] and (outside / "notes.txt").read_text() == "mine"

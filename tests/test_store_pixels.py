@@ -156,3 +156,15 @@ def test_an_older_store_of_a_model_list_renders_with_the_list_given(tmp_path):
         simloader.StoredDataset(path, cameras=CAMERA, model=models[0])
     stored = simloader.StoredDataset(path, cameras=CAMERA, model=models)
     assert all(torch.equal(stored[i]["camera/front/rgb"], want[i]) for i in range(6))
+
+
+def test_a_linked_model_file_is_not_read(written, tmp_path):
+    path, _ = written
+    copy = str(tmp_path / "m.zarr")
+    shutil.copytree(path, copy)
+    model = os.path.join(copy, "provenance", "models", "0.mjb")
+    os.unlink(model)
+    os.symlink(os.path.join(path, "provenance", "models", "0.mjb"), model)
+    # refused when the store is opened (a store never follows a link), before rendering
+    with pytest.raises(ValueError, match=r"the store holds links.*0\.mjb"):
+        simloader.StoredDataset(copy, cameras=CAMERA)

@@ -62,13 +62,14 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
     ownership.check_target(path, replace)
     start = time.perf_counter()
     with lock.WriterLock(path, lock.new_job_id()):
-        if replace:
-            ownership.clear(path)
         tasks = os.path.join(path, TASKS)
+        # a link is refused before anything is removed or written (as a store's are)
         if os.path.lexists(tasks) and (os.path.islink(tasks) or any(
                 os.path.islink(e.path) for e in os.scandir(tasks))):
             raise ownership.NotAStore(f"path: the mixture store at {path!r} holds links under "
                                       f"{TASKS}/, which simloader never writes; remove them")
+        if replace:
+            ownership.clear(path)
         mine = _root(mixture, batches)
         stored = read_json(os.path.join(path, "zarr.json"))
         if stored is not None:
