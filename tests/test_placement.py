@@ -14,6 +14,7 @@ from simloader import controls, initial
 from simloader.backends import auto, contract, warp
 from simloader.backends.warp import determinism
 from simloader.config import split_sizes
+from simloader.terminate import Outside, TimeLimit
 
 pytest.importorskip("mujoco.mjx")
 
@@ -235,3 +236,126 @@ def test_warp_split_in_two_parts_on_its_cpu_device_with_a_policy(monkeypatch):
     with torch.no_grad():  # the controls are the policy's, row by row
         first = mlp(a[0]["initial_state"].float()).to(a[0]["control"].dtype)
     torch.testing.assert_close(a[0]["control"][:, 0], first, rtol=1e-5, atol=1e-5)
+
+
+# -- sim_device= with episodes (terminate=) -----------------------------------------------
+
+POLE_BOUND, TIME_LIMIT = 0.2, 20
+
+
+def pole_column(name="cartpole", joint="hinge"):
+    """The pole joint's column in the state (FULLPHYSICS: time, then qpos)."""
+    model = simloader.load_model(name)
+    return 1 + int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT,
+                                                        joint)])
+
+
+def check_episodes(batches, rows, column, bound, limit, tol=1e-6):
+    """Asserts the episode semantics on `rows` of a continuing stream's consecutive batches;
+    returns {"terminated", "truncated", "first": counts, "carried": truncations of an episode
+    that began in an earlier batch}: a terminated frame's pole angle is outside [-bound,
+    bound] and every other frame's inside (within `tol`); the frame after an ending one is
+    `first`, within a batch and across batches, and no other frame is; a `first` frame's
+    control rows are NaN, every other frame's finite; `truncated` exactly at `limit` steps of
+    an episode, counted across batches."""
+    counts = dict(terminated=0, truncated=0, first=0, carried=0)
+    steps, began, ended = None, None, None  # per row: steps into the episode, its batch
+    for index, b in enumerate(batches):
+        term, trunc, first = (b[k][rows].cpu() for k in ("terminated", "truncated", "first"))
+        angle = b["state"][rows][..., column].double().cpu()
+        control = b["control"][rows].cpu()
+        n, nframes = term.shape
+        if steps is None:  # the stream's initial state is step 0 of its first episode
+            steps, began, ended = (torch.zeros(n, dtype=torch.long), torch.zeros(
+                n, dtype=torch.long), torch.zeros(n, dtype=torch.bool))
+        assert bool((angle[term].abs() > bound - tol).all()), "terminated inside the bounds"
+        assert bool((angle[~term].abs() <= bound + tol).all()), "outside, not terminated"
+        after = torch.cat([ended[:, None], (term | trunc)[:, :-1]], dim=1)
+        assert torch.equal(first, after), "first is not the frame after an ending one"
+        assert bool(control[first].isnan().all()), "a fresh frame's control was applied"
+        assert bool(control[~first].isfinite().all()), "a stepped frame's control is NaN"
+        for t in range(nframes):
+            steps = torch.where(first[:, t], 0, steps + 1)
+            began = torch.where(first[:, t], index, began)
+            assert torch.equal(trunc[:, t], steps == limit), f"time limit at frame {t}"
+            counts["carried"] += int((trunc[:, t] & (began < index)).sum())
+        ended = (term | trunc)[:, -1]
+        counts["terminated"] += int(term.sum())
+        counts["truncated"] += int(trunc.sum())
+        counts["first"] += int(first.sum())
+    return counts
+
+
+def same_bits(a, b):
+    """Bit for bit, NaN included (a fresh frame's control rows are NaN; torch.equal says
+    NaN != NaN)."""
+    return a.shape == b.shape and a.dtype == b.dtype and torch.equal(
+        a.contiguous().view(torch.uint8), b.contiguous().view(torch.uint8))
+
+
+@pytest.fixture(scope="module")
+def split_episodes():
+    """A continuing MJX stream with episodes, split over two parts on JAX's CPU device, 3
+    batches of 30 frames: the pole leaves [-0.2, 0.2] in each part's rows, and episodes run
+    into TimeLimit(20) across batch boundaries (seed 1; checked below)."""
+
+    def make():
+        return simloader.SimDataset(
+            "cartpole", backend="mjx", nbatch=6, nstep=30, num_batches=3, seed=1,
+            device="cpu", sim_device=["cpu", "cpu"], control=controls.Uniform(),
+            initial_state=initial.Perturbed(qvel_std=0.5), continue_episodes=True,
+            deterministic=True,
+            terminate=[Outside("hinge", -POLE_BOUND, POLE_BOUND), TimeLimit(TIME_LIMIT)])
+    ds = make()
+    it = iter(ds)
+    batches = [next(it)]
+    state = ds.state_dict()
+    batches += list(it)
+    return make, ds, batches, state
+
+
+def test_split_episodes_deliver_their_flags(split_episodes):
+    _, ds, batches, _ = split_episodes
+    assert [p.nbatch for p in ds.config.parts] == [3, 3]
+    assert len(batches) == 3
+    for b in batches:
+        for key in ("terminated", "truncated", "first"):
+            assert b[key].shape == (6, 30) and b[key].dtype == torch.bool, key
+            assert b[key].device == torch.device("cpu"), key
+        assert b["state"].shape == (6, 30, 5)
+    assert ds.stats["batches"] == 3 and ds.stats["steps"] == 3 * 6 * 30
+
+
+@pytest.mark.parametrize("rows", [slice(0, 3), slice(3, 6)], ids=["part0", "part1"])
+def test_split_episodes_obey_the_semantics_in_each_part(split_episodes, rows):
+    _, _, batches, _ = split_episodes
+    counts = check_episodes(batches, rows, pole_column(), POLE_BOUND, TIME_LIMIT)
+    # each part's own episodes end both ways (else the checks above prove little)
+    assert counts["terminated"] >= 1 and counts["truncated"] >= 1, counts
+
+
+def test_split_time_limit_counts_across_batches(split_episodes):
+    _, _, batches, _ = split_episodes
+    counts = [check_episodes(batches, rows, pole_column(), POLE_BOUND, TIME_LIMIT)
+              for rows in (slice(0, 3), slice(3, 6))]
+    # episodes begun in one batch and truncated in the next, after TIME_LIMIT steps in all
+    assert all(c["carried"] >= 1 for c in counts), counts
+    # a time limit counted from each batch's start would truncate nowhere before frame 19
+    early = [(i, t) for i, b in enumerate(batches[1:], 1)
+             for t in b["truncated"].any(0).nonzero().flatten().tolist()
+             if t < TIME_LIMIT - 1 and not b["first"][:, :t + 1].any()]
+    assert early, "no episode carried over a batch boundary was truncated"
+
+
+def test_split_episodes_repeat_and_resume_bit_for_bit(split_episodes):
+    make, _, batches, state = split_episodes
+    assert "sim_parts" in state["config"]
+    again = list(make())
+    assert len(again) == 3
+    assert all(same_bits(a[k], b[k]) for a, b in zip(batches, again) for k in a)
+    resumed = make()
+    resumed.load_state_dict(json.loads(json.dumps(state)))
+    rest = list(resumed)
+    assert len(rest) == 2
+    assert {"terminated", "truncated", "first"} <= set(rest[0])
+    assert all(same_bits(a[k], b[k]) for a, b in zip(batches[1:], rest) for k in a)

@@ -168,3 +168,56 @@ class _StatePolicy(torch.nn.Module):
 
     def forward(self, obs):
         return self.mlp(obs["state"])
+
+
+def episodes_obey(batches, rows, bound, limit, column=2, tol=1e-5):
+    """Asserts the episode semantics on `rows` of a continuing cart-pole stream's batches
+    (pole angle: state column 2); returns (terminated, truncated) counts: a terminated frame's
+    pole angle is outside [-bound, bound], every other frame's inside; the frame after an
+    ending one is `first` (across batches too), no other; a `first` frame's controls are NaN,
+    every other frame's finite; `truncated` exactly at `limit` steps of an episode."""
+    ended, steps, counts = None, None, [0, 0]
+    for b in batches:
+        term, trunc, first = (b[k][rows].cpu() for k in ("terminated", "truncated", "first"))
+        angle = b["state"][rows][..., column].double().cpu().abs()
+        control = b["control"][rows].cpu()
+        if ended is None:
+            ended = torch.zeros(term.shape[0], dtype=torch.bool)
+            steps = torch.zeros(term.shape[0], dtype=torch.long)
+        assert bool((angle[term] > bound - tol).all()) and bool((angle[~term] <= bound + tol)
+                                                                 .all())
+        assert torch.equal(first, torch.cat([ended[:, None], (term | trunc)[:, :-1]], dim=1))
+        assert bool(control[first].isnan().all()) and bool(control[~first].isfinite().all())
+        for t in range(term.shape[1]):
+            steps = torch.where(first[:, t], 0, steps + 1)
+            assert torch.equal(trunc[:, t], steps == limit), t
+        ended = (term | trunc)[:, -1]
+        counts[0] += int(term.sum())
+        counts[1] += int(trunc.sum())
+    return counts
+
+
+@two_gpus
+@pytest.mark.parametrize("backend", ENGINES)
+def test_split_across_two_gpus_with_episodes(backend):
+    from simloader.terminate import Outside, TimeLimit
+
+    def run():
+        ds = cartpole(backend, device="cuda:0", sim_device=["cuda:0", "cuda:1"],
+                      terminate=[Outside("hinge", -0.2, 0.2), TimeLimit(15)],
+                      continue_episodes=True, deterministic=backend == "warp")
+        return ds, list(ds)
+    ds, a = run()
+    assert [p.device for p in ds.config.parts] == [torch.device("cuda:0"),
+                                                   torch.device("cuda:1")]
+    assert len(a) == 2
+    for b in a:
+        for key in ("terminated", "truncated", "first"):
+            assert b[key].shape == (256, 20) and b[key].dtype == torch.bool, key
+            assert b[key].device == torch.device("cuda:0"), key
+    for rows in (slice(0, 128), slice(128, 256)):  # each GPU's part runs its own episodes
+        terminated, truncated = episodes_obey(a, rows, 0.2, 15)
+        assert terminated >= 1 and truncated >= 1, (rows, terminated, truncated)
+    if backend == "warp":  # deterministic=True: the same batches, flags and NaNs included
+        _, b = run()
+        assert digest(a) == digest(b)

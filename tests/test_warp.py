@@ -339,6 +339,30 @@ def test_a_bad_input_does_not_reach_later_steps(cache_dir):
     assert time[-1] > time[4] > 0 and np.isfinite(batch["state"].cpu().numpy()).all()
 
 
+def test_a_diverged_trajectory_restarts_at_the_reset_state_and_runs_on(cache_dir):
+    # the divergence check and restart run in the engine's own Warp kernel (`fused.py`): a
+    # huge force at step 5 makes trajectory 1 unstable; it restarts as mj_resetData leaves it
+    # (time 0, qpos0, zero velocity and sensors) and runs on from there with its next rows;
+    # the others are untouched. Each part is MuJoCo C's within float32's tolerance
+    model = simloader.load_model("cartpole")
+    qfrc = int(S.mjSTATE_QFRC_APPLIED)
+    control = np.random.default_rng(1).uniform(-1, 1, (3, 12, model.nv))
+    control[1, 5] = 1e30
+    batch = next(iter(dataset(model, cache_dir, nbatch=3, nstep=12, control_spec=qfrc,
+                              control=control, num_batches=1)))
+    assert batch["diverged"].tolist() == [False, True, False]
+    state = batch["state"].cpu().numpy()
+    want, _ = c_rollout(model, batch, spec=qfrc)
+    np.testing.assert_allclose(state[[0, 2]], want[[0, 2]], atol=CONTACT_FREE_TOL)
+    np.testing.assert_allclose(state[1, :5], want[1, :5], atol=CONTACT_FREE_TOL)
+    reset = np.concatenate([[0.0], model.qpos0, np.zeros(model.nv + model.na)])
+    np.testing.assert_array_equal(state[1, 5], reset.astype(np.float32))
+    assert not batch["sensordata"][1, 5].any()
+    after, _ = rollout.rollout(model, mujoco.MjData(model), reset[None], control[1:2, 6:],
+                               control_spec=qfrc)
+    np.testing.assert_allclose(state[1, 6:], after[0], atol=CONTACT_FREE_TOL)
+
+
 def test_a_warp_dataset_never_imports_jax(fresh_python):
     """The Warp engine is MuJoCo Warp driven from torch: constructing, iterating and
     describing a Warp dataset (with a policy or open loop) starts no JAX."""

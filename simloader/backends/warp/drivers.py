@@ -4,16 +4,16 @@ the whole batch at once; one graph replay per step) and the closed loop (a torch
 each step's rows; the step graph adds the policy's noise, checks and clamps the rows and keeps
 them as they acted).
 
-A driver is given what it reads and calls, never the engine: the configuration, a tensor its
-buffers take the dtype and device of, the generators' parameters, and the engine's `advance`
-(one step; returns the observations after it), with a policy also `observe_now` (the first
-observations), the engine's stream and device. Each driver has two sides, and each method says
-what it reads (in) and writes (out), as MuJoCo Warp marks its kernels' arrays. The engine's side
-is fixed when the engine is built (its graph reads the buffers the driver allocates): `row`
-(inside the graph), `start`, `applied`. The batch's side is called by the backend inside
-`WarpSimulation.queued`: `prepare` with the batch's seed and defaults, `run` with the weights its
-`policy.Snapshot` took before, outside the lock (a copy of the weights may wait for a training
-update).
+A driver is given what it reads and calls, never the engine: the configuration, a tensor its buffers
+take the dtype and device of, the generators' parameters, and the engine's `advance` (one step;
+returns the observations after it), with a policy also `observe_now` (the first observations), the
+engine's stream and device. Each driver has two sides, and each method says what it reads (in) and
+writes (out), as MuJoCo Warp marks its kernels' arrays. The engine's side is fixed when the engine
+is built (its graph reads the buffers the driver allocates): `rows` (the buffer the graph reads step
+t's rows of), `row` (inside the graph), `start`, `applied`. The batch's side is called by the
+backend inside `WarpSimulation.queued`: `prepare` with the batch's seed and defaults, `run` with the
+weights its `policy.Snapshot` took before, outside the lock (a copy of the weights may wait for a
+training update).
 """
 
 from __future__ import annotations
@@ -48,11 +48,16 @@ class OpenLoop:
 
     # -- the engine's side (fixed buffers, read by the graph) --------------------------------
 
+    @property
+    def rows(self) -> torch.Tensor:
+        """The (nbatch, nstep, ncontrol) rows the step graph reads step t's of (`fused`)."""
+        return self.controls
+
     def row(self, t: torch.Tensor, low: torch.Tensor,
-            high: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
-        """In: `t` the (1,) step index. Out: step `t`'s rows, (nbatch, ncontrol), checked and
-        clamped already (`start`), and no flags."""
-        return self.controls.index_select(1, t)[:, 0], None
+            high: torch.Tensor) -> Optional[torch.Tensor]:
+        """In: `t` the (1,) step index. Out: nothing: step `t`'s rows are in `rows`, checked
+        and clamped already (`start`); no flags."""
+        return None
 
     def start(self, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
         """In: `low`, `high` (nbatch, ncontrol), the clamp bounds. Out: the batch's rows
@@ -111,17 +116,22 @@ class ClosedLoop:
 
     # -- the engine's side -------------------------------------------------------------------
 
-    def row(self, t: torch.Tensor, low: torch.Tensor,
-            high: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    @property
+    def rows(self) -> torch.Tensor:
+        """The (nbatch, nstep, ncontrol) rows as they acted, step t's written by `row`
+        before the step graph reads them (`fused`)."""
+        return self.control
+
+    def row(self, t: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
         """In: `t` the (1,) step index, `low`, `high` the clamp bounds, the policy's rows
-        (`u`). Out: step `t`'s rows (plus noise, clamped; also kept as they acted) and the
-        (nbatch,) flags of rows with a bad control."""
+        (`u`). Out: step `t`'s rows (plus noise, clamped) into `rows`; returns the (nbatch,)
+        flags of rows with a bad control."""
         u = self.u
         if self.noise is not None:
             u = u + self.noise.index_select(1, t)[:, 0]
         u, bad = controls.as_applied(u, low, high, torch)
         self.control.index_copy_(1, t, u[:, None])
-        return u, bad
+        return bad
 
     def start(self, low: torch.Tensor, high: torch.Tensor) -> None:
         """Nothing to do: each step's rows are checked as they come."""

@@ -1,17 +1,18 @@
 """One configuration's MuJoCo Warp on one device: a model and data whose arrays never move,
 torch views of them, and the step between two control rows captured once as a CUDA graph.
 
-MuJoCo Warp's kernels read and write fixed addresses, so a CUDA graph of them stays valid as
-long as nothing moves. Here nothing does: the model, the data, the per-step inputs (the open
-loop's controls of a whole batch, or the policy's rows), the step index and the recorded frames
-are arrays allocated once, and everything between two control rows (`_step`: noise, the
-bad-control check, MuJoCo's clamp, the inputs, MuJoCo Warp's step, the divergence check and
-restart, the observations, cameras, the frames) runs as torch operations and MuJoCo Warp
-kernels on zero-copy views of them. On a GPU `_step` is captured once as one torch CUDA graph
-with MuJoCo Warp's kernels inside (Warp's external capture), in the thread that builds the
-engine (the consumer's, at the first batch), on a stream of its own; afterwards the producer
-thread only replays it. A training loop's `torch.cuda.synchronize()`, allocations or another
-dataset's work cannot invalidate a graph that is never captured again.
+MuJoCo Warp's kernels read and write fixed addresses, so a CUDA graph of them stays valid as long as
+nothing moves. Here nothing does: the model, the data, the per-step inputs (the open loop's controls
+of a whole batch, or the policy's rows), the step index and the recorded frames are arrays allocated
+once, and everything between two control rows (`_step`: noise, the bad-control check, MuJoCo's
+clamp, the inputs, MuJoCo Warp's step, the divergence check and restart, the observations, cameras,
+the frames) runs as MuJoCo Warp's kernels, the engine's own Warp kernels (`fused`: inputs,
+divergence check and restart, frames; few launches, which show on cheap models) and torch
+operations, on zero-copy views of them. On a GPU `_step` is captured once as one torch CUDA graph
+with MuJoCo Warp's kernels inside (Warp's external capture), in the thread that builds the engine
+(the consumer's, at the first batch), on a stream of its own; afterwards the producer thread only
+replays it. A training loop's `torch.cuda.synchronize()`, allocations or another dataset's work
+cannot invalidate a graph that is never captured again.
 
 Work outside the graph (each batch's reset, per-trajectory model fields, `set_const`, copies of
 the outputs) is queued on the same stream, so the device runs everything in order and the host
@@ -32,7 +33,7 @@ import numpy as np
 import torch
 
 from simloader import rules
-from simloader.backends.warp import cameras, drivers, model_arrays, runtime
+from simloader.backends.warp import cameras, drivers, fused, model_arrays, runtime
 from simloader.backends.warp import episodes as warp_episodes
 from simloader.backends.warp import observe as warp_observe
 from simloader.backends.warp.options import WarpOptions
@@ -169,9 +170,6 @@ class WarpSimulation:
         # the open or closed loop's buffers and rows
         self.loop = drivers.driver(c, like, self.tables, self.advance, self.observe_now,
                                    self.stream, self.device)
-        # (columns of a control row, MuJoCo Warp's array, boolean)
-        self.inputs = [(columns, self.views[name], boolean)
-                       for columns, name, boolean in self.tables.inputs]
         self.frames = {}
         for o in self.observations:
             value = warp_observe.value(o, self.views)
@@ -191,6 +189,15 @@ class WarpSimulation:
         # whether anything reads a step's observations: a policy, or a callable terminate=
         self.read_obs = self.loop.observes or (c.terminate is not None
                                                and c.terminate.check is not None)
+        # the engine's own work around MuJoCo Warp's step, as Warp kernels (`fused`)
+        self.wt = self.wp.from_torch(self.t)
+        self.set_inputs = fused.Inputs(
+            self.loop.rows, [(columns, self.views[name], boolean)
+                             for columns, name, boolean in self.tables.inputs], self.episodes)
+        self.after_step = fused.AfterStep(
+            self.views, self.model_views["qpos0"], self.diverged, self.episodes,
+            {o.key: (o, self.frames[o.key]) for o in self.observations}, c.record_every)
+        self.by_torch = [o for o in self.observations if o.key in self.after_step.rest]
 
     def _capture(self) -> Any:
         """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
@@ -356,30 +363,29 @@ class WarpSimulation:
         their frames. Device tensors only, so that one graph serves every step."""
         c = self.config
         with self._warp_capture(capturing):
-            u, bad = self.loop.row(self.t, self.low, self.high)
+            bad = self.loop.row(self.t, self.low, self.high)
             if bad is not None:
                 self.diverged |= bad
             if self.episodes is not None:  # fresh frames start; their inputs are mj_resetData's
                 self.episodes.begin(self.t)
-                u = self.episodes.inputs(u)
-            for columns, target, boolean in self.inputs:
-                row = u[:, columns]
-                target.copy_(row != 0 if boolean else row)
+            self.set_inputs.launch(self.wt)
             self.mjw.step(self.m, self.d)
-            frame = rules.frame_index(self.t, c.record_every)
-            _, unstable = rules.restart_unstable(self.views, self.model_views["qpos0"], torch)
-            self.diverged |= unstable
-            if self.episodes is not None:  # a fresh frame stays at its fresh state
-                self.episodes.hold()
-            obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
-            for key, value in obs.items():
-                self.frames[key].index_copy_(1, frame, value[:, None])
-            if self.read_obs and (self.cameras is not None or (
-                    self.episodes is not None and self.episodes.kinematics is not None)):
-                # rendering, and body rules, bring the poses to the state: the policy (or a
-                # callable terminate=) sees what mj_step left in the fields the observations
-                # view (poses of the step's start), as without them
-                obs = {k: v.clone() for k, v in obs.items()}
+            # the divergence check and restart, held frames at their fresh state, the frames
+            # of the records that are columns of an array
+            self.after_step.launch(self.wt)
+            frame = (rules.frame_index(self.t, c.record_every)
+                     if self.by_torch or self.cameras is not None else None)
+            for o in self.by_torch:
+                self.frames[o.key].index_copy_(1, frame, warp_observe.value(o, self.views)[:, None])
+            obs = {}
+            if self.read_obs:
+                obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
+                if self.cameras is not None or (
+                        self.episodes is not None and self.episodes.kinematics is not None):
+                    # rendering, and body rules, bring the poses to the state: the policy (or
+                    # a callable terminate=) sees what mj_step left in the fields the
+                    # observations view (poses of the step's start), as without them
+                    obs = {k: v.clone() for k, v in obs.items()}
             if self.cameras is not None:
                 # images go straight into their frames; the policy gets this step's
                 obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))

@@ -9,11 +9,12 @@ leaves (what the frame records besides its state is the step's forward pass ther
 engine's mj_forward), and the state is held there after each step (physics and zero
 warmstart).
 
-Three Warp kernels do it, one thread per world, so that a step adds three launches to the graph
-(plus the kinematics for body rules): on a cheap model every launch shows (the cart-pole's
-step is a few hundred microseconds for 8192 worlds). They read the rules as the table
-`terminate.Rule.row` spells them. The batch's side (`start`, `finish`) runs outside the graph,
-on the engine's stream.
+Two Warp kernels of its own do it, one thread per world (`_begin`, `_after_step`), and the engine's
+fused kernels (`fused.py`) take the held worlds' inputs and hold them after each step, so that a
+step adds two launches to the graph (plus the kinematics for body rules): on a cheap model every
+launch shows (the cart-pole's step is a few hundred microseconds for 8192 worlds). They read the
+rules as the table `terminate.Rule.row` spells them. The batch's side (`start`, `finish`) runs
+outside the graph, on the engine's stream.
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ OUTSIDE, BELOW, TILTED = (terminate.KINDS[k] for k in ("outside", "below", "tilt
 
 
 @wp.func
-def _set_state(w: int, at: wp.array2d(dtype=wp.float32), time: wp.array(dtype=wp.float32),
-               qpos: wp.array2d(dtype=wp.float32), qvel: wp.array2d(dtype=wp.float32),
-               act: wp.array2d(dtype=wp.float32), warmstart: wp.array2d(dtype=wp.float32)):
+def set_state(w: int, at: wp.array2d(dtype=wp.float32), time: wp.array(dtype=wp.float32),
+              qpos: wp.array2d(dtype=wp.float32), qvel: wp.array2d(dtype=wp.float32),
+              act: wp.array2d(dtype=wp.float32), warmstart: wp.array2d(dtype=wp.float32)):
     """World `w` at its fresh state `at[w]` (time, qpos, qvel, act), zero warmstart."""
     nq, nv, na = qpos.shape[1], qvel.shape[1], act.shape[1]
     time[w] = at[w, 0]
@@ -43,17 +44,6 @@ def _set_state(w: int, at: wp.array2d(dtype=wp.float32), time: wp.array(dtype=wp
         warmstart[w, i] = 0.0
     for i in range(na):
         act[w, i] = at[w, 1 + nq + nv + i]
-
-
-@wp.kernel
-def _hold(held: wp.array(dtype=wp.bool), at: wp.array2d(dtype=wp.float32),
-          time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
-          qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
-          warmstart: wp.array2d(dtype=wp.float32)):
-    """Held worlds back at their fresh state after the step."""
-    w = wp.tid()
-    if held[w]:
-        _set_state(w, at, time, qpos, qvel, act, warmstart)
 
 
 @wp.kernel
@@ -113,7 +103,7 @@ def _begin(t: wp.array(dtype=wp.int64), every: int, pending: wp.array(dtype=wp.b
             for c in range(at.shape[1]):
                 at[w, c] = fresh[w, draw, c]
             resets[w] = resets[w] + wp.int64(1)
-            _set_state(w, at, time, qpos, qvel, act, warmstart)
+            set_state(w, at, time, qpos, qvel, act, warmstart)
 
 
 class Episodes:
@@ -200,15 +190,6 @@ class Episodes:
         frame is terminated where it says so, and the next frame is fresh there."""
         self.flags["terminated"][:, frame] |= met
         self.pending |= met
-
-    def inputs(self, u: torch.Tensor) -> torch.Tensor:
-        """The step's control rows: a held world's inputs stay as mj_resetData leaves them."""
-        return torch.where(self.held[:, None], self.reset_control, u)
-
-    def hold(self) -> None:
-        """Held worlds back at their fresh state after the step (state, zero warmstart)."""
-        w = self.w
-        wp.launch(_hold, dim=len(self.held), inputs=[w["held"], w["at"], *self.state])
 
     def after_step(self, t: torch.Tensor) -> None:
         """After step `t` ((1,) int64) was recorded: the episode's steps, the frame's flags,
