@@ -137,14 +137,18 @@ class Trainer:
         gen = torch.Generator(device).manual_seed(0)
         self.a = torch.randn(TRAIN_SIZE, TRAIN_SIZE, device=device, generator=gen)
         self.b = torch.randn(TRAIN_SIZE, TRAIN_SIZE, device=device, generator=gen) / TRAIN_SIZE
+        # warm-up, then a probe of at least a second: a GPU idle before runs its first
+        # milliseconds at low clocks (a 5 ms probe read 4x slow on an H200)
         self.iterations = 10
-        self.work()  # warm-up (cuBLAS's handle and kernels)
-        common.sync()
-        probe = 50
-        self.iterations = probe
-        start = time.perf_counter()
-        self.work()
-        common.sync()
+        until = time.perf_counter() + 1.0
+        while time.perf_counter() < until:
+            self.work()
+            common.sync()
+        probe, start = 0, time.perf_counter()
+        while time.perf_counter() - start < 1.0:
+            self.work()
+            common.sync()
+            probe += self.iterations
         each = (time.perf_counter() - start) / probe
         self.iterations = max(1, round(train_ms / 1e3 / each))
         start = time.perf_counter()
@@ -208,12 +212,14 @@ def run(engine: str, w: common.Workload, ks: list[int], args: argparse.Namespace
             refused[name] = str(e).splitlines()[0][:160]
     times: dict = {name: [] for name in sets}
     waits: dict = {name: [] for name in sets}
+    trains: dict = {name: [] for name in sets}  # ms per batch outside the waiting
     order = list(sets)
     for rep in common.progress(range(args.repeats), desc=engine):
         for name in order if rep % 2 == 0 else reversed(order):
             seconds, waiting = measure(sets[name], args.batches, trainer)
             times[name].append(seconds)
             waits[name].append(waiting / seconds)
+            trains[name].append((seconds - waiting) / args.batches * 1e3)
     rates, waiting = {}, {}
     for name, t in times.items():
         k = configs[name] or 1
@@ -228,7 +234,7 @@ def run(engine: str, w: common.Workload, ks: list[int], args: argparse.Namespace
         label = "same GPU" if k is None else str(k)
         if name in refused:
             rows[name] = [engine, label_w, label, sims, "refused: " + refused[name],
-                          "", "", "", "", ""]
+                          "", "", "", "", "", ""]
             continue
         rate = rates[name]
         target = TARGET.get(k) if k else None
@@ -242,6 +248,7 @@ def run(engine: str, w: common.Workload, ks: list[int], args: argparse.Namespace
             verdict = f"{wanted}: " + ("?" if vs_one is None else "yes" if met else "NO")
         rows[name] = [engine, label_w, label, sims, f"{w.nbatch * (k or 1)} x {w.nstep}",
                       common.rate(rate), f"{waiting[name]:.1%}",
+                      f"{statistics.median(trains[name]):.0f}",
                       (f"{vs_one:.2f}x" if vs_one else "-"),
                       f"{rate / same:.2f}x" if same else "-", verdict]
     return list(rows.values())
@@ -249,6 +256,7 @@ def run(engine: str, w: common.Workload, ks: list[int], args: argparse.Namespace
 
 HEADERS = ["engine", "workload per GPU", "K (simulation GPUs)", "simulated on",
            "batch delivered on cuda:0", "steps/s delivered", "trainer waiting (% of time)",
+           "consumer ms/batch",
            "vs K = 1", "vs same GPU", "target"]
 
 
