@@ -126,6 +126,13 @@ def members(ds: Stream) -> int:
     return len(ds.datasets) if isinstance(ds, simloader.Mixture) else 1
 
 
+def sync_delivery() -> None:
+    """Waits for the work queued on the delivery device's current stream (named: the
+    thread's current device is not assumed to be it)."""
+    if torch.device(DELIVER).type == "cuda":
+        torch.cuda.current_stream(torch.device(DELIVER)).synchronize()
+
+
 class Trainer:
     """The consumer's fixed work per batch on the delivery device: `iterations` square
     float32 matmuls (none: the light consumer), after the sum of the batch's states."""
@@ -143,17 +150,17 @@ class Trainer:
         until = time.perf_counter() + 1.0
         while time.perf_counter() < until:
             self.work()
-            common.sync()
+            sync_delivery()
         probe, start = 0, time.perf_counter()
         while time.perf_counter() - start < 1.0:
             self.work()
-            common.sync()
+            sync_delivery()
             probe += self.iterations
         each = (time.perf_counter() - start) / probe
         self.iterations = max(1, round(train_ms / 1e3 / each))
         start = time.perf_counter()
         self.work()
-        common.sync()
+        sync_delivery()
         self.ms = (time.perf_counter() - start) * 1e3
 
     def work(self) -> None:
@@ -180,7 +187,7 @@ def measure(ds: Stream, nbatches: int, trainer: Trainer) -> tuple[float, float]:
             batch = next(it)
             seen.add(int(batch["task"]) if "task" in batch else 0)
             trainer(batch)
-            common.sync()
+            sync_delivery()
             del batch  # release a multi-GB batch before the next arrives
             if len(seen) == members(ds):
                 break
@@ -189,10 +196,10 @@ def measure(ds: Stream, nbatches: int, trainer: Trainer) -> tuple[float, float]:
         for _ in range(nbatches):
             asked = time.perf_counter()
             batch = next(it)
-            common.sync()  # the copies onto cuda:0 (the consumer's stream waits for them)
+            sync_delivery()  # the copies onto cuda:0 (the consumer's stream waits for them)
             waiting += time.perf_counter() - asked
             trainer(batch)
-            common.sync()
+            sync_delivery()
             del batch
         return time.perf_counter() - start, waiting
     finally:

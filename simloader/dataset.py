@@ -9,7 +9,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import identity, layout, models, observe, resume, sharding
+from simloader import handoff, identity, layout, models, observe, resume, sharding
 from simloader import policy as simloader_policy
 from simloader.backends import binding
 from simloader.backends.base import Backend, Stats
@@ -255,12 +255,13 @@ class SimDataset(torch.utils.data.IterableDataset):
 
     def _batches(self, shard: sharding.Shard,
                  loaded: Optional[dict]) -> Iterator[dict[str, torch.Tensor]]:
-        backend = self.make_backend(shard)
-        start = None
-        if loaded is not None:
-            start = loaded["next_index"]
-            if loaded["trajectories"] is not None:
-                backend.restore(loaded["trajectories"])
+        with handoff.current_device_kept():
+            backend = self.make_backend(shard)
+            start = None
+            if loaded is not None:
+                start = loaded["next_index"]
+                if loaded["trajectories"] is not None:
+                    backend.restore(loaded["trajectories"])
         for index, batch, produced in self.stream(
                 backend, shard.indices(self.config.num_batches, start)):
             self._progress = (shard, index + shard.num_workers, backend, produced)
@@ -274,10 +275,13 @@ class SimDataset(torch.utils.data.IterableDataset):
                                 self.config.prefetch, at_exit=backend.close)
         try:
             for index, produced in prefetcher:
-                yield index, Batch(backend.deliver(produced), layout=self.layout), produced
+                with handoff.current_device_kept():  # the consumer's device is its own
+                    delivered = backend.deliver(produced)
+                yield index, Batch(delivered, layout=self.layout), produced
         finally:
-            prefetcher.close()
-            backend.close()
+            with handoff.current_device_kept():
+                prefetcher.close()
+                backend.close()
 
 
 # SimDataset's own keywords: an unknown keyword close to one of them is a typo

@@ -5,6 +5,7 @@ dtype. (Each engine hands its own device arrays over: MJX's through DLPack.)"""
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any, Optional
 
 import numpy as np
@@ -51,3 +52,20 @@ def used_here(batch: dict) -> None:
     for value in tensors(batch):
         if value.is_cuda:
             value.record_stream(torch.cuda.current_stream(value.device))
+
+
+@contextlib.contextmanager
+def current_device_kept():
+    """The calling thread's current CUDA device left as it was by simloader's work inside.
+
+    The consumer's thread builds engines and takes batches; other libraries change its
+    current device there (JAX's hand-over of an array on cuda:k through DLPack sets cuda:k
+    as the thread's device, seen with `sim_device=`), and a training loop's
+    `torch.randn(..., device="cuda")` afterwards would land on a simulation GPU. A thread
+    whose torch had not started CUDA counts as on device 0, as torch would start it."""
+    before = torch.cuda.current_device() if torch.cuda.is_initialized() else 0
+    try:
+        yield
+    finally:
+        if torch.cuda.is_initialized() and torch.cuda.current_device() != before:
+            torch.cuda.set_device(before)

@@ -221,3 +221,19 @@ def test_split_across_two_gpus_with_episodes(backend):
     if backend == "warp":  # deterministic=True: the same batches, flags and NaNs included
         _, b = run()
         assert digest(a) == digest(b)
+
+
+@two_gpus
+@pytest.mark.parametrize("backend", ENGINES)
+def test_iterating_leaves_the_consumers_current_device_alone(backend):
+    # JAX's hand-over of an array on cuda:k sets cuda:k as the thread's device (seen on a
+    # 4 x H200: a stream simulated on cuda:1 and cuda:2 left the training loop on cuda:2)
+    for mine, sims in ((0, ["cuda:1"]), (1, ["cuda:0"])):
+        torch.cuda.set_device(mine)
+        try:
+            ds = cartpole(backend, device="cuda:0", sim_device=sims)
+            seen = [torch.cuda.current_device() for _ in ds]
+            assert seen == [mine, mine], (sims, seen)
+            assert torch.cuda.current_device() == mine
+        finally:
+            torch.cuda.set_device(0)
