@@ -58,10 +58,11 @@ def used_here(batch: dict) -> None:
 def current_device_kept():
     """The calling thread's current CUDA device left as it was by simloader's work inside.
 
-    The consumer's thread builds engines and takes batches; other libraries change its
-    current device there (JAX's hand-over of an array on cuda:k through DLPack sets cuda:k
-    as the thread's device, seen with `sim_device=`), and a training loop's
-    `torch.randn(..., device="cuda")` afterwards would land on a simulation GPU. A thread
+    The consumer's thread builds engines and takes batches, and the simulators' libraries may
+    change its current device there: on a 4 x H200 machine, MJX with `sim_device=["cuda:1",
+    "cuda:2"]` left the thread on cuda:2 after its first batch (the runtime's device, which
+    torch reads), so that a training loop's `torch.randn(..., device="cuda")` afterwards
+    would land on a simulation GPU. A thread
     whose torch had not started CUDA counts as on device 0, as torch would start it."""
     before = torch.cuda.current_device() if torch.cuda.is_initialized() else 0
     try:

@@ -226,8 +226,8 @@ def test_split_across_two_gpus_with_episodes(backend):
 @two_gpus
 @pytest.mark.parametrize("backend", ENGINES)
 def test_iterating_leaves_the_consumers_current_device_alone(backend):
-    # JAX's hand-over of an array on cuda:k sets cuda:k as the thread's device (seen on a
-    # 4 x H200: a stream simulated on cuda:1 and cuda:2 left the training loop on cuda:2)
+    # seen on a 4 x H200: an MJX stream simulated on cuda:1 and cuda:2 left the consumer's
+    # thread on cuda:2 (`handoff.current_device_kept`)
     for mine, sims in ((0, ["cuda:1"]), (1, ["cuda:0"])):
         torch.cuda.set_device(mine)
         try:
