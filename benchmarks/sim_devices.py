@@ -144,8 +144,7 @@ class Trainer:
         gen = torch.Generator(device).manual_seed(0)
         self.a = torch.randn(TRAIN_SIZE, TRAIN_SIZE, device=device, generator=gen)
         self.b = torch.randn(TRAIN_SIZE, TRAIN_SIZE, device=device, generator=gen) / TRAIN_SIZE
-        # warm-up, then a probe of at least a second: a GPU idle before runs its first
-        # milliseconds at low clocks (a 5 ms probe read 4x slow on an H200)
+        # warm-up, then a probe of at least a second (a GPU idle before starts at low clocks)
         self.iterations = 10
         until = time.perf_counter() + 1.0
         while time.perf_counter() < until:
