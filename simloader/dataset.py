@@ -279,9 +279,10 @@ class SimDataset(torch.utils.data.IterableDataset):
                     delivered = backend.deliver(produced)
                 yield index, Batch(delivered, layout=self.layout), produced
         finally:
-            with handoff.current_device_kept():
-                prefetcher.close()
-                backend.close()
+            # (no device guard here: this also runs at interpreter exit, on a generator left
+            # open, when the modules it would call may be gone)
+            prefetcher.close()
+            backend.close()
 
 
 # SimDataset's own keywords: an unknown keyword close to one of them is a typo

@@ -162,6 +162,16 @@ def test_parts_take_their_rows_of_per_trajectory_arguments():
     assert "simulated on cpu, cpu (trajectories 3, 2), delivered on cpu" in ds.describe()
 
 
+def run_split(make):
+    """(make, the dataset, its batches, its state after the first batch) of stream `make()`."""
+    ds = make()
+    it = iter(ds)
+    batches = [next(it)]
+    state = ds.state_dict()
+    batches += list(it)
+    return make, ds, batches, state
+
+
 @pytest.fixture(scope="module")
 def split_stream():
     """A continuing MJX stream split over two parts on JAX's CPU device, 3 batches."""
@@ -170,12 +180,7 @@ def split_stream():
             "cartpole", backend="mjx", nbatch=6, nstep=4, num_batches=3, seed=7, device="cpu",
             sim_device=["cpu", "cpu"], control=controls.Uniform(),
             initial_state=initial.Perturbed(), continue_episodes=True, deterministic=True)
-    ds = make()
-    it = iter(ds)
-    batches = [next(it)]
-    state = ds.state_dict()
-    batches += list(it)
-    return make, ds, batches, state
+    return run_split(make)
 
 
 def test_split_batch_gathers_every_part(split_stream):
@@ -306,12 +311,7 @@ def split_episodes():
             initial_state=initial.Perturbed(qvel_std=0.5), continue_episodes=True,
             deterministic=True,
             terminate=[Outside("hinge", -POLE_BOUND, POLE_BOUND), TimeLimit(TIME_LIMIT)])
-    ds = make()
-    it = iter(ds)
-    batches = [next(it)]
-    state = ds.state_dict()
-    batches += list(it)
-    return make, ds, batches, state
+    return run_split(make)
 
 
 def test_split_episodes_deliver_their_flags(split_episodes):
