@@ -39,12 +39,11 @@ def restart_unstable(fields: dict[str, Any], qpos0: Any, xp: Any) -> tuple[dict[
     qpos, qvel, act, qacc, qacc_warmstart, sensordata) that went `unstable`, and restarts their
     `RESET` fields as mj_resetData leaves them, `qpos0` ([nbatch or 1] x nq) for qpos. As
     MuJoCo does: their NaNs are never delivered, and the solver loops of a whole batch, which
-    run until every trajectory converges, do not keep iterating on them. A masked write per
-    field: torch tensors are written in place (a CUDA graph keeps their addresses), JAX's
-    arrays are immutable and come back new.
+    run until every trajectory converges, do not keep iterating on them. (MJX's; the Warp
+    engine does the same in its own kernel, `backends/warp/fused.py`.)
 
     Returns:
-      (fields with the restarted rows, (nbatch,) bool: the rows that restarted).
+      (fields with the restarted rows, new arrays; (nbatch,) bool: the rows that restarted).
     """
     f = fields
     bad = unstable(f["time"], f["qpos"], f["qvel"], f["act"], f["qacc"], f["sensordata"], xp)
@@ -52,16 +51,8 @@ def restart_unstable(fields: dict[str, Any], qpos0: Any, xp: Any) -> tuple[dict[
     for name in RESET:
         x = f[name]
         rows = bad.reshape((-1,) + (1,) * (x.ndim - 1))
-        if name == "qpos":
-            out[name] = (xp.where(rows, qpos0, x, out=x) if _in_place(x) else
-                         xp.where(rows, qpos0, x))
-        else:
-            out[name] = x.masked_fill_(rows, 0) if _in_place(x) else xp.where(rows, 0, x)
+        out[name] = xp.where(rows, qpos0 if name == "qpos" else 0, x)
     return out, bad
-
-
-def _in_place(x: Any) -> bool:
-    return hasattr(x, "masked_fill_")  # a torch tensor
 
 
 def finite(values: Any, xp: Any) -> Any:

@@ -367,7 +367,7 @@ class WarpSimulation:
             if bad is not None:
                 self.diverged |= bad
             if self.episodes is not None:  # fresh frames start; their inputs are mj_resetData's
-                self.episodes.begin(self.t)
+                self.episodes.begin(self.wt)
             self.set_inputs.launch(self.wt)
             self.mjw.step(self.m, self.d)
             # the divergence check and restart, held frames at their fresh state, the frames
@@ -390,7 +390,7 @@ class WarpSimulation:
                 # images go straight into their frames; the policy gets this step's
                 obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
             if self.episodes is not None:  # the frame's flags; at its end, the resets
-                self.episodes.after_step(self.t)
+                self.episodes.after_step(self.wt)
         self.t += 1
         self.obs = obs
 

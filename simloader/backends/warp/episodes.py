@@ -177,12 +177,13 @@ class Episodes:
 
     # -- inside the graph --------------------------------------------------------------------
 
-    def begin(self, t: torch.Tensor) -> None:
-        """Before step `t` ((1,) int64): at a frame's first step, the worlds whose last frame
-        met a rule take their fresh state and are held there this frame."""
+    def begin(self, t: Any) -> None:
+        """Before step `t` (the engine's (1,) int64 Warp array): at a frame's first step,
+        the worlds whose last frame met a rule take their fresh state and are held there this
+        frame."""
         w = self.w
         wp.launch(_begin, dim=len(self.held), inputs=[
-            wp.from_torch(t), self.every, w["pending"], w["held"], w["fresh"], w["resets"],
+            t, self.every, w["pending"], w["held"], w["fresh"], w["resets"],
             w["at"], *self.state])
 
     def external(self, met: torch.Tensor, frame: int) -> None:
@@ -191,13 +192,13 @@ class Episodes:
         self.flags["terminated"][:, frame] |= met
         self.pending |= met
 
-    def after_step(self, t: torch.Tensor) -> None:
-        """After step `t` ((1,) int64) was recorded: the episode's steps, the frame's flags,
-        and at a frame's end which worlds met a rule (`pending`)."""
+    def after_step(self, t: Any) -> None:
+        """After step `t` (the engine's (1,) int64 Warp array) was recorded: the episode's
+        steps, the frame's flags, and at a frame's end which worlds met a rule (`pending`)."""
         if self.kinematics is not None:
             self.kinematics()
         w, d = self.w, self.d
         wp.launch(_after_step, dim=len(self.held), inputs=[
-            wp.from_torch(t), self.every, self.time_limit, w["kinds"], w["index"], w["a"],
+            t, self.every, self.time_limit, w["kinds"], w["index"], w["a"],
             w["b"], d.xpos, d.xmat, w["held"], w["pending"], w["steps"], w["terminated"],
             w["truncated"], w["first"], d.qpos])
