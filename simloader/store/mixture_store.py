@@ -26,7 +26,8 @@ from simloader.store import lock, ownership, pipeline
 from simloader.store.provenance import StoreMismatch, differences, fingerprint, versions
 from simloader.store.reader import (OPENERS, StoredDataset, item_index, key_kinds, nest,
                                     transition_indices)
-from simloader.store.zarr_format import ATTRIBUTE, FORMAT, read_json, store_path, write_json
+from simloader.store.zarr_format import (ATTRIBUTE, FORMAT, leaves, read_json, store_path,
+                                         write_json)
 
 KIND = "mixture"
 TASKS = "tasks"  # the group of the members' stores
@@ -250,14 +251,8 @@ def _row(batch: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _batched(item: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-    """An item as a batch of one row, `params` flattened to `params/KEY`."""
-    out = {}
-    for key, value in item.items():
-        if isinstance(value, Mapping):
-            out.update({f"{key}/{k}": v[None] for k, v in value.items()})
-        else:
-            out[key] = value[None]
-    return out
+    """An item as a batch of one row, `params` flattened to `params/KEY` (`leaves`)."""
+    return {name: value[None] for name, value in leaves(item)}
 
 
 def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],

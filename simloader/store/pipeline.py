@@ -47,6 +47,8 @@ IN_FLIGHT = 2  # slots between their copy to the host and their commit, per writ
 def shard_threads() -> int:
     """Threads that encode and write a slot's shards, per writer (the CPU stages')."""
     return min(8, threads.available_cpus())
+
+
 STAGES = ("simulate", "copy to host", "compress", "checksum", "write", "sync")
 _WAITED = "waited for the store"  # the writer blocked on a full pipeline
 
