@@ -207,7 +207,8 @@ class SimDataset(torch.utils.data.IterableDataset):
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
         shard = shard or sharding.current_shard(self._rank)
-        return self.engine.create(shard, self._stats)
+        with handoff.current_device_kept():  # the caller's device is its own
+            return self.engine.create(shard, self._stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Where this iterator (this DataLoader worker, or this process) is in the stream.
@@ -255,12 +256,12 @@ class SimDataset(torch.utils.data.IterableDataset):
 
     def _batches(self, shard: sharding.Shard,
                  loaded: Optional[dict]) -> Iterator[dict[str, torch.Tensor]]:
-        with handoff.current_device_kept():
-            backend = self.make_backend(shard)
-            start = None
-            if loaded is not None:
-                start = loaded["next_index"]
-                if loaded["trajectories"] is not None:
+        backend = self.make_backend(shard)
+        start = None
+        if loaded is not None:
+            start = loaded["next_index"]
+            if loaded["trajectories"] is not None:
+                with handoff.current_device_kept():
                     backend.restore(loaded["trajectories"])
         for index, batch, produced in self.stream(
                 backend, shard.indices(self.config.num_batches, start)):
