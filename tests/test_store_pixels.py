@@ -60,6 +60,21 @@ def test_transitions_carry_both_frames_rendered(written):
     assert batch["camera/front/rgb"].shape == (len(ks), 32, 40, 3)
 
 
+def test_transitions_of_another_key_read_the_states_for_their_frames(written, tmp_path):
+    # the transitions pair qpos, not the state: the cameras read the states themselves
+    _, want = written
+    path = simloader.write(cartpole(("state", "qpos")), tmp_path / "q.zarr", batches=2,
+                           progress=False)
+    transitions = simloader.StoredDataset(path, cameras=CAMERA).transitions(state="qpos")
+    ks = np.arange(0, len(transitions), 3)[::-1].copy()
+    batch = transitions.gather(ks)
+    assert "state" not in batch and "qpos" in batch
+    for k, (t, f) in enumerate(zip(*transitions.locate(ks))):
+        assert torch.equal(batch["next/camera/front/rgb"][k], want[t, f])
+        if f > 0:
+            assert torch.equal(batch["camera/front/rgb"][k], want[t, f - 1])
+
+
 def test_dataloader_workers_render_their_items(written):
     path, want = written
     stored = simloader.StoredDataset(path, cameras=CAMERA, keys=["state"])

@@ -539,10 +539,18 @@ class Transitions(torch.utils.data.Dataset):
         arrays = self.stored.arrays()
         now = np.empty((len(rows), arrays["state"].layout.trailing[-1]))
         after = np.empty_like(now)
+        # each slot read once per call: a compressed slot is decoded whole
+        read: dict[tuple[str, int], np.ndarray] = {}
+
+        def rows_of(name: str, slot: int) -> np.ndarray:
+            if (name, slot) not in read:
+                read[name, slot] = arrays[name].slot(slot)
+            return read[name, slot]
+
         for k, (slot, r, f) in enumerate(zip(slots, rows, frames)):
-            seq = arrays["state"].slot(int(slot))
+            seq = rows_of("state", int(slot))
             after[k] = seq[r, f]
-            now[k] = seq[r, f - 1] if f > 0 else arrays["initial_state"].slot(int(slot))[r]
+            now[k] = seq[r, f - 1] if f > 0 else rows_of("initial_state", int(slot))[r]
         return now, after
 
     def _allocate(self, n: int, arrays: Mapping[str, StoredArray]) -> dict[str, torch.Tensor]:
