@@ -18,6 +18,7 @@ driver, or Mesa's software rasterizer on a CPU-only machine), else OSMesa.
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import copy
 import importlib
@@ -227,27 +228,48 @@ class StoredFrames:
         check(model, images)
         gl_platform()  # no OpenGL here: said now, not at the first read
         self.model, self.images = model, tuple(images)
-        self.local = threading.local()
+        self.token = object()  # names this reader's renderers in each thread's cache
 
     def __getstate__(self) -> dict:
         # to a DataLoader worker: its threads make their own renderers
-        return {k: v for k, v in self.__dict__.items() if k != "local"}
+        return {k: v for k, v in self.__dict__.items() if k != "token"}
 
     def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state, local=threading.local())
+        self.__dict__.update(state, token=object())
 
     def frames(self, states: np.ndarray, model_of: Callable[[int], mujoco.MjModel]) -> dict:
         """{image key: (n, nframes, *shape) tensor} of FULLPHYSICS `states` (n, nframes,
         nstate), trajectory i drawn with `model_of(i)`."""
         import torch
-        if getattr(self.local, "pid", None) != os.getpid():
-            self.local.renderers = Renderers(self.model, self.images)
-            self.local.pid = os.getpid()
         rows = integration_rows(self.model, states)
         out = {o.key: np.empty((len(states), states.shape[1], *o.shape), o.dtype)
                for o in self.images}
-        self.local.renderers.draw(range(len(states)), rows, model_of, out)
+        _thread_renderers(self.token, self.model, self.images).draw(
+            range(len(states)), rows, model_of, out)
         return {k: torch.from_numpy(v) for k, v in out.items()}
+
+
+# each thread's renderers of stored frames, by reader, the last `_KEPT` readers': they live
+# with the thread, not with the reader, because a renderer must be freed in the thread that
+# made it (its GL context is current there) and a reader may be collected in any thread
+_THREAD = threading.local()
+_KEPT = 4
+
+
+def _thread_renderers(owner: object, model: mujoco.MjModel,
+                      images: Sequence[observe.CameraImage]) -> Renderers:
+    """This thread's renderers for reader `owner`, made at its first frame here; the least
+    recently used reader's are freed (here, in their thread) past `_KEPT` readers."""
+    if getattr(_THREAD, "pid", None) != os.getpid():  # a new thread, or a forked copy of one
+        _THREAD.cache, _THREAD.pid = collections.OrderedDict(), os.getpid()
+    cache = _THREAD.cache
+    if owner in cache:
+        cache.move_to_end(owner)
+        return cache[owner]
+    while len(cache) >= _KEPT:
+        cache.popitem(last=False)[1].close()
+    cache[owner] = Renderers(model, images)
+    return cache[owner]
 
 
 class RenderPool:
