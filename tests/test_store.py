@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import simloader
+from simloader.store.folder import StoreFolder
 from simloader.store import pipeline, zarr_format as store_format, provenance
 
 zarr = pytest.importorskip("zarr")
@@ -205,23 +206,23 @@ def test_a_full_disk_leaves_a_readable_store_and_says_so(tmp_path, monkeypatch):
     """The disk fills up in the middle of the third batch: the first two stay readable, the
     error says so, and writing again (space freed) completes the store."""
     path = str(tmp_path / "f.zarr")
-    real, calls = pipeline.write_temporary, []
+    real, calls = StoreFolder.stage, []
 
-    def fills_up(where, parts):
-        if "/c/2" in where and not where.endswith("zarr.json"):
-            calls.append(where)
+    def fills_up(folder, name, parts):
+        if "/c/2/" in name:
+            calls.append(name)
             if len(calls) == 3:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
-        return real(where, parts)
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), folder.where(name))
+        return real(folder, name, parts)
 
-    monkeypatch.setattr(pipeline, "write_temporary", fills_up)
+    monkeypatch.setattr(StoreFolder, "stage", fills_up)
     with pytest.raises(OSError, match="No space left on device .* stays readable with the "
                                       "batches completed so far"):
         simloader.write(plain(), path, batches=4, progress=False)
     # slots 0 and 1, and slot 3 if its commit (pipelined with slot 2's) finished first
     assert len(simloader.StoredDataset(path)) in (6, 9)
     assert not glob.glob(os.path.join(path, "**", "*.partial"), recursive=True)
-    monkeypatch.setattr(pipeline, "write_temporary", real)
+    monkeypatch.setattr(StoreFolder, "stage", real)
     simloader.write(plain(), path, batches=4, progress=False)
     want = reference(plain(), 4)
     stored = simloader.StoredDataset(path)
@@ -353,14 +354,14 @@ def test_a_full_disk_in_a_worker_says_so_without_the_workers_traceback(tmp_path,
     """The error a DataLoader worker raises reaches `write` as the worker's whole traceback:
     the message keeps its last line (errno, reason, file), the traceback stays the cause."""
     path = str(tmp_path / "w.zarr")
-    real = store_format.atomic_write
+    real = StoreFolder.stage
 
-    def full(where, parts, durable=False):
-        if "/c/1/" in where:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
-        return real(where, parts, durable)
+    def full(folder, name, parts):
+        if "/c/1/" in name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), folder.where(name))
+        return real(folder, name, parts)
 
-    monkeypatch.setattr(store_format, "atomic_write", full)  # inherited by the forked worker
+    monkeypatch.setattr(StoreFolder, "stage", full)  # inherited by the forked worker
     with pytest.raises(OSError) as raised:
         simloader.write(plain(), path, batches=3, num_workers=1, progress=False)
     said = str(raised.value)

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import simloader
+from simloader.store.folder import StoreFolder
 from simloader.store import integrity, pipeline, zarr_format as store_format
 
 zarr = pytest.importorskip("zarr")
@@ -39,6 +40,14 @@ def arrays(path):
     return out
 
 
+def _named(name, dir_fd):
+    """The path of `name`, relative to folder descriptor `dir_fd` where one is given (the
+    store's writer renames relative to the folder it holds open)."""
+    if dir_fd is None:
+        return os.path.abspath(name)
+    return os.path.join(os.readlink(f"/proc/self/fd/{dir_fd}"), name)
+
+
 class Operations:
     """Every fsync and rename of the process, in order, with the file each one touched
     (threads included: the pipeline's commits run in its threads)."""
@@ -53,10 +62,10 @@ class Operations:
             with self.lock:
                 self.log.append(("fsync", where))
 
-        def replace(src, dst, **kwargs):
-            real_replace(src, dst, **kwargs)
+        def replace(src, dst, *, src_dir_fd=None, dst_dir_fd=None):
+            real_replace(src, dst, src_dir_fd=src_dir_fd, dst_dir_fd=dst_dir_fd)
             with self.lock:
-                self.log.append(("rename", os.path.abspath(src), os.path.abspath(dst)))
+                self.log.append(("rename", _named(src, src_dir_fd), _named(dst, dst_dir_fd)))
 
         monkeypatch.setattr(os, "fsync", fsync)
         monkeypatch.setattr(os, "replace", replace)
@@ -139,7 +148,7 @@ def test_a_writer_killed_ten_times_at_random_moments_resumes_to_the_same_store(
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         kills += 1
-        store = integrity.Store(path)
+        store = integrity.Store(StoreFolder(path))
         assert not store.damaged(list(store.slots), verify=True), \
             f"kill {kills}: a committed slot lacks its data or its checksum differs"
         committed.append(len(store.slots))

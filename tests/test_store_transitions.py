@@ -186,14 +186,15 @@ def test_transitions_of_a_store_without_a_committed_slot_say_so(tmp_path, monkey
         for mark in glob.glob(os.path.join(path, store_format.WRITTEN.name, "c", "*")):
             os.unlink(mark)
     else:
-        real = pipeline.write_temporary
+        from simloader.store.folder import StoreFolder
+        real = StoreFolder.stage
 
-        def full(where, parts):  # every slot's (slot 1 commits beside slot 0, pipelined)
-            if "/c/" in where:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
-            return real(where, parts)
+        def full(folder, name, parts):  # every slot's (slot 1 commits beside slot 0)
+            if "/c/" in name:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), folder.where(name))
+            return real(folder, name, parts)
 
-        monkeypatch.setattr(pipeline, "write_temporary", full)
+        monkeypatch.setattr(StoreFolder, "stage", full)
         with pytest.raises(OSError):
             simloader.write(cartpole(), path, batches=2, progress=False)
     stored = simloader.StoredDataset(path)  # readable: nothing in it yet

@@ -16,9 +16,10 @@ from typing import Any, Optional
 
 import numpy as np
 
-from simloader.store.ownership import LEFTOVER, own_folder
+from simloader.store.folder import StoreFolder
+from simloader.store.ownership import LEFTOVER, own_names
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, DamagedStore,
-                                         batch_key, file_crc, read_json, recorded)
+                                         batch_key, crc_of, recorded)
 from simloader.store.shards import ArrayLayout
 
 _MAX_LISTED = 8  # files named in one message; the rest are counted
@@ -28,93 +29,105 @@ _MAX_LISTED = 8  # files named in one message; the rest are counted
 class Survey:
     metas: dict[str, dict]  # array path -> its zarr.json
     sizes: dict[str, dict[int, int]]  # array path -> {slot: its shard's size}
-    links: list[str]  # every link met (never followed)
-    partial: list[str]  # files of killed writers
+    links: list[str]  # every link met (never followed), relative to the root
+    partial: list[str]  # files of killed writers, relative to the root
 
 
-def survey(root: str) -> Survey:
-    """One walk of the store's own files (links are listed, not followed): its root's
-    entries, and below them only the store's folders (`ownership.own_folder`), so a folder a
-    user put beside the arrays is neither walked nor cleaned."""
+# levels below the root: simloader's deepest file is camera/NAME/KIND/c/SLOT/0/0/0/0; a
+# hostile store of folders nested thousands deep is refused, not walked until Python's stack
+# ends
+MAX_DEPTH = 24
+
+
+def survey(folder: StoreFolder) -> Survey:
+    """One walk of the store's own files through its open folder (links are listed, never
+    followed): its root's entries, and below them only the store's own folders
+    (`ownership.own_names`), so a folder a user put beside the arrays is neither walked nor
+    cleaned. Names are relative to the root."""
     metas: dict[str, dict] = {}
     sizes: dict[str, dict[int, int]] = {}
     links: list[str] = []
     partial: list[str] = []
+    own = own_names(folder)
 
-    def walk(directory: str, relative: str, array: Optional[str]) -> None:
+    def walk(relative: str, array: Optional[str], below: str) -> None:
+        """`relative`: the folder's name; `array`: the array whose chunk folder `c` this is
+        in, `below` the path inside it."""
+        if relative.count("/") >= MAX_DEPTH:
+            raise DamagedStore(f"{folder.where(relative)}: folders nested deeper than any "
+                               f"store simloader writes ({MAX_DEPTH} levels); not a store of "
+                               f"simloader's, or damaged")
         try:
-            entries = list(os.scandir(directory))
+            entries = folder.entries(relative)
         except FileNotFoundError:
             return  # removed while walked (a resumed writer's repair): seen as absent
+        except DamagedStore:
+            links.append(relative)  # swapped for a link while walked
+            return
         except OSError as e:
-            raise DamagedStore(f"{directory}: cannot be listed ({e.strerror})") from None
+            raise DamagedStore(f"{folder.where(relative)}: cannot be listed ({e.strerror})"
+                               ) from None
         # files first: an array's zarr.json before its chunk folder `c`
-        entries.sort(key=lambda e: _is_dir(e))
-        for entry in entries:
-            rel = f"{relative}/{entry.name}" if relative else entry.name
-            if entry.is_symlink():
-                links.append(entry.path)
-            elif LEFTOVER.search(entry.name):
-                partial.append(entry.path)
-            elif _is_dir(entry):
-                if not relative and array is None and not own_folder(entry.path):
+        entries.sort(key=lambda e: e[1] == "folder")
+        for name, kind in entries:
+            rel = f"{relative}/{name}" if relative else name
+            inner = f"{below}/{name}" if below else name
+            if kind == "link":
+                links.append(rel)
+            elif LEFTOVER.search(name):
+                partial.append(rel)
+            elif kind == "folder":
+                if not relative and name not in own:
                     continue  # not the store's: left alone
                 if array is not None:  # below ARRAY/c/: SLOT/0/0...
-                    walk(entry.path, rel, array)
-                elif entry.name == "c" and relative in metas:
-                    walk(entry.path, "", relative)
+                    walk(rel, array, inner)
+                elif name == "c" and relative in metas:
+                    walk(rel, relative, "")
                 else:
-                    walk(entry.path, rel, None)
+                    walk(rel, None, "")
             elif array is not None:
-                slot = rel.split("/")[0]
+                slot = inner.split("/")[0]
                 if slot.isdigit():
                     try:
-                        size = entry.stat(follow_symlinks=False).st_size
+                        size = folder.stat(rel).st_size
                     except FileNotFoundError:
                         continue
                     sizes.setdefault(array, {})[int(slot)] = size
-            elif entry.name == "zarr.json" and relative:
-                meta = read_json(entry.path)
+            elif name == "zarr.json" and relative:
+                meta = folder.read_json(rel)
                 if isinstance(meta, dict) and meta.get("node_type") == "array":
                     metas[relative] = meta
-    walk(root, "", None)
+    walk("", None, "")
     return Survey(metas, sizes, links, partial)
 
 
-def _is_dir(entry: os.DirEntry) -> bool:
-    try:
-        return entry.is_dir(follow_symlinks=False)
-    except OSError:
-        return False
-
-
-def marks(root: str) -> dict[int, int]:
+def marks(folder: StoreFolder) -> dict[int, int]:
     """{slot: size} of the slots' written marks, listed first of all when a store is opened:
     every file a mark commits was on the disk before it, and every metadata file read after
     this listing holds at least the slots it names (a store being grown has grown its
     arrays, its slots' array and then its root before any new slot is marked), so a reader
     sees the committed slots of this one moment, whatever a writer does meanwhile."""
-    folder = os.path.join(root, WRITTEN.name, "c")
+    where = WRITTEN.name + "/c"
     out: dict[int, int] = {}
     try:
-        entries = list(os.scandir(folder))
-    except FileNotFoundError:
-        return out
+        entries = folder.entries(where)
+    except (FileNotFoundError, DamagedStore):
+        return out  # absent; or a link, which the survey names
     except OSError as e:
-        raise DamagedStore(f"{folder}: cannot be listed ({e.strerror})") from None
-    for entry in entries:
-        if entry.name.isdigit() and not entry.is_symlink():
+        raise DamagedStore(f"{folder.where(where)}: cannot be listed ({e.strerror})") from None
+    for name, kind in entries:
+        if name.isdigit() and kind == "file":
             try:
-                out[int(entry.name)] = entry.stat(follow_symlinks=False).st_size
+                out[int(name)] = folder.stat(f"{where}/{name}").st_size
             except FileNotFoundError:
                 pass
     return out
 
 
-def root_info(root: str) -> dict:
+def root_info(folder: StoreFolder) -> dict:
     """The store's root attribute, checked for the fields reading relies on."""
-    file = os.path.join(root, "zarr.json")
-    meta = read_json(file)
+    root, file = folder.path, folder.where("zarr.json")
+    meta = folder.read_json("zarr.json")
     if not isinstance(meta, dict) or not isinstance(meta.get("attributes"), dict) or \
             ATTRIBUTE not in meta["attributes"]:
         raise ValueError(f"path: {root!r} is not a simloader store (no zarr.json with a "
@@ -139,16 +152,17 @@ class Store:
     record kept (`zarr_format.checksum_spec`): a reader is refused them at once (`check`); a
     resumed writer (`repair=True`) restores them from the record."""
 
-    def __init__(self, root: str, repair: bool = False):
-        self.root = root
-        listed = marks(root)  # first: see `marks`
-        self.info = root_info(root)
+    def __init__(self, folder: StoreFolder, repair: bool = False):
+        self.folder = folder
+        self.root = root = folder.path
+        listed = marks(folder)  # first: see `marks`
+        self.info = root_info(folder)
         self.nbatch, self.batches = self.info["nbatch"], self.info["batches"]
-        found = survey(root)
+        found = survey(folder)
         if found.links:
             raise DamagedStore(f"{root}: the store holds links, which it never writes and "
                                f"never follows (one could alias another slot or lead outside "
-                               f"the store): {_listed(found.links)}")
+                               f"the store): {_listed([folder.where(n) for n in found.links])}")
         self.survey = found
         self.slots = self._committed(listed)
         self.layouts: dict[str, ArrayLayout] = {}
@@ -216,12 +230,10 @@ class Store:
             if sizes[slot] != 17:
                 continue  # not a mark simloader wrote: the slot is not committed
             try:
-                fd = os.open(file, os.O_RDONLY | os.O_NOFOLLOW)
+                if self.folder.read(WRITTEN.shard_key(slot), 1) == b"\x01":
+                    out.append(slot)
             except FileNotFoundError:
                 continue  # unmarked since it was listed (a resumed writer's repair)
-            with os.fdopen(fd, "rb") as f:
-                if f.read(1) == b"\x01":
-                    out.append(slot)
         return np.asarray(out, dtype=np.int64)
 
     def checksums(self, slot: int) -> Optional[dict[str, tuple[int, int]]]:
@@ -231,10 +243,8 @@ class Store:
         if layout is None:
             return None
         names = layout.attributes.get("arrays")
-        file = layout.shard_file(self.root, slot)
         try:
-            with open(file, "rb") as f:
-                data = f.read()
+            data = self.folder.read(layout.shard_name(slot), 1 << 20)
         except FileNotFoundError:
             return {}  # committed before its checksums: damaged (see `damaged`)
         count = layout.trailing[0]
@@ -273,7 +283,7 @@ class Store:
                 elif kept is not None and size != kept:
                     problems.append(f"{file}: {size} bytes, {kept} when it was written")
                 elif verify and recorded and layout.path in recorded:
-                    crc = file_crc(file)
+                    crc = crc_of(self.folder, layout.shard_name(slot))
                     if crc != recorded[layout.path][1]:
                         problems.append(f"{file}: CRC-32 {crc:08x}, recorded "
                                         f"{recorded[layout.path][1]:08x}")
@@ -297,14 +307,9 @@ def _listed(items: list[str]) -> str:
     return shown + (f"; and {len(items) - _MAX_LISTED} more" if len(items) > _MAX_LISTED else "")
 
 
-def remove_partial(found: Survey) -> int:
+def remove_partial(folder: StoreFolder, found: Survey) -> int:
     """Removes the `.partial` files of killed writers (called while holding the store's
-    lock: no writer of this store is running)."""
-    removed = 0
-    for file in found.partial:
-        try:
-            os.unlink(file)
-            removed += 1
-        except FileNotFoundError:
-            pass
-    return removed
+    lock: no writer of this store is running), through the store's folder."""
+    for name in found.partial:
+        folder.unlink(name)
+    return len(found.partial)

@@ -22,7 +22,9 @@ import socket
 import stat
 import time
 import uuid
-from typing import Optional
+from typing import Optional, Union
+
+from simloader.store.folder import StoreFolder
 
 FILE = "simloader.lock"
 
@@ -36,19 +38,19 @@ def new_job_id() -> str:
     return "job-" + uuid.uuid4().hex[:16]
 
 
-def holder(root: str) -> Optional[dict]:
+def holder(root: Union[str, StoreFolder]) -> Optional[dict]:
     """What the lock file says of its holder (None: empty, never held or released)."""
     try:
-        fd = os.open(os.path.join(root, FILE), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+        if isinstance(root, StoreFolder):
+            fd = os.open(FILE, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK, dir_fd=root.fd)
+        else:
+            fd = os.open(os.path.join(root, FILE), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     except OSError:  # absent, or a link: no holder simloader wrote
         return None
-    with os.fdopen(fd, encoding="utf-8", errors="replace") as f:
-        text = f.read(1 << 16)
     try:
-        value = json.loads(text) if text.strip() else None
-    except ValueError:
-        return None
-    return value if isinstance(value, dict) else None
+        return _read_holder(fd)
+    finally:
+        os.close(fd)
 
 
 def describe(info: Optional[dict]) -> str:
@@ -59,29 +61,45 @@ def describe(info: Optional[dict]) -> str:
 
 
 class WriterLock:
-    """The store's lock, held by this process from `acquire` to `release`."""
+    """The store's lock, held by this process from `acquire` to `release`. `root` is the
+    store's folder (a `StoreFolder`, opened by the caller, or a path, opened here)."""
 
-    def __init__(self, root: str, job: str):
-        self.root, self.job = root, job
+    def __init__(self, root: Union[str, StoreFolder], job: str):
+        self.root = root.path if isinstance(root, StoreFolder) else root
+        self.folder = root if isinstance(root, StoreFolder) else None
+        self.job = job
         self.fd: Optional[int] = None
         self.took_over: Optional[dict] = None  # a killed writer's entry, found at acquire
 
     def acquire(self) -> "WriterLock":
-        os.makedirs(self.root, exist_ok=True)
+        folder = self.folder or StoreFolder(self.root, create=True)
         file = os.path.join(self.root, FILE)
         try:
             # never through a link: a lock linked to a file outside the store would empty it
-            fd = os.open(file, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
+            fd = os.open(FILE, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK |
+                         os.O_CLOEXEC, 0o644, dir_fd=folder.fd)
         except OSError as e:
             if e.errno != errno.ELOOP:
                 raise
             raise ValueError(f"path: the store's lock {file} is a link, which simloader never "
                              f"makes (it would write through it to a file outside the store); "
                              f"remove it") from None
+        finally:
+            if self.folder is None:
+                folder.close()
         try:
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode):
                 raise ValueError(f"path: the store's lock {file} is not a regular file; "
                                  f"remove it")
+            if info.st_nlink != 1:
+                # a hard link: holding the lock empties the file it shares (another copy's
+                # lock, made by `cp -al`, or any file of the user's linked there)
+                raise ValueError(f"path: the store's lock {file} has {info.st_nlink} hard "
+                                 f"links (a copy of the store made with `cp -al`, or a file "
+                                 f"linked there); holding it would empty the file it shares "
+                                 f"and lock the other copy's writers out. Remove {file} (a "
+                                 f"writer makes a fresh one)")
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
@@ -93,7 +111,7 @@ class WriterLock:
             os.close(fd)
             raise
         self.fd = fd
-        self.took_over = holder(self.root)  # released locks are emptied: a killed holder's
+        self.took_over = _read_holder(fd)  # released locks are emptied: a killed holder's
         entry = json.dumps({"host": socket.gethostname(), "pid": os.getpid(), "job": self.job,
                             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode()
         os.ftruncate(fd, 0)
@@ -118,10 +136,20 @@ class WriterLock:
         self.release()
 
 
-def check_joined(root: str, job: str, rank: int) -> None:
+def _read_holder(fd: int) -> Optional[dict]:
+    text = os.pread(fd, 1 << 16, 0).decode("utf-8", errors="replace")
+    try:
+        value = json.loads(text) if text.strip() else None
+    except ValueError:
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def check_joined(root: Union[str, StoreFolder], job: str, rank: int) -> None:
     """A rank other than 0 writes under its rank 0's lock: refused if another job holds it."""
     info = holder(root)
     if not info or info.get("job") != job:
-        raise StoreLocked(f"path: rank {rank} expected the store at {root!r} to be locked by "
+        where = root.path if isinstance(root, StoreFolder) else root
+        raise StoreLocked(f"path: rank {rank} expected the store at {where!r} to be locked by "
                           f"its own job's rank 0, but it is held by {describe(info)}; one "
                           f"job writes a store at a time")

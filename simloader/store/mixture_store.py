@@ -21,13 +21,13 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from simloader.atomic import sync_directories
 from simloader.store import lock, ownership, pipeline
-from simloader.store.provenance import StoreMismatch, differences, fingerprint, versions
+from simloader.store.folder import StoreFolder
+from simloader.store.provenance import (StoreMismatch, differences, fingerprint,
+                                        fingerprint_digest, new_identity, versions)
 from simloader.store.reader import (OPENERS, StoredDataset, item_index, key_kinds, nest,
                                     transition_indices)
-from simloader.store.zarr_format import (ATTRIBUTE, FORMAT, leaves, read_json, store_path,
-                                         write_json)
+from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, leaves, store_path
 
 KIND = "mixture"
 TASKS = "tasks"  # the group of the members' stores
@@ -51,7 +51,10 @@ def task_path(root: str, name: str) -> str:
 def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, progress: bool,
                   replace: bool, compression: Optional[str] = None) -> str:
     """`write(mixture, path, batches=)`: each member's batches into its own store under
-    `path/tasks/`, under the root's lock (one job at a time, as any store)."""
+    `path/tasks/`, under the root's lock (one job at a time, as any store), every file
+    through the root's open folder (as a store's). The root names each member's store
+    (its identity, drawn before the store is made, and its fingerprint's digest) before any
+    is written: a reader refuses a `tasks/NAME` that is not the one the mixture wrote."""
     from simloader import sharding
     from simloader.store import writer
     found = sharding.distributed_rank()
@@ -60,51 +63,59 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
         raise ValueError("write: a Mixture is written from one process (num_workers= "
                          "simulates and writes in parallel); several torchrun ranks writing "
                          "one mixture store are not supported")
-    ownership.check_target(path, replace)
+    _check_names(mixture)  # before anything is made
+    ownership.check_path(path)
     start = time.perf_counter()
-    with lock.WriterLock(path, lock.new_job_id()):
-        tasks = os.path.join(path, TASKS)
-        # a link is refused before anything is removed or written (as a store's are)
-        if os.path.lexists(tasks) and (os.path.islink(tasks) or any(
-                os.path.islink(e.path) for e in os.scandir(tasks))):
-            raise ownership.NotAStore(f"path: the mixture store at {path!r} holds links under "
-                                      f"{TASKS}/, which simloader never writes; remove them")
-        if replace:
-            ownership.clear(path)
-        mine = _root(mixture, batches)
-        stored = read_json(os.path.join(path, "zarr.json"))
-        if stored is not None:
-            kept = ((stored.get("attributes") or {}).get(ATTRIBUTE) or {})
-            if kept.get("kind") != KIND:
-                raise StoreMismatch(f"the store at {path!r} holds one dataset's batches, not a "
-                                    f"mixture's: write the mixture to a new path (or "
-                                    f"replace=True)")
-            differ = [f"{k}: stored {kept.get(k)!r}, given {mine[k]!r}"
-                      for k in ("tasks", "weights", "seed", "pad") if kept.get(k) != mine[k]]
-            if differ:
-                raise StoreMismatch(f"the store at {path!r} holds another mixture; it cannot "
-                                    f"be appended to ({'; '.join(differ)})")
-            if kept.get("batches", 0) > batches:
-                mine = _root(mixture, kept["batches"])
-        _check_members(mixture, path)  # before anything is written
-        if stored is None:  # the store's own root first (a new store: no batch yet)
-            os.makedirs(tasks, exist_ok=True)
-            write_json(os.path.join(tasks, "zarr.json"), {
-                "zarr_format": 3, "node_type": "group", "attributes": {}}, durable=True)
-            _write_root(path, _root(mixture, 0))
-            sync_directories([tasks, path])
-        reports = []
-        for name, member, n in zip(mixture.names, mixture.datasets, mine["counts"]):
-            if n:
-                options = {"compression": compression} if compression else {}
-                written = writer.write_zarr(member, task_path(path, name), batches=n,
-                                            num_workers=num_workers, progress=progress,
-                                            replace=False, **options)
-                reports.append(written.report)
-        # the batches every task now holds: said once all are written (a refused or killed
-        # write leaves the root as it was; each task's store says what it holds)
-        if stored is None or mine["batches"] != kept.get("batches"):
-            _write_root(path, mine)
+    with StoreFolder(path, create=True) as folder:
+        ownership.check_contents(folder, replace)
+        with lock.WriterLock(folder, lock.new_job_id()):
+            # a link is refused before anything is removed or written (as a store's are)
+            kind = folder.kind(TASKS)
+            if kind not in (None, "folder") or (kind == "folder" and any(
+                    k == "link" for _, k in folder.entries(TASKS))):
+                raise ownership.NotAStore(f"path: the mixture store at {path!r} holds links "
+                                          f"under {TASKS}/, which simloader never writes; "
+                                          f"remove them")
+            if replace:
+                ownership.clear(folder)
+            stored = folder.read_json("zarr.json")
+            kept: dict = {}
+            if stored is not None:
+                kept = ((stored.get("attributes") or {}).get(ATTRIBUTE) or {})
+                if kept.get("kind") != KIND:
+                    raise StoreMismatch(f"the store at {path!r} holds one dataset's batches, "
+                                        f"not a mixture's: write the mixture to a new path "
+                                        f"(or replace=True)")
+                mine = _root(mixture, batches, {})
+                differ = [f"{k}: stored {kept.get(k)!r}, given {mine[k]!r}"
+                          for k in ("tasks", "weights", "seed", "pad") if kept.get(k) != mine[k]]
+                if differ:
+                    raise StoreMismatch(f"the store at {path!r} holds another mixture; it "
+                                        f"cannot be appended to ({'; '.join(differ)})")
+            members = _members(mixture, folder, kept.get("members"))  # before anything
+            mine = _root(mixture, max(batches, kept.get("batches", 0)), members)
+            if stored is None:  # the store's own root first (a new store: no batch yet)
+                folder.make_directories(TASKS)
+                folder.write_json(TASKS + "/zarr.json", {
+                    "zarr_format": 3, "node_type": "group", "attributes": {}}, durable=True)
+            if stored is None or kept.get("members") != members:
+                # the members named before any of their stores is made or grown
+                _write_root(folder, {**mine, "batches": kept.get("batches", 0),
+                                     "counts": kept.get("counts", [0] * len(members))})
+                folder.sync([TASKS, ""])
+            reports = []
+            for name, member, n in zip(mixture.names, mixture.datasets, mine["counts"]):
+                if n:
+                    options = {"compression": compression} if compression else {}
+                    written = writer.write_zarr(member, task_name(name), batches=n,
+                                                num_workers=num_workers, progress=progress,
+                                                replace=False, member_of=folder,
+                                                identity=members[name]["id"], **options)
+                    reports.append(written.report)
+            # the batches every task now holds: said once all are written (a refused or
+            # killed write leaves the root as it was; each task's store says what it holds)
+            if mine["batches"] != kept.get("batches") or kept.get("members") != members:
+                _write_root(folder, mine)
     out = writer.Written(path)
     stages = pipeline.Stages()
     for r in reports:
@@ -116,43 +127,83 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
     return out
 
 
-def _write_root(path: str, attribute: dict) -> None:
-    write_json(os.path.join(path, "zarr.json"), {
+def task_name(name: str) -> str:
+    """Task `name`'s store, relative to the mixture store's root."""
+    return f"{TASKS}/{store_path(name)}"
+
+
+def _check_names(mixture: Any) -> None:
+    """Every task's store has a folder of its own under `tasks/`: a name whose folder would
+    be the group's own metadata, or a killed writer's leftover, is refused before anything
+    is written."""
+    for name in mixture.names:
+        folder = store_path(name)
+        if folder == "zarr.json" or ownership.LEFTOVER.search(folder):
+            raise ValueError(f"datasets: the task name {name!r} is reserved in a mixture's "
+                             f"store (tasks/{folder} is the group's own file); rename the "
+                             f"task")
+
+
+def _write_root(folder: StoreFolder, attribute: dict) -> None:
+    folder.write_json("zarr.json", {
         "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: attribute}},
         durable=True)
+    folder.sync([""])
 
 
-def _check_members(mixture: Any, path: str) -> None:
-    """Every task's store that exists holds its member's configuration (refused otherwise,
-    naming the task and what differs), checked before any task is written."""
+def _members(mixture: Any, folder: StoreFolder, recorded: Any) -> dict[str, dict]:
+    """Per task, its store's identity and fingerprint's digest: those the root recorded
+    (each existing store must still be that one), or those of a store written before roots
+    recorded them, or a new identity for a store not made yet. A task's store of another
+    configuration, or not the one recorded, is refused naming the task, before anything is
+    written."""
+    recorded = recorded if isinstance(recorded, dict) else {}
+    out = {}
     for name, member in zip(mixture.names, mixture.datasets):
-        meta = read_json(os.path.join(task_path(path, name), "zarr.json"))
+        digest = fingerprint_digest(fingerprint(member))
+        meta = folder.read_json(task_name(name) + "/zarr.json") \
+            if folder.kind(task_name(name)) == "folder" else None
         kept = ((meta or {}).get("attributes") or {}).get(ATTRIBUTE)
-        if not isinstance(kept, dict) or "fingerprint" not in kept:
-            continue
-        differ = differences(kept["fingerprint"], fingerprint(member))
-        if differ:
-            raise StoreMismatch(f"the store at {path!r} holds another configuration for task "
-                                f"{name!r}; it cannot be appended to ({'; '.join(differ)})")
+        was = recorded.get(name)
+        if isinstance(kept, dict) and "fingerprint" in kept:
+            differ = differences(kept["fingerprint"], fingerprint(member))
+            if differ:
+                raise StoreMismatch(f"the store at {folder.path!r} holds another "
+                                    f"configuration for task {name!r}; it cannot be "
+                                    f"appended to ({'; '.join(differ)})")
+            if isinstance(was, dict) and was.get("id") != kept.get("id"):
+                raise StoreMismatch(member_refusal(folder.path, name, "identity",
+                                                   kept.get("id"), was.get("id")))
+            out[name] = {"id": kept.get("id"), "fingerprint": digest}
+        else:
+            out[name] = {"id": was.get("id") if isinstance(was, dict) else new_identity(),
+                         "fingerprint": digest}
+    return out
 
 
-def _root(mixture: Any, batches: int) -> dict:
+def member_refusal(path: str, name: str, what: str, found: Any, recorded: Any) -> str:
+    return (f"the mixture store at {path!r}: its task {name!r} ({TASKS}/{store_path(name)}) "
+            f"has {what} {found!r}, but the mixture recorded {recorded!r}: it is not the "
+            f"store the mixture wrote (copied or replaced from another dataset?). Put the "
+            f"task's own store back, or write the mixture again to a new path")
+
+
+def _root(mixture: Any, batches: int, members: dict) -> dict:
     return {"format": FORMAT, "kind": KIND, "tasks": list(mixture.names),
             "weights": [float(w) for w in mixture.weights], "seed": mixture.seed,
             "pad": mixture.pad, "batches": batches, "counts": counts(mixture, batches),
-            "describe": mixture.describe(), "versions": versions()}
+            "describe": mixture.describe(), "versions": versions(), "members": members}
 
 
 def mixture_root(path: str) -> Optional[dict]:
     """The root attribute of a mixture store at `path`, or None for any other folder."""
-    if not os.path.isdir(path):
+    if "\0" in path or not os.path.isdir(path):
         return None  # a file or nothing: StoredDataset says which
     try:
-        meta = read_json(os.path.join(path, "zarr.json"))
+        with StoreFolder(path) as folder:
+            kept = ownership.root_attribute(folder)
     except (ValueError, OSError):
         return None
-    kept = ((meta or {}).get("attributes") or {}).get(ATTRIBUTE) if isinstance(meta, dict) \
-        else None
     return kept if isinstance(kept, dict) and kept.get("kind") == KIND else None
 
 
@@ -173,11 +224,15 @@ class StoredMixture(torch.utils.data.Dataset):
         self.names = list(root["tasks"])
         self.pad = bool(root["pad"])
         self.tasks: dict[str, Any] = {}
+        members = root.get("members") if isinstance(root.get("members"), dict) else None
         for name in self.names:
             where = task_path(self.path, name)
             if os.path.exists(os.path.join(where, "zarr.json")):
                 # cameras= and the renderer's options: each task's store renders its own
-                self.tasks[name] = StoredDataset(where, keys=keys, verify=verify, **options)
+                task = self.tasks[name] = StoredDataset(where, keys=keys, verify=verify,
+                                                        **options)
+                if members is not None:
+                    _check_member(self.path, name, task.info, members.get(name))
         self._index = {n: i for i, n in enumerate(self.names)}
         self._present = list(self.tasks)
         self._starts = np.cumsum([0] + [len(self.tasks[n]) for n in self._present]).tolist()
@@ -243,6 +298,19 @@ class StoredMixture(torch.utils.data.Dataset):
                 lead = 1 if key in per_frame or key == "control" else 0
                 out[key] = (widest, dtypes[key], lead)
         return out
+
+
+def _check_member(path: str, name: str, info: dict, recorded: Any) -> None:
+    """A task's store is the one the mixture's root names (its identity and its
+    fingerprint's digest), or `DamagedStore` naming what differs."""
+    if not isinstance(recorded, dict):
+        raise DamagedStore(f"the mixture store at {path!r} records no store for its task "
+                           f"{name!r}: its root was edited or damaged")
+    digest = fingerprint_digest(info.get("fingerprint"))
+    for what, found, kept in (("identity", info.get("id"), recorded.get("id")),
+                              ("fingerprint", digest, recorded.get("fingerprint"))):
+        if found != kept:
+            raise DamagedStore(member_refusal(path, name, what, found, kept))
 
 
 def _row(batch: Mapping[str, Any]) -> dict[str, Any]:

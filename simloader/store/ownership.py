@@ -11,23 +11,32 @@ writing, the target must be one of:
 
 Anything else (a project folder, another tool's zarr group, a file) is refused, naming what is
 there, and so are system folders (`/`, `/usr`, the home folder, ...), whatever they hold. A
-store's own entries are its root `zarr.json`, its lock, and the folders that hold a
-`zarr.json` (its groups and arrays); `replace=True` removes those and leaves any other entry a
-user put beside them. A link anywhere among them is refused before the lock is taken: a lock or
-a folder that links outside the store would have the writer empty or write a file that is not
-its own.
+store's own entries are its root `zarr.json`, its lock, `provenance/`, a mixture store's
+`tasks/`, and the arrays and groups simloader writes (an array's `zarr.json` names its batch
+key; a group holds nothing else); `replace=True` removes those and leaves any other entry a
+user put beside them, a zarr group of their own included. A link anywhere among them is
+refused before the lock is taken: a lock or a folder that links outside the store would have
+the writer empty or write a file that is not its own.
+
+No store is made inside another (its readers would refuse the outer store as damaged, and a
+`replace=True` of the outer one would remove it): a path below a store's root is refused,
+naming the outer store, but for a mixture store's own members under its `tasks/`.
+
+Everything after the first checks by path goes through the store's open folder
+(`simloader.store.folder`): no link is followed, whatever is swapped in meanwhile.
 """
 
 from __future__ import annotations
 
-import json
+import errno
 import os
 import re
-import shutil
-import stat
-from simloader.atomic import PARTIAL, sync_directories
+from typing import Optional
+
+from simloader.atomic import PARTIAL
+from simloader.store.folder import StoreFolder
 from simloader.store.lock import FILE as LOCK
-from simloader.store.zarr_format import ATTRIBUTE
+from simloader.store.zarr_format import ATTRIBUTE, CHECKSUM, DamagedStore
 
 ROOT = "zarr.json"
 _CREATION = frozenset({LOCK, "provenance"})  # what a creation makes before its root
@@ -42,11 +51,12 @@ _SYSTEM = ("/", "/bin", "/boot", "/dev", "/etc", "/home", "/lib", "/lib32", "/li
            "/Users", "/Volumes", "/private")
 _NEVER_BELOW = ("/proc", "/sys", "/dev")
 _SHOWN = 6  # entries named in a refusal
+_GROUP_DEPTH = 3  # camera/NAME/KIND: the deepest group simloader makes above an array
 
 
 class NotAStore(ValueError):
     """`write`'s path is not one a store may be written to (a folder of the user's, a system
-    folder, a file); nothing was written or deleted."""
+    folder, a file, a path inside another store); nothing was written or deleted."""
 
 
 def system_folder(path: str) -> bool:
@@ -57,18 +67,26 @@ def system_folder(path: str) -> bool:
             any(real.startswith(top + "/") for top in _NEVER_BELOW))
 
 
+def root_attribute(folder: StoreFolder) -> Optional[dict]:
+    """The `simloader` attribute of the folder's root `zarr.json` (a file, not a link), or
+    None where there is none."""
+    try:
+        meta = folder.read_json(ROOT)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(meta, dict) or not isinstance(meta.get("attributes"), dict):
+        return None
+    value = meta["attributes"].get(ATTRIBUTE)
+    return value if isinstance(value, dict) else None
+
+
 def is_store_root(path: str) -> bool:
     """`path` holds a root `zarr.json` (a file, not a link) with the `simloader` attribute."""
-    root = os.path.join(path, ROOT)
     try:
-        if not stat.S_ISREG(os.lstat(root).st_mode):
-            return False
-        with open(root, encoding="utf-8") as f:
-            meta = json.load(f)
-    except (OSError, ValueError, UnicodeDecodeError):
+        with StoreFolder(path) as folder:
+            return root_attribute(folder) is not None
+    except (OSError, ValueError):
         return False
-    return isinstance(meta, dict) and isinstance(meta.get("attributes"), dict) and \
-        ATTRIBUTE in meta["attributes"]
 
 
 def _listed(names: list[str]) -> str:
@@ -77,94 +95,173 @@ def _listed(names: list[str]) -> str:
     return shown + (f" and {len(names) - _SHOWN} more" if len(names) > _SHOWN else "")
 
 
-def check_target(path: str, replace: bool) -> None:
-    """Refuses (`NotAStore`) a path a store may not be written to, before anything is made;
-    see the module's docstring. Reads only."""
+def check_path(path: str, *, member_of: Optional[str] = None) -> None:
+    """The checks by path, before anything is opened: a path at all, not a system folder,
+    not a file or a link to nothing, not inside another store (`member_of`: the mixture
+    store whose `tasks/` this member's store lies in). Reads only."""
     if path == "":
         raise NotAStore("path: expected the folder of a store, got an empty path")
+    if "\0" in path:
+        raise NotAStore(f"path: {path!r} holds a NUL character, which no file name can")
     if system_folder(path):
         raise NotAStore(f"path: {path!r} is a system folder ({os.path.realpath(path)}); a "
                         f"store is written into a folder of its own: pass a new folder, e.g. "
                         f"{os.path.join(path, 'trajectories.zarr')!r}")
-    if not os.path.lexists(path):
-        return
-    if not os.path.isdir(path):
+    if os.path.islink(path) and not os.path.exists(path):
+        raise NotAStore(f"path: {path!r} is a link to {os.readlink(path)!r}, which does not "
+                        f"exist; pass the folder itself (or create the link's target)")
+    if os.path.lexists(path) and not os.path.isdir(path):
         raise NotAStore(f"path: {path!r} is a file, not a folder; a store is a folder: pass a "
                         f"new path")
-    entries = os.listdir(path)
+    outer = enclosing_store(path)
+    if outer is not None and (member_of is None or
+                              os.path.realpath(outer) != os.path.realpath(member_of)):
+        raise NotAStore(f"path: {path!r} lies inside the store at {outer!r}; a store inside "
+                        f"a store makes the outer one unreadable (its readers refuse what "
+                        f"they do not know) and a replace=True of the outer one would remove "
+                        f"it: write to a path outside {outer!r}")
+
+
+def enclosing_store(path: str) -> Optional[str]:
+    """The nearest folder above `path` (resolved) that is a store's root, or None."""
+    real = os.path.realpath(path)
+    above = os.path.dirname(real)
+    while True:
+        if is_store_root(above):
+            return above
+        parent = os.path.dirname(above)
+        if parent == above:
+            return None
+        above = parent
+
+
+def check_contents(folder: StoreFolder, replace: bool) -> None:
+    """Refuses (`NotAStore`) a folder a store may not be written to: anything but an empty
+    folder, a simloader store or a killed creation; and links among a store's own entries.
+    Reads only, through the open folder."""
+    entries = dict(folder.entries())
     if not entries:
         return
-    if is_store_root(path) or _creation(path, entries):
-        refuse_links(path, [e for e in entries if e == ROOT or e == LOCK or
-                            own_folder(os.path.join(path, e))])
+    if root_attribute(folder) is not None or _creation(folder, entries):
+        refuse_links(folder, [n for n, kind in entries.items() if kind == "link" and
+                              (n in (ROOT, LOCK) or n in own_names(folder))])
         return
     which = "replace=True replaces a simloader store only; " if replace else ""
-    raise NotAStore(f"path: {path!r} is a folder that is not a simloader store (it holds "
-                    f"{_listed(entries)}); {which}a store is written into a new or empty "
-                    f"folder, or into a store simloader made: pass another path")
+    raise NotAStore(f"path: {folder.path!r} is a folder that is not a simloader store (it "
+                    f"holds {_listed(list(entries))}); {which}a store is written into a new "
+                    f"or empty folder, or into a store simloader made: pass another path")
 
 
-def _creation(path: str, entries: list[str]) -> bool:
+def _creation(folder: StoreFolder, entries: dict[str, str]) -> bool:
     """What a killed creation leaves before the root: the lock (empty, or naming a simloader
     job) and `provenance/` holding the slots' array only."""
     if not set(entries) <= _CREATION:
         return False
     if LOCK in entries:
-        lock = os.path.join(path, LOCK)
-        try:
-            if os.path.islink(lock) or not os.path.isfile(lock):
-                return False
-            with open(lock, encoding="utf-8") as f:
-                text = f.read(4096)
-            if text.strip() and "job" not in json.loads(text):
-                return False
-        except (OSError, ValueError, TypeError, UnicodeDecodeError):
+        if entries[LOCK] != "file":
             return False
-    folder = os.path.join(path, "provenance")
+        from simloader.store.lock import holder
+        try:
+            text = folder.read(LOCK, 4096)
+        except (OSError, ValueError):
+            return False
+        if text.strip() and holder(folder) is None:
+            return False
     if "provenance" in entries:
-        if os.path.islink(folder) or not os.path.isdir(folder):
+        if entries["provenance"] != "folder":
             return False
         # the slots' array, and the models kept for rendering on read (`pixels.MODELS`)
         return all(n in (ROOT, "written", "models") or LEFTOVER.search(n)
-                   for n in os.listdir(folder))
+                   for n, _ in folder.entries("provenance"))
     return True
 
 
-def own_folder(path: str) -> bool:
-    """A folder of the store's: a group or an array (it holds a `zarr.json`), or the
-    provenance group a killed creation left; links are checked by the caller."""
-    return (os.path.isdir(path) and not os.path.islink(path) and
-            (os.path.lexists(os.path.join(path, ROOT)) or os.path.basename(path) == "provenance"))
+def refuse_links(folder: StoreFolder, names: list[str]) -> None:
+    """Refuses links among the store's entries `names` (the survey under the lock checks
+    every folder below them)."""
+    if names:
+        raise NotAStore(f"path: the store at {folder.path!r} holds links ({_listed(names)}), "
+                        f"which simloader never writes: one could make the writer write or "
+                        f"empty a file outside the store; remove them (or write to another "
+                        f"path)")
 
 
-def refuse_links(root: str, names: list[str]) -> None:
-    """Refuses links among the store's top-level entries `names` (the survey under the lock
-    checks every folder below them)."""
-    links = [n for n in names if os.path.islink(os.path.join(root, n))]
-    if links:
-        raise NotAStore(f"path: the store at {root!r} holds links ({_listed(links)}), which "
-                        f"simloader never writes: one could make the writer write or empty a "
-                        f"file outside the store; remove them (or write to another path)")
-
-
-def own_entries(root: str) -> list[str]:
-    """The store's own top-level entries (its root, groups, arrays, and the killed writers'
-    temporary files beside them), its lock aside."""
-    out = []
-    for entry in os.scandir(root):
-        if entry.name == LOCK:
-            continue
-        if entry.name == ROOT or LEFTOVER.search(entry.name) or own_folder(entry.path):
-            out.append(entry.path)
+def own_names(folder: StoreFolder) -> set[str]:
+    """The store's own top-level folders (see the module's docstring): `provenance`, a
+    mixture store's `tasks`, the top folders of the arrays its checksums' record names, and
+    the folders holding only arrays and groups simloader writes. Links are not among them
+    (the caller refuses those)."""
+    out = set()
+    kind = folder.kind
+    if kind("provenance") == "folder":
+        out.add("provenance")
+    attribute = root_attribute(folder)
+    if attribute is not None and attribute.get("kind") == "mixture" and \
+            kind("tasks") == "folder":
+        out.add("tasks")
+    try:
+        checks = folder.read_json(CHECKSUM + "/" + ROOT)
+    except (OSError, DamagedStore):
+        checks = None
+    arrays = ((checks or {}).get("attributes") or {}).get("arrays") \
+        if isinstance(checks, dict) else None
+    if isinstance(arrays, list):
+        out.update(a.split("/")[0] for a in arrays if isinstance(a, str) and
+                   kind(a.split("/")[0]) == "folder")
+    for name, what in folder.entries():
+        if what == "folder" and name not in out and _written_by_simloader(folder, name, 0):
+            out.add(name)
     return out
 
 
-def clear(root: str) -> None:
+def _written_by_simloader(folder: StoreFolder, name: str, depth: int) -> bool:
+    """Folder `name` is an array simloader wrote (its `zarr.json` names the batch key) or a
+    group of such arrays (a `zarr.json` of a group without attributes, and nothing else)."""
+    try:
+        meta = folder.read_json(name + "/" + ROOT)
+        entries = folder.entries(name)
+    except (OSError, ValueError):
+        return False
+    if not isinstance(meta, dict):
+        return False
+    attributes = meta.get("attributes")
+    if meta.get("node_type") == "array":
+        return isinstance(attributes, dict) and isinstance(attributes.get("key"), str)
+    if meta.get("node_type") != "group" or attributes or depth >= _GROUP_DEPTH:
+        return False
+    return all(entry == ROOT or LEFTOVER.search(entry) or
+               (what == "folder" and _written_by_simloader(folder, f"{name}/{entry}", depth + 1))
+               for entry, what in entries)
+
+
+def own_entries(folder: StoreFolder) -> list[str]:
+    """The store's own top-level entries (its root, groups, arrays, and the killed writers'
+    temporary files beside them), its lock aside."""
+    own = own_names(folder)
+    return [name for name, kind in folder.entries()
+            if name != LOCK and (name == ROOT or LEFTOVER.search(name) or name in own)]
+
+
+def clear(folder: StoreFolder) -> None:
     """`replace=True`: removes the store's own entries (never following a link; the lock,
-    which the caller holds, and entries the store did not make stay)."""
-    for path in own_entries(root):
-        if os.path.isdir(path) and not os.path.islink(path):
-            shutil.rmtree(path)
+    which the caller holds, and entries the store did not make stay). The root goes first:
+    a store half removed is not a store, and readers opened before say it was replaced."""
+    entries = own_entries(folder)
+    for name in sorted(entries, key=lambda n: n != ROOT):
+        if folder.kind(name) == "folder":
+            folder.remove_tree(name)
         else:
-            os.unlink(path)
-    sync_directories([root])
+            folder.unlink(name)
+    folder.sync([""])
+
+
+def os_error_message(number: Optional[int]) -> str:
+    """What a failed write (of error number `number`) left, said truly: a folder that cannot
+    be written holds what it held; a full disk or another failure leaves the committed
+    slots."""
+    if number in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return "simloader cannot write there; nothing was changed by this write"
+    if number == errno.ENAMETOOLONG:
+        return "a name is longer than the file system allows; nothing was written under it"
+    return ("the store stays readable with the batches completed so far, and calling write "
+            "again resumes after them")

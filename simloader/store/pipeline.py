@@ -37,9 +37,9 @@ import numpy as np
 import torch
 
 from simloader import threads
-from simloader.atomic import discard, fsync_file, parents, sync_directories, write_temporary
+from simloader.store.folder import Staged, StoreFolder, folders_above
 from simloader.store.zarr_format import (PROVENANCE, WRITTEN, ArraySpec, checksum_spec,
-                                         encode_shard, inside, leaves, store_path, write_shard)
+                                         encode_shard, leaves, store_path, write_shard)
 
 IN_FLIGHT = 2  # slots between their copy to the host and their commit, per writer
 
@@ -212,8 +212,9 @@ class SlotPipeline:
     waits for the rest. An error in a commit is raised by the next call; the slots
     committed before it stay committed."""
 
-    def __init__(self, path: str, specs: dict[str, ArraySpec], nbatch: int, stages: Stages):
-        self.path, self.specs, self.nbatch, self.stages = path, specs, nbatch, stages
+    def __init__(self, folder: StoreFolder, specs: dict[str, ArraySpec], nbatch: int,
+                 stages: Stages):
+        self.folder, self.specs, self.nbatch, self.stages = folder, specs, nbatch, stages
         self.checksums = checksum_spec(list(specs.values()))
         self.copies = _HostCopies()
         self.pending: collections.deque[Future] = collections.deque()
@@ -256,7 +257,7 @@ class SlotPipeline:
             rows_of = self._rows(copy.rows, where)
             diverged = int(np.count_nonzero(rows_of["diverged"])) if "diverged" in rows_of \
                 else 0
-            commit_slot(self.path, self.specs, self.checksums, slot, rows_of, self.stages,
+            commit_slot(self.folder, self.specs, self.checksums, slot, rows_of, self.stages,
                         self.arrays)
         finally:
             copy.release()
@@ -278,47 +279,52 @@ class SlotPipeline:
         return rows_of
 
 
-def commit_slot(path: str, specs: Mapping[str, ArraySpec], checksums: ArraySpec, slot: int,
-                rows_of: Mapping[str, Any], stages: Stages, pool: ThreadPoolExecutor) -> None:
+def commit_slot(folder: StoreFolder, specs: Mapping[str, ArraySpec], checksums: ArraySpec,
+                slot: int, rows_of: Mapping[str, Any], stages: Stages,
+                pool: ThreadPoolExecutor) -> None:
     """Commits one batch slot: every shard written to a temporary file (in `pool`'s threads),
     all fsync'd, renamed to their names, and the directories that name them fsync'd; then the
-    shards' sizes and checksums, durably; last the mark that the slot is complete."""
+    shards' sizes and checksums, durably; last the mark that the slot is complete. Every
+    file is reached through the store's open folder, no link followed; a temporary is
+    renamed in the folder it was written in."""
     names = dict(checksums.attributes)["arrays"]
 
-    def stage(name: str) -> tuple[int, int, Optional[tuple[str, str, str]]]:
+    def stage(name: str) -> tuple[int, int, Optional[tuple[Staged, str, str]]]:
         spec = specs[name]
         if spec.empty:
             return 0, 0, None
         parts, size, crc = encode_shard(spec, rows_of[name], stages)
-        file = inside(path, spec.shard_key(slot))
+        file = spec.shard_key(slot)
         with stages.timed("write"):
-            temporary = write_temporary(file, parts)
-        return size, crc, (temporary, file, os.path.join(path, spec.name))
+            staged = folder.stage(file, parts)
+        return size, crc, (staged, file, spec.name)
 
-    staged = _all(pool, stage, names, lambda out: out[2] is not None and discard(out[2][0]))
+    staged = _all(pool, stage, names, lambda out: out[2] is not None and out[2][0].discard())
     files = [f for _, _, f in staged if f is not None]
-    with stages.timed("sync"):
-        _all(pool, lambda f: fsync_file(f[0]), files, lambda _: None,
-             cleanup=lambda: [discard(f[0]) for f in files])
-    start = time.perf_counter()
-    directories: set[str] = set()
-    for temporary, file, array in files:
-        os.replace(temporary, file)
-        directories.update(parents(file, array))
-    sync_directories(directories)  # the shards are on the disk under their names
+    try:
+        with stages.timed("sync"):
+            _all(pool, lambda f: f[0].fsync(), files, lambda _: None)
+        start = time.perf_counter()
+        directories: set[str] = set()
+        for temporary, file, array in files:
+            temporary.commit()
+            directories.update(folders_above(file, array))
+    finally:
+        for temporary, _, _ in files:
+            temporary.discard()  # those not renamed (a failed fsync or rename)
+    folder.sync(directories)  # the shards are on the disk under their names
     recorded = np.array([[[size, crc] for size, crc, _ in staged]], dtype=np.uint64)
-    _, _, changed = write_shard(path, checksums, slot, recorded)
-    sync_directories(changed)
-    _, _, changed = write_shard(path, WRITTEN, slot, np.ones(1, dtype=bool))  # last
-    sync_directories(changed)
+    _, _, changed = write_shard(folder, checksums, slot, recorded)
+    folder.sync(changed)
+    _, _, changed = write_shard(folder, WRITTEN, slot, np.ones(1, dtype=bool))  # last
+    folder.sync(changed)
     stages.add("sync", time.perf_counter() - start)
 
 
-def _all(pool: ThreadPoolExecutor, work: Any, items: list, undo: Any,
-         cleanup: Any = None) -> list:
+def _all(pool: ThreadPoolExecutor, work: Any, items: list, undo: Any) -> list:
     """`work` over `items` in `pool`, every one run to its end; if any fails, `undo` is called
-    on the results of those that did not (and `cleanup()`), then the first error raised: no
-    temporary file of a failed slot stays behind."""
+    on the results of those that did not, then the first error raised: no temporary file of
+    a failed slot stays behind."""
     futures = [pool.submit(work, item) for item in items]
     errors = [f.exception() for f in futures]
     failed = next((e for e in errors if e is not None), None)
@@ -327,6 +333,4 @@ def _all(pool: ThreadPoolExecutor, work: Any, items: list, undo: Any,
     for future, error in zip(futures, errors):
         if error is None:
             undo(future.result())
-    if cleanup is not None:
-        cleanup()
     raise failed

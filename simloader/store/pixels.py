@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import types
+import zlib
 from collections.abc import Sequence
 from typing import Any, Optional
 
@@ -28,24 +29,52 @@ import numpy as np
 from simloader import identity, layout, records, render
 from simloader import randomize as dr
 
-MODELS = "provenance/models"  # the pool's MJB files: 0.mjb, 1.mjb, ...
+MODELS = "provenance/models"  # the pool's MJB files: 0.mjb.zlib, 1.mjb.zlib, ...
+MJB_COMPRESSED = ".mjb.zlib"
 
 
-def save_models(root: str, pool: Sequence[mujoco.MjModel]) -> None:
+def save_models(folder: Any, pool: Sequence[mujoco.MjModel]) -> None:
     """The writer's pool of models (`pool_of`), as MJB files (the compiled models, bit for
-    bit)."""
-    from simloader.atomic import atomic_write, sync_directories
-    from simloader.store.zarr_format import write_json
-    folder = os.path.join(root, MODELS)
+    bit), compressed with zlib (`MJB_COMPRESSED`): a small model's file is mostly its
+    textures (dm_control's skybox: 11.8 MB of a 12.7 MB walker store), which compress
+    about 17x. `folder`: the store's `StoreFolder`."""
     # a zarr group (with files of its own beside): zarr readers see it as the store's
-    write_json(os.path.join(folder, "zarr.json"), {"zarr_format": 3, "node_type": "group",
-                                                   "attributes": {"files": "MJB models"}},
-               durable=True)
+    folder.write_json(MODELS + "/zarr.json", {
+        "zarr_format": 3, "node_type": "group",
+        "attributes": {"files": "MJB models, zlib-compressed (NAME.mjb.zlib)"}},
+        durable=True)
     for k, model in enumerate(pool):
         buffer = np.empty(mujoco.mj_sizeModel(model), dtype=np.uint8)
         mujoco.mj_saveModel(model, None, buffer)
-        atomic_write(os.path.join(folder, f"{k}.mjb"), [buffer.tobytes()], durable=True)
-    sync_directories([folder, os.path.dirname(folder)])
+        folder.write(f"{MODELS}/{k}{MJB_COMPRESSED}", [zlib.compress(buffer, 6)],
+                     durable=True)
+    folder.sync([MODELS, "provenance"])
+
+
+def load_models(stored: Any, count: int) -> list[mujoco.MjModel]:
+    """The store's kept models (`save_models`; a store written before they were compressed
+    keeps plain `K.mjb` files), read through its folder: a missing, linked or damaged file is
+    refused naming it."""
+    pool = []
+    for k in range(count):
+        compressed, plain = f"{MODELS}/{k}{MJB_COMPRESSED}", f"{MODELS}/{k}.mjb"
+        name = plain if stored.folder.kind(compressed) is None and \
+            stored.folder.kind(plain) is not None else compressed
+        where = stored.folder.where(name)
+        try:
+            data = stored.folder.read(name, 1 << 31)
+            if name == compressed:
+                data = zlib.decompress(data)
+            # from memory, as an asset of that name: no file outside the store is made
+            pool.append(mujoco.MjModel.from_binary_path("model.mjb", {"model.mjb": data}))
+        except FileNotFoundError:
+            raise ValueError(f"cameras: the store's model {where} is missing (removed?); "
+                             f"pass model= (the model that wrote it)") from None
+        except (OSError, ValueError, zlib.error) as e:
+            raise ValueError(f"cameras: the store's model {where} cannot be read ({e}); it "
+                             f"is damaged or not an MJB file simloader wrote: pass model= "
+                             f"(the model that wrote it)") from None
+    return pool
 
 
 class StoredCameras:
@@ -140,16 +169,18 @@ def _models(stored: Any, model: Any) -> tuple[list[mujoco.MjModel], str]:
                          f"kept the model in its stores: pass the model that wrote it, "
                          f"model= (a name, an MJCF path or an MjModel; the list of a "
                          f"models= stream; checked against the store's digest)")
-    folder = os.path.join(stored.path, MODELS)
-    pool = []
-    for k in range(int(kept["count"])):
-        file = os.path.join(folder, f"{k}.mjb")
-        if os.path.islink(file) or not os.path.isfile(file):
-            raise ValueError(f"cameras: the store's model {file} is missing (or a link); pass "
-                             f"model= (the model that wrote it)")
-        pool.append(mujoco.MjModel.from_binary_path(file))
-    _check(stored, pool, kept["kind"], f"cameras: the store's model files in {folder} do "
-                                        f"not match its digests (edited?); pass model=")
+    count = kept.get("count")
+    if kept.get("kind") not in ("model", "models", "variants") or not isinstance(count, int) \
+            or isinstance(count, bool) or not 1 <= count <= 1 << 16 or \
+            (kept["kind"] == "variants" and count < 2):
+        raise ValueError(f"cameras: the store at {stored.path!r} says its models are "
+                         f"{kept!r} (expected kind 'model' with count 1, 'models' with one "
+                         f"per batch row, or 'variants' with the base model and at least one "
+                         f"variant): its root was edited or damaged; pass model=")
+    pool = load_models(stored, count)
+    _check(stored, pool, kept["kind"], f"cameras: the store's model files in "
+                                        f"{stored.folder.where(MODELS)} do not match its "
+                                        f"digests (edited?); pass model=")
     return pool, kept["kind"]
 
 

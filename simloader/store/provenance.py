@@ -3,7 +3,10 @@ made them, and whether a dataset is that configuration."""
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
+import json
+import uuid
 from typing import Any, Optional
 
 from simloader import identity
@@ -54,6 +57,19 @@ def provenance(dataset: Any, batches: int) -> dict:
             # the models it simulated, kept as MJB files (`pixels.save_models`): a store of
             # states renders its cameras on read with them
             "models": {"kind": kind, "count": len(pool)}}
+
+
+def fingerprint_digest(fingerprint: Any) -> str:
+    """A short digest of a fingerprint as a store's root keeps it (JSON: lists and tuples
+    alike), for a mixture's root to name its members' configurations."""
+    text = json.dumps(fingerprint, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def new_identity() -> str:
+    """A new store's identity, kept in its root while it grows: a reader holds the one it
+    opened, and a store written anew at the same path (`replace=True`) has another."""
+    return uuid.uuid4().hex
 
 
 class StoreMismatch(ValueError):

@@ -18,6 +18,7 @@ from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedS
                                          batch_key, leaves)
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
+from simloader.store.folder import StoreFolder
 from simloader.store.shards import MAX_OPEN, StoredArray
 
 
@@ -115,14 +116,20 @@ class StoredDataset(torch.utils.data.Dataset):
         self.path = os.fspath(path)
         if not isinstance(verify, bool):
             raise ValueError(f"verify: expected True or False, got {verify!r}")
+        if "\0" in self.path:
+            raise ValueError(f"path: {self.path!r} holds a NUL character, which no file name "
+                             f"can")
         if not os.path.exists(self.path):
             raise ValueError(f"path: {self.path!r} does not exist; expected a store folder "
                              f"that simloader.write made")
         if not os.path.isdir(self.path):
             raise ValueError(f"path: {self.path!r} is a file, not a store folder (simloader."
                              f"write makes a folder: a zarr v3 group)")
-        self.store = store = integrity.Store(self.path)
+        self.folder = folder = StoreFolder(self.path)
+        self.store = store = integrity.Store(folder)
         self.info = store.info
+        # the identity it was opened with, confirmed whenever a shard is opened
+        self.opened = shards.OpenedStore(folder, store.info.get("id"))
         self.layouts = {batch_key(p, store.survey.metas[p]): layout
                         for p, layout in store.layouts.items()
                         if p not in (WRITTEN.name, CHECKSUM)}
@@ -155,7 +162,7 @@ class StoredDataset(torch.utils.data.Dataset):
 
     @functools.cached_property
     def _arrays(self) -> dict[str, StoredArray]:
-        return {k: StoredArray(self.path, layout) for k, layout in self.layouts.items()}
+        return {k: StoredArray(self.opened, layout) for k, layout in self.layouts.items()}
 
     def arrays(self) -> dict[str, StoredArray]:
         """Every array of the store, by batch key (shards are opened at their first read,

@@ -25,8 +25,48 @@ from typing import Any, Optional
 
 import numpy as np
 
-from simloader.store.zarr_format import (_NO_CHUNK, _ZARR_DTYPES, DamagedStore,
+from simloader.store.folder import StoreFolder
+from simloader.store.zarr_format import (_NO_CHUNK, _ZARR_DTYPES, ATTRIBUTE, DamagedStore,
                                          raw_shard_bytes, shard_key, zstd, blosc)
+
+
+class StoreReplaced(DamagedStore):
+    """The store a reader opened was replaced (or removed) since: its slots would be another
+    store's trajectories."""
+
+
+class OpenedStore:
+    """The store a reader opened: its folder (every shard is opened through it, no link
+    followed) and its identity (the root's `id`, drawn when the store was made), confirmed
+    each time a shard is opened, after it is: a shard opened before the confirmation is of
+    the store that still held that identity then (a store is made root first, so a shard of
+    a newer store means a newer root). The root is read again only when its file changed
+    (another inode, time or size: a growing store rewrites it)."""
+
+    def __init__(self, folder: StoreFolder, identity: Optional[str]):
+        self.folder, self.identity = folder, identity
+        self._seen: Optional[tuple] = None
+
+    def confirm(self) -> None:
+        """Raises `StoreReplaced` unless the store's root still holds its identity."""
+        try:
+            info = self.folder.stat("zarr.json")
+            seen = (info.st_ino, info.st_mtime_ns, info.st_size)
+            if seen == self._seen:
+                return
+            meta = self.folder.read_json("zarr.json")
+        except (FileNotFoundError, DamagedStore):
+            meta = None
+        kept = ((meta or {}).get("attributes") or {}).get(ATTRIBUTE) \
+            if isinstance(meta, dict) else None
+        if not isinstance(kept, dict) or kept.get("id") != self.identity:
+            what = ("removed" if meta is None else "replaced by another store (another "
+                    "write(..., replace=True), or a store written anew there)")
+            raise StoreReplaced(f"the store at {self.folder.path!r} was {what} since it was "
+                                f"opened: its slots no longer hold the trajectories this "
+                                f"reader listed. Open it again (StoredDataset(path)) to read "
+                                f"what it holds now")
+        self._seen = seen
 
 # Open shards per process: each is one map or one descriptor. Small enough to stay far below
 # the common `ulimit -n` of 256 to 1024 with DataLoader workers' pipes beside it, large enough
@@ -71,8 +111,12 @@ class ArrayLayout:
         return (None if self.compressed else
                 raw_shard_bytes(self.nbatch, self.trailing, self.chunk, self.dtype))
 
+    def shard_name(self, slot: int) -> str:
+        """Its shard of `slot`, relative to the store's root."""
+        return shard_key(self.path, len(self.trailing), slot)
+
     def shard_file(self, root: str, slot: int) -> str:
-        return os.path.join(root, shard_key(self.path, len(self.trailing), slot))
+        return os.path.join(root, self.shard_name(slot))
 
     @classmethod
     def parse(cls, root: str, path: str, meta: Any, nbatch: int) -> "ArrayLayout":
@@ -127,25 +171,33 @@ class ShardFile:
     """One shard file of one array, checked at open: a raw shard is a memory map (a
     trajectory is a slice of it), a compressed one a descriptor read with `os.pread`."""
 
-    def __init__(self, file: str, layout: ArrayLayout, slot: int, whole: bool = False):
+    def __init__(self, opened: OpenedStore, layout: ArrayLayout, slot: int,
+                 whole: bool = False):
         """`whole`: the shard will be read whole (a block of a quasi-random epoch): its map is
         populated at once (`MAP_POPULATE`: the file read in order and every page mapped),
         instead of one page fault per page touched in shuffled order (cold, that ran at
         0.45M humanoid transitions/s in one process against 0.87M warm)."""
-        self.file, self.layout, self.slot, self.whole = file, layout, slot, whole
+        name = layout.shard_name(slot)
+        self.file = file = opened.folder.where(name)
+        self.layout, self.slot, self.whole = layout, slot, whole
         self.map: Optional[mmap.mmap] = None
         self.fd: Optional[int] = None
         try:
-            fd = os.open(file, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+            fd = opened.folder.open_file(name)
         except FileNotFoundError:
+            opened.confirm()  # gone because the store was replaced: say that
             raise DamagedStore(f"{file}: missing: batch slot {slot} is marked written but "
                                f"its shard of {layout.path!r} is gone; calling "
                                f"simloader.write again with the same dataset rewrites it"
                                ) from None
+        except DamagedStore:
+            opened.confirm()
+            raise
         except OSError as e:
-            raise DamagedStore(f"{file}: cannot be opened ({e.strerror}): a link, or not a "
-                               f"file (batch slot {slot}); the store refuses links") from None
+            raise DamagedStore(f"{file}: cannot be opened ({e.strerror}) (batch slot "
+                               f"{slot})") from None
         try:
+            opened.confirm()  # after the open: see `OpenedStore`
             self.rows, self.index = self._open(fd)
         except BaseException:
             os.close(fd)
@@ -249,7 +301,7 @@ class OpenShards:
         self.table: collections.OrderedDict[tuple[int, int], ShardFile] = \
             collections.OrderedDict()
 
-    def get(self, token: int, layout: ArrayLayout, root: str, slot: int,
+    def get(self, token: int, layout: ArrayLayout, opened: OpenedStore, slot: int,
             will_need: bool = False) -> ShardFile:
         """The shard of `slot` of the array `token` names (one per `StoredArray`: a path is
         not a key, a store may be written anew at the same path with another layout)."""
@@ -263,8 +315,7 @@ class OpenShards:
                 return shard
             while len(self.table) >= MAX_OPEN:
                 self.table.popitem(last=False)[1].close()
-            shard = self.table[key] = ShardFile(layout.shard_file(root, slot), layout, slot,
-                                                whole=will_need)
+            shard = self.table[key] = ShardFile(opened, layout, slot, whole=will_need)
         return shard
 
     def __len__(self) -> int:
@@ -277,8 +328,8 @@ OPEN_SHARDS = OpenShards()
 class StoredArray:
     """One array of a store, read per trajectory or per batch slot."""
 
-    def __init__(self, root: str, layout: ArrayLayout):
-        self.root, self.layout = root, layout
+    def __init__(self, opened: OpenedStore, layout: ArrayLayout):
+        self.opened, self.layout = opened, layout
         self.dtype, self.trailing = layout.dtype, layout.trailing
         self.shard_shape = layout.shard_shape
         # its shards' key in OPEN_SHARDS: random, so that copies sent to spawned workers
@@ -288,13 +339,13 @@ class StoredArray:
     def trajectory(self, slot: int, row: int) -> np.ndarray:
         if self.layout.empty:
             return np.zeros(self.trailing, dtype=self.dtype)
-        return OPEN_SHARDS.get(self.token, self.layout, self.root, slot).trajectory(row)
+        return OPEN_SHARDS.get(self.token, self.layout, self.opened, slot).trajectory(row)
 
     def slot(self, slot: int, will_need: bool = False) -> np.ndarray:
         """All rows of a batch slot (a view of the map where the shard is raw)."""
         if self.layout.empty:
             return np.zeros(self.shard_shape, dtype=self.dtype)
-        shard = OPEN_SHARDS.get(self.token, self.layout, self.root, slot, will_need)
+        shard = OPEN_SHARDS.get(self.token, self.layout, self.opened, slot, will_need)
         if shard.rows is not None:
             return shard.rows
         return np.stack([shard.trajectory(r) for r in range(self.shard_shape[0])])

@@ -15,25 +15,27 @@ import numpy as np
 import torch
 
 from simloader import sharding
-from simloader.atomic import parents, sync_directories
 from simloader.store import integrity, lock, ownership, pipeline, pixels
+from simloader.store.folder import StoreFolder, folders_above
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, ArraySpec,
-                                         checksum_spec, inside, read_json, specs_of,
-                                         write_json, zstd, blosc)
-from simloader.store.provenance import SIMULATING, StoreMismatch, differences, provenance
+                                         checksum_spec, specs_of, zstd, blosc)
+from simloader.store.provenance import (SIMULATING, StoreMismatch, differences, new_identity,
+                                        provenance)
 
 
-def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int, workers: int,
-                      create: bool) -> dict:
+def _open_for_writing(folder: StoreFolder, dataset: Any, batches: int, ranks: int,
+                      workers: int, create: bool, identity: Optional[str] = None) -> dict:
     """Creates the store's root, or checks that an existing one holds this configuration and
     was written by as many ranks (and, for continued episodes, DataLoader workers), and grows
     its size to `batches` slots. Only the lock's holder (`create`) writes; the other ranks of
-    its job check what it wrote."""
-    mine = {**provenance(dataset, batches), "ranks": ranks}
+    its job check what it wrote. A new store draws its identity (`provenance.new_identity`),
+    which it keeps while it grows: a reader opened before a replace knows it was replaced."""
+    path = folder.path
+    mine = {**provenance(dataset, batches), "ranks": ranks, "id": identity or new_identity()}
     continued = bool(dataset.config.continue_episodes)
     if continued:
         mine["workers"] = workers
-    root = read_json(os.path.join(path, "zarr.json"))
+    root = folder.read_json("zarr.json")
     if root is not None:
         stored = (root.get("attributes") or {}).get(ATTRIBUTE) if isinstance(root, dict) \
             else None
@@ -75,41 +77,46 @@ def _open_for_writing(path: str, dataset: Any, batches: int, ranks: int, workers
                                 f"or write to a new path")
         mine["batches"] = max(batches, stored["batches"])
         mine["describe"] = stored["describe"]
+        if "id" in stored:
+            mine["id"] = stored["id"]
+        else:  # written before stores had one: stays without
+            mine.pop("id")
         if "models" not in stored:  # written before the models were kept: stays so
             mine.pop("models")
     if create and (root is None or mine["batches"] != stored["batches"]):
         # the models (once, when the store is made), and the slots' array, before the root:
         # a root never names models or more slots than the store holds
         if root is None:
-            pixels.save_models(path, pixels.pool_of(dataset.config)[1])
-        _ensure_array(path, WRITTEN, mine["batches"])
-        write_json(os.path.join(path, "zarr.json"), {
+            pixels.save_models(folder, pixels.pool_of(dataset.config)[1])
+        _ensure_array(folder, WRITTEN, mine["batches"])
+        folder.write_json("zarr.json", {
             "zarr_format": 3, "node_type": "group", "attributes": {ATTRIBUTE: mine}},
             durable=True)
-        sync_directories([path])
+        folder.sync([""])
     elif not create and (root is None or stored["batches"] < batches):
         raise StoreMismatch(f"rank 0 did not create the store at {path!r} for "
                             f"{batches} batches")
     return mine
 
 
-def _ensure_groups(path: str, name: str) -> None:
+def _ensure_groups(folder: StoreFolder, name: str) -> None:
     """The group `zarr.json`s above array `name`, durably."""
     parts = name.split("/")
     for depth in range(1, len(parts)):
-        group = inside(path, "/".join(parts[:depth] + ["zarr.json"]))
-        if not os.path.exists(group):
-            write_json(group, {"zarr_format": 3, "node_type": "group", "attributes": {}},
-                       durable=True)
+        group = "/".join(parts[:depth] + ["zarr.json"])
+        if folder.kind(group) is None:
+            folder.write_json(group, {"zarr_format": 3, "node_type": "group",
+                                      "attributes": {}}, durable=True)
 
 
-def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
+def _ensure_array(folder: StoreFolder, spec: ArraySpec, ntrajectories: int) -> None:
     """Writes the array's metadata (and its groups'), durably, or grows it; refuses another
     shape or dtype under the same name."""
-    _ensure_groups(path, spec.name)
-    where = inside(path, spec.name + "/zarr.json")
+    _ensure_groups(folder, spec.name)
+    name = spec.name + "/zarr.json"
+    where = folder.where(name)
     wanted = spec.metadata(ntrajectories)
-    existing = read_json(where)
+    existing = folder.read_json(name)
     if existing is not None:
         # attributes aside (stores written before the `key` attribute existed are extended
         # too), but not the checksums' list of arrays (nor their metadata's record, where
@@ -129,8 +136,8 @@ def _ensure_array(path: str, spec: ArraySpec, ntrajectories: int) -> None:
                 f"compression= it was written with)")
         if existing["shape"][0] >= ntrajectories:
             return
-    write_json(where, wanted, durable=True)
-    sync_directories(parents(where, path))
+    folder.write_json(name, wanted, durable=True)
+    folder.sync(folders_above(name))
 
 
 def _codecs(meta: dict) -> list:
@@ -152,11 +159,11 @@ class _Writer(torch.utils.data.IterableDataset):
     yielding a receipt per slot (slot, trajectories, diverged, the seconds each stage took
     since the last receipt): the batches themselves never cross the worker's queue."""
 
-    def __init__(self, dataset: Any, path: str, batches: int, rank: tuple[int, int],
+    def __init__(self, dataset: Any, folder: StoreFolder, batches: int, rank: tuple[int, int],
                  done: np.ndarray, compression: Optional[str]):
         """`done`: the slots complete when `write` began (each slot has one writer, so no
         other writer completes one of this worker's meanwhile)."""
-        self.dataset, self.path, self.batches, self.rank = dataset, path, batches, rank
+        self.dataset, self.folder, self.batches, self.rank = dataset, folder, batches, rank
         self.done, self.compression = done, compression
 
     def __iter__(self) -> Iterator[tuple[int, int, int, dict]]:
@@ -186,10 +193,10 @@ class _Writer(torch.utils.data.IterableDataset):
                     specs = {s.name: s for s in specs_of(batch, ds.config.nbatch,
                                                          self.compression)}
                     for spec in specs.values():
-                        _ensure_array(self.path, spec, self.batches * ds.config.nbatch)
-                    _ensure_array(self.path, checksum_spec(list(specs.values())),
+                        _ensure_array(self.folder, spec, self.batches * ds.config.nbatch)
+                    _ensure_array(self.folder, checksum_spec(list(specs.values())),
                                   self.batches)
-                    slots = pipeline.SlotPipeline(self.path, specs, ds.config.nbatch, stages)
+                    slots = pipeline.SlotPipeline(self.folder, specs, ds.config.nbatch, stages)
                 slots.submit(slot, batch, (shard.rank, index, shard.num_workers))
                 del batch, got  # the pipeline holds it while it needs it
                 for receipt in slots.completed():
@@ -211,12 +218,19 @@ class Written(str):
 
 
 def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progress: bool,
-               replace: bool, compression: Optional[str] = None) -> Written:
+               replace: bool, compression: Optional[str] = None,
+               member_of: Optional[StoreFolder] = None,
+               identity: Optional[str] = None) -> Written:
     """`write(format="zarr")`, its arguments checked.
 
     Nothing is opened for writing before the path is known to be the store's to write
-    (`ownership.check_target`: a new or empty folder, a store, a killed creation) and the
-    store holds no link; `replace=True` then removes the store's own entries only."""
+    (`ownership.check_path` and `check_contents`: a new or empty folder, a store, a killed
+    creation; not inside another store) and the store holds no link; `replace=True` then
+    removes the store's own entries only. Every file operation after the first check goes
+    through the store's open folder (`simloader.store.folder`): a link swapped in meanwhile
+    is refused, never followed. `member_of`: the mixture store's folder this member's store
+    is written in (`path` is then relative to it); `identity`: the new store's identity (the
+    one the mixture's root recorded for it)."""
     if any(o.rendered for o in dataset.config.observations):
         zstd()  # images are compressed: refuse now, naming the extra, not at the first batch
     if compression == "zstd":
@@ -224,37 +238,45 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
     rank = _writer_rank()
     job = _job_id(rank)
     workers = max(1, num_workers)
-    held = lock.WriterLock(path, job) if rank[0] == 0 else None
+    folder: Optional[StoreFolder] = None
+    held: Optional[lock.WriterLock] = None
     try:
-        if held is not None:
+        if rank[0] == 0:
             try:
-                ownership.check_target(path, replace)  # reads only
-                held.acquire()
-                found = integrity.survey(path)
+                if member_of is not None:
+                    folder = member_of.sub(path, create=True)
+                    path = folder.path
+                else:
+                    ownership.check_path(path)  # reads only
+                    folder = StoreFolder(path, create=True)
+                ownership.check_contents(folder, replace)  # reads only
+                held = lock.WriterLock(folder, job).acquire()
+                found = integrity.survey(folder)
                 if found.links:
-                    ownership.refuse_links(path, [os.path.relpath(p, path)
-                                                  for p in found.links])
+                    ownership.refuse_links(folder, found.links)
                 if replace:
-                    ownership.clear(path)
-                info = _open_for_writing(path, dataset, batches, rank[1], workers, create=True)
-                _restore_metadata(path, dataset.config.nbatch)
-                integrity.remove_partial(found)  # no writer runs now
+                    ownership.clear(folder)
+                info = _open_for_writing(folder, dataset, batches, rank[1], workers,
+                                         create=True, identity=identity)
+                _restore_metadata(folder, dataset.config.nbatch)
+                integrity.remove_partial(folder, found)  # no writer runs now
             except Exception as e:
                 _rank_zero_ready(path, rank, error=e)  # the other ranks stop too
                 raise
         _rank_zero_ready(path, rank, error=None)
-        if held is None:
-            lock.check_joined(path, job, rank[0])
-            info = _open_for_writing(path, dataset, batches, rank[1], workers, create=False)
+        if folder is None:
+            folder = StoreFolder(path)
+            lock.check_joined(folder, job, rank[0])
+            info = _open_for_writing(folder, dataset, batches, rank[1], workers, create=False)
         batches = info["batches"]
         total = slots_of(rank[0], rank[1], batches)
         mine = [i * rank[1] + rank[0] for i in range(total)]
-        done = _committed(path, mine, progress)
+        done = _committed(folder, mine, progress)
         already = int(done[mine].sum())
         start = time.perf_counter()
         stages = pipeline.Stages()
         loader = torch.utils.data.DataLoader(
-            _Writer(dataset, path, batches, rank, done, compression), batch_size=None,
+            _Writer(dataset, folder, batches, rank, done, compression), batch_size=None,
             num_workers=num_workers,
             multiprocessing_context=_worker_start(dataset) if num_workers else None)
         bar = _progress(progress, total, already, path)
@@ -270,12 +292,13 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
             torch.distributed.barrier()  # complete when every rank's part is; rank 0 unlocks
     except OSError as e:
         number, reason, filename = _os_error(e)
-        raise OSError(number, f"write: {reason} while writing the store at {path!r}; it "
-                              f"stays readable with the batches completed so far, and "
-                              f"calling write again resumes after them", filename) from e
+        raise OSError(number, f"write: {reason} while writing the store at {path!r}; "
+                              f"{ownership.os_error_message(number)}", filename) from e
     finally:
         if held is not None:
             held.release()
+        if folder is not None:
+            folder.close()
     written = Written(path)
     config = dataset.config
     written.report = pipeline.WriteReport(
@@ -328,27 +351,27 @@ def _os_error(e: OSError) -> tuple[Optional[int], str, Optional[str]]:
     return e.errno, said.strip().splitlines()[-1] if said.strip() else type(e).__name__, None
 
 
-def _restore_metadata(path: str, nbatch: int) -> None:
+def _restore_metadata(folder: StoreFolder, nbatch: int) -> None:
     """Rank 0, holding the lock: an array whose metadata was removed or edited gets it back
     from the checksums' record (its slots' files are then checked as any other's)."""
-    store = integrity.Store(path, repair=True)
+    store = integrity.Store(folder, repair=True)
     for name in store.problems:
         if name == CHECKSUM:
             continue  # no record to restore from: `_committed` redoes every slot
-        _ensure_groups(path, name)
-        where = inside(path, name + "/zarr.json")
+        _ensure_groups(folder, name)
+        where = name + "/zarr.json"
         kept = store.record[name]
-        write_json(where, {**kept, "shape": [store.batches * nbatch, *kept["shape"][1:]]},
-                   durable=True)
-        sync_directories(parents(where, path))
+        folder.write_json(where, {**kept, "shape": [store.batches * nbatch,
+                                                    *kept["shape"][1:]]}, durable=True)
+        folder.sync(folders_above(where))
 
 
-def _committed(path: str, mine: list[int], progress: bool) -> np.ndarray:
+def _committed(folder: StoreFolder, mine: list[int], progress: bool) -> np.ndarray:
     """Per slot of the store, whether it is committed and intact: this rank's committed
     slots are checked (sizes and every checksum); a damaged one loses its mark, durably, so
     that it is written again and no reader takes it meanwhile. Without the checksums'
     record (its metadata removed) no committed slot can be trusted: all are redone."""
-    store = integrity.Store(path, repair=True)
+    store = integrity.Store(folder, repair=True)
     done = np.zeros(store.batches, dtype=bool)
     done[store.slots] = True
     check = [s for s in mine if done[s]]
@@ -358,13 +381,14 @@ def _committed(path: str, mine: list[int], progress: bool) -> np.ndarray:
         damaged: dict[int, list[str]] = {slot: [] for slot in check}
     else:
         from tqdm import tqdm
-        with tqdm(total=len(check), unit="slot", desc=f"check {path}", disable=not progress,
+        with tqdm(total=len(check), unit="slot", desc=f"check {folder.path}",
+                  disable=not progress,
                   file=sys.stderr, leave=False) as bar:
             damaged = store.damaged(check, verify=True, progress=bar.update)
     for slot in damaged:
-        marker = os.path.join(path, WRITTEN.shard_key(slot))
-        os.unlink(marker)
-        sync_directories([os.path.dirname(marker)])
+        marker = WRITTEN.shard_key(slot)
+        folder.unlink(marker)
+        folder.sync(folders_above(marker, WRITTEN.name)[:1])
         done[slot] = False
     return done
 

@@ -349,19 +349,21 @@ def encode_shard(spec: ArraySpec, rows: np.ndarray, clock: Any = None) -> tuple[
     return parts, sum(memoryview(p).nbytes for p in parts), crc
 
 
-def write_shard(root: str, spec: ArraySpec, slot: int, rows: np.ndarray,
+def write_shard(folder: Any, spec: ArraySpec, slot: int, rows: np.ndarray,
                 durable: bool = True) -> tuple[int, int, list[str]]:
     """One batch slot of one array (`encode_shard`) written to its file at once (the
     checksums' and the marks' small shards; the write pipeline stages the others).
 
-    Returns the file's size, its CRC-32, and the directories to fsync before the slot is
-    committed (`durable`: the file itself is fsync'd before its rename)."""
+    `folder`: the store's `StoreFolder`. Returns the file's size, its CRC-32, and the folders
+    to fsync before the slot is committed (`durable`: the file itself is fsync'd before its
+    rename)."""
     if spec.empty:
         return 0, 0, []
+    from simloader.store.folder import folders_above
     parts, size, crc = encode_shard(spec, rows)
-    file = inside(root, spec.shard_key(slot))
-    atomic_write(file, parts, durable)
-    return size, crc, parents(file, os.path.join(root, spec.name))
+    file = spec.shard_key(slot)
+    folder.write(file, parts, durable)
+    return size, crc, folders_above(file, spec.name)
 
 
 def inside(root: str, key: str) -> str:
@@ -374,10 +376,10 @@ def inside(root: str, key: str) -> str:
     return path
 
 
-def file_crc(path: str, chunk: int = 1 << 22) -> int:
-    """The CRC-32 of a file, read in blocks."""
+def crc_of(folder: Any, name: str, chunk: int = 1 << 22) -> int:
+    """The CRC-32 of file `name` of a store's folder (`StoreFolder`), read in blocks."""
     crc = 0
-    with open(path, "rb", buffering=0) as f:
+    with os.fdopen(folder.open_file(name), "rb", buffering=0) as f:
         buffer = bytearray(chunk)
         view = memoryview(buffer)
         while True:
