@@ -72,16 +72,3 @@ def sync_directories(directories: Iterable[str]) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
-
-
-def parents(path: str, top: str) -> list[str]:
-    """The directories from `path`'s own up to and including `top` (which contains it): those
-    whose entries a new file at `path` (and the directories made for it) changed."""
-    out = []
-    directory = os.path.dirname(path)
-    top = os.path.normpath(top)
-    while True:
-        out.append(directory)
-        if os.path.normpath(directory) == top or len(directory) <= len(top):
-            return out
-        directory = os.path.dirname(directory)

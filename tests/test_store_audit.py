@@ -2,13 +2,11 @@
 inside another, a mixture store knows its members, hostile or unlucky stores and paths are
 refused by name, and a store of a small model is not mostly its model file (CPU engine)."""
 
-import errno
 import json
 import os
 import shutil
 import threading
 
-import numpy as np
 import pytest
 import torch
 

@@ -5,6 +5,9 @@ read them back, and the regeneration of any stored trajectory from its provenanc
     shards.py           reading shard files: layouts checked, a bounded table of open shards
     integrity.py        one walk of a store's files; committed slots checked against their sizes
                         and checksums; leftovers of killed writers
+    folder.py           a store's folder held open: every file of a write reached relative to
+                        it, no link followed
+    ownership.py        what a writer may touch: the store's own entries, no store inside one
     lock.py             one writer job per store
     order.py            the orders an epoch reads a store in (quasi-random, random, sequential)
     provenance.py       what made a store (configuration, seed, versions), and what may extend it
@@ -27,8 +30,11 @@ read them back, and the regeneration of any stored trajectory from its provenanc
 """
 
 from simloader.store.zarr_format import DamagedStore
+from simloader.store.folder import StoreChanged
 from simloader.store.lock import StoreLocked
+from simloader.store.shards import StoreReplaced
 from simloader.store.reader import StoredDataset, Transitions
 from simloader.store.front import write
 
-__all__ = ["DamagedStore", "StoreLocked", "StoredDataset", "Transitions", "write"]
+__all__ = ["DamagedStore", "StoreChanged", "StoreLocked", "StoreReplaced", "StoredDataset",
+           "Transitions", "write"]

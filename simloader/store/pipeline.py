@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import os
 import threading
 import time
 from collections.abc import Iterator, Mapping

@@ -17,7 +17,6 @@ are made per process and thread at the first read, so DataLoader workers render 
 
 from __future__ import annotations
 
-import os
 import types
 import zlib
 from collections.abc import Sequence

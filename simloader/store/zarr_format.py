@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import os
 import threading
 import time
@@ -51,7 +50,6 @@ import numpy as np
 import torch
 
 from simloader import threads
-from simloader.atomic import atomic_write, parents
 
 FORMAT = 1  # of the `simloader` attribute and the layout below it
 ATTRIBUTE = "simloader"
@@ -256,25 +254,9 @@ CHECKSUM = "provenance/checksum"
 
 # --------------------------------------------------------------------------- files
 
-def write_json(path: str, value: dict, durable: bool = False) -> None:
-    atomic_write(path, [json.dumps(value, indent=2, sort_keys=True).encode()], durable)
-
-
 class DamagedStore(ValueError):
     """A store's files disagree with its metadata or with themselves (truncated, emptied,
     missing, linked, or edited): the message names each file, its slot and what differs."""
-
-
-def read_json(path: str) -> Optional[dict]:
-    """A metadata file (None if absent); one that is not JSON is named, not a bare error."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except FileNotFoundError:
-        return None
-    except (ValueError, UnicodeDecodeError) as e:
-        raise DamagedStore(f"{path}: not valid JSON ({e}); the store's metadata was edited "
-                           f"or damaged") from None
 
 
 def zstd():
@@ -364,16 +346,6 @@ def write_shard(folder: Any, spec: ArraySpec, slot: int, rows: np.ndarray,
     file = spec.shard_key(slot)
     folder.write(file, parts, durable)
     return size, crc, folders_above(file, spec.name)
-
-
-def inside(root: str, key: str) -> str:
-    """`root/key`, refused if it would lead outside `root` (a last guard: `store_path` already
-    keeps every name inside)."""
-    path = os.path.normpath(os.path.join(root, key))
-    if os.path.commonpath([os.path.abspath(path), os.path.abspath(root)]) != \
-            os.path.abspath(root):
-        raise ValueError(f"store: the path {key!r} leads outside the store at {root!r}")
-    return path
 
 
 def crc_of(folder: Any, name: str, chunk: int = 1 << 22) -> int:
