@@ -210,6 +210,19 @@ def test_paths_no_file_can_have_are_refused_by_name(tmp_path):
         simloader.write(tiny(), dangling, batches=1, progress=False)
 
 
+def test_names_too_long_and_a_dotdot_from_nowhere_are_refused_before_anything(tmp_path):
+    os.chdir(tmp_path)
+    simloader.write(tiny(), "store.zarr", batches=1, progress=False)
+    before = files_of("store.zarr")
+    with pytest.raises(ValueError, match=r"goes up \('..'\) from 'new', which is not a folder"):
+        simloader.write(tiny(seed=8), "new/../store.zarr", batches=1, progress=False,
+                        replace=True)
+    with pytest.raises(ValueError, match=r"is 300 bytes, longer than the file system allows"):
+        simloader.write(tiny(), "x" * 300, batches=1, progress=False)
+    assert sorted(os.listdir(".")) == ["store.zarr"] and files_of("store.zarr") == before
+    simloader.write(tiny(), "store.zarr/../other.zarr", batches=1, progress=False)  # fine
+
+
 def test_a_path_near_the_systems_limit_is_written_whole(tmp_path):
     """The store's files are reached relative to its open folder, so a store whose own path
     is close to PATH_MAX (4096) is written and read like any other."""

@@ -103,6 +103,7 @@ def check_path(path: str, *, member_of: Optional[str] = None) -> None:
         raise NotAStore("path: expected the folder of a store, got an empty path")
     if "\0" in path:
         raise NotAStore(f"path: {path!r} holds a NUL character, which no file name can")
+    _check_names(path)
     if system_folder(path):
         raise NotAStore(f"path: {path!r} is a system folder ({os.path.realpath(path)}); a "
                         f"store is written into a folder of its own: pass a new folder, e.g. "
@@ -120,6 +121,34 @@ def check_path(path: str, *, member_of: Optional[str] = None) -> None:
                         f"a store makes the outer one unreadable (its readers refuse what "
                         f"they do not know) and a replace=True of the outer one would remove "
                         f"it: write to a path outside {outer!r}")
+
+
+def _check_names(path: str) -> None:
+    """Every name of `path` fits the file system, and a `..` comes after folders that exist
+    (`new/../store.zarr` would make `new` and then write elsewhere than it says)."""
+    parts = path.split(os.sep)
+    for k, part in enumerate(parts):
+        if part == "..":
+            before = os.sep.join(parts[:k]) or (os.sep if path.startswith(os.sep) else ".")
+            if not os.path.isdir(before):
+                raise NotAStore(f"path: {path!r} goes up ('..') from {before!r}, which is not "
+                                f"a folder; pass the path without '..'")
+        elif len(part.encode()) > _name_max(os.sep.join(parts[:k]) or "."):
+            raise NotAStore(f"path: the name {part[:40]!r}... of {path[:60]!r}... is "
+                            f"{len(part.encode())} bytes, longer than the file system allows "
+                            f"({_name_max(os.sep.join(parts[:k]) or '.')}); pass a shorter "
+                            f"name")
+
+
+def _name_max(folder: str) -> int:
+    """The longest name the file system of `folder` (or of the nearest folder above it that
+    exists) takes."""
+    while folder and not os.path.isdir(folder):
+        folder = os.path.dirname(folder)
+    try:
+        return int(os.pathconf(folder or ".", "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
 
 
 def enclosing_store(path: str) -> Optional[str]:
