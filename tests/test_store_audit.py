@@ -16,21 +16,7 @@ from simloader.store.zarr_format import DamagedStore
 
 zarr = pytest.importorskip("zarr")
 
-
-def tiny(**kwargs):
-    base = dict(backend="cpu", nbatch=2, nstep=5, nthread=1, seed=3,
-                record=("state", "sensordata"), control=simloader.controls.Uniform())
-    base.update(kwargs)
-    return simloader.SimDataset("cartpole", **base)
-
-
-def files_of(folder):
-    out = {}
-    for directory, _, names in os.walk(folder):
-        for name in names:
-            path = os.path.join(directory, name)
-            out[os.path.relpath(path, folder)] = open(path, "rb").read()
-    return out
+from test_store_safety import files_of, tiny  # noqa: E402
 
 
 # --------------------------------------------------------------------------- one store per reader
