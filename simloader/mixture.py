@@ -82,7 +82,8 @@ class Mixture(torch.utils.data.IterableDataset):
 
     Use it as a `SimDataset`: `DataLoader(mixture, batch_size=None, num_workers=N)` (each
     worker takes a disjoint part of every member's stream), `state_dict()` /
-    `load_state_dict()` (or torchdata's `StatefulDataLoader`) to resume exactly. The stream
+    `load_state_dict()` (or `simloader.loaders.StatefulDataLoader`, torchdata's, which
+    refuses by name a state saved with another `num_workers`) to resume exactly. The stream
     ends when the member drawn next has ended (a member with `num_batches`); with endless
     members it is endless. A member belongs to the mixture: iterating it elsewhere at the same
     time would take batches out of the mixture's stream.
@@ -94,9 +95,10 @@ class Mixture(torch.utils.data.IterableDataset):
     between members (or that only some members have, as randomized `params`), `"mask/KEY"`
     `(nrows, *trailing shape)` bool: True where a column is real (`"mask/params/KEY"` for
     `batch["params"][KEY]`). A padded column keeps its member's meaning (`describe()`). Members
-    must then agree on `nstep`, `record_every`, the recorded keys, the delivered device and
-    dtype, and on having `terminate=` rules and a `policy` or not; a 0-d key
-    (`"policy/version"`) becomes one value per row.
+    must then agree on `nstep`, `record_every`, the recorded keys, the delivered device,
+    `dtype=` (None only on one engine: each engine chooses its own), and on having
+    `terminate=` rules and a `policy` or not; a 0-d key (`"policy/version"`) becomes one
+    value per row.
 
     Args:
       datasets: `{name: SimDataset}` or a sequence of them (named "0", "1", ...).
@@ -334,15 +336,29 @@ def _weights(weights: Any, names: tuple[str, ...], named: bool) -> np.ndarray:
     total = sum(out)
     if total <= 0:
         raise ValueError(f"weights: expected at least one weight > 0, got {out}")
+    if math.isinf(total):
+        # finite weights whose sum overflows (1e308 twice) would all normalize to 0: scaled
+        # by the largest first, there only, so that every finite sum normalizes (and a
+        # checkpoint's shares compare) bit for bit as before
+        largest = max(out)
+        out = [w / largest for w in out]
+        total = sum(out)
     return np.asarray(out) / total
 
 
-def _effective(ds: SimDataset) -> tuple[Optional[torch.device], Optional[torch.dtype]]:
-    """Where and in which float dtype a member delivers, where the member says (`device=`,
-    `dtype=`); None where its engine decides (the mixture knows no engine: a member's batch
-    then says, and `_pad` refuses other devices and promotes dtypes)."""
+def _member_device(ds: SimDataset) -> Optional[torch.device]:
+    """Where a member delivers, where the member says (`device=`); None where its engine
+    decides (the mixture knows no engine: a member's batch then says, and `_pad` refuses
+    other devices)."""
     c = ds.config
-    return (torch.device(c.device) if c.device is not None else None), c.dtype
+    return torch.device(c.device) if c.device is not None else None
+
+
+def _dtype(ds: SimDataset) -> str:
+    """The float dtype a member delivers as its configuration says it: its `dtype=`, or None
+    and the engine that then chooses (the mixture knows no engine's choice)."""
+    c = ds.config
+    return str(c.dtype) if c.dtype is not None else f"None (backend {c.backend!r} chooses)"
 
 
 def _pad_plan(names: tuple[str, ...], datasets: tuple[SimDataset, ...]
@@ -357,18 +373,26 @@ def _pad_plan(names: tuple[str, ...], datasets: tuple[SimDataset, ...]
                          f"datasets[{first!r}] {mine}; padded batches need the same {what} "
                          f"in every member (or use pad=False, one member per batch)")
 
-    d0 = _effective(datasets[0])
+    device0 = _member_device(datasets[0])
+    # a float key of every member (the state where recorded): what a dtype refusal names
+    floating = "state" if "state" in datasets[0].layout.keys else "initial_state"
     for name, ds in zip(names[1:], datasets[1:]):
         c = ds.config
         if c.nstep != c0.nstep:
             refuse("nstep", name, c0.nstep, c.nstep)
         if c.record_every != c0.record_every:
             refuse("record_every", name, c0.record_every, c.record_every)
-        device, dtype = _effective(ds)
-        if device is not None and d0[0] is not None and device != d0[0]:
-            refuse("device", name, d0[0], device)
-        if dtype is not None and d0[1] is not None and dtype != d0[1]:
-            refuse("dtype", name, d0[1], dtype)
+        device = _member_device(ds)
+        if device is not None and device0 is not None and device != device0:
+            refuse("device", name, device0, device)
+        # the same dtype=, or None on the same engine: anything else may deliver another
+        # dtype, seen only at the first batch whose draws hold both members
+        if _dtype(ds) != _dtype(datasets[0]):
+            raise ValueError(
+                f"pad=True: datasets[{name!r}] has dtype {_dtype(ds)}, datasets[{first!r}] "
+                f"{_dtype(datasets[0])}; the float keys of padded batches ({floating!r}, ...) "
+                f"need one dtype in every member: give every member the same dtype= (or use "
+                f"pad=False, one member per batch)")
         if (c.terminate is None) != (c0.terminate is None):
             refuse("terminate= rules (keys terminated/truncated/first)", name,
                    "set" if c0.terminate is not None else "none",
@@ -447,6 +471,11 @@ def _pad(plan: dict, names: list[str], tasks: list[int], batches: list[Batch]) -
     keys = list(dict.fromkeys(k for f in flats for k in f))
     for key in keys:
         values = [f.get(key) for f in flats]
+        dtypes = {n: v.dtype for n, v in zip(names, values) if v is not None}
+        if len(set(dtypes.values())) > 1:  # an engine that delivered other than it said
+            raise ValueError(f"pad=True: key {key!r} came in dtypes {dtypes} from the members: "
+                             f"padded batches need one dtype per key; give every member the "
+                             f"same dtype=")
         # a 0-d key (policy/version) becomes one value per row
         values = [v.expand(r) if v is not None and v.dim() == 0 else v
                   for v, r in zip(values, rows)]
@@ -499,14 +528,11 @@ def _pad_key(values: list[Optional[torch.Tensor]], shapes: list[Optional[tuple[i
     """A layout key's values (None: a member without it) in one tensor padded to `widest`,
     and the mask of its real columns (None where no member needs padding)."""
     present = [v for v in values if v is not None]
-    sample = present[0]
+    sample = present[0]  # every member's in one dtype (checked)
     lead = tuple(sample.shape[1:sample.dim() - len(widest)])  # (nframes,), (nstep,) or ()
-    dtype = sample.dtype
-    for v in present:
-        dtype = torch.promote_types(dtype, v.dtype)
     if not padded:  # every member has it, as wide as the widest
-        return torch.cat([v.to(dtype) for v in present]), None
-    value = torch.zeros((starts[-1], *lead, *widest), dtype=dtype, device=device)
+        return torch.cat(present), None
+    value = torch.zeros((starts[-1], *lead, *widest), dtype=sample.dtype, device=device)
     mask = torch.zeros((starts[-1], *widest), dtype=torch.bool, device=device)
     for v, s, a, b in zip(values, shapes, starts[:-1], starts[1:]):
         if v is None or s is None:

@@ -44,6 +44,8 @@ class Rule:
     trajectory, whether the frame's state meets it."""
 
     reads: tuple[str, ...] = ()
+    # how to make one (the refusal of a class given for an instance shows it)
+    example = "Below('torso', 0.8)"
 
     def row(self) -> tuple[int, int, float, float]:
         """The resolved rule as one row of a table an engine's kernel reads: (kind, index,
@@ -78,6 +80,19 @@ def _number(rule: str, what: str, value: Any) -> float:
     return float(value)
 
 
+def _moving_body(model: mujoco.MjModel, name: str, rule: str, fixed: str) -> int:
+    """The id of body `name`, which must not be the world body: it never moves (`fixed`: what
+    the rule would read there), so the rule would be met at every frame or never."""
+    body = _object_id(model, mujoco.mjtObj.mjOBJ_BODY, "body", name, rule)
+    if body == 0:
+        names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, i)
+                 for i in range(1, model.nbody)]
+        raise ValueError(f"terminate: {rule}: body {name!r} is the world body, which never "
+                         f"moves ({fixed}): name a body that moves (the model's other "
+                         f"bodies: {[n for n in names if n] or '(none)'})")
+    return body
+
+
 def _object_id(model: mujoco.MjModel, kind: mujoco.mjtObj, what: str, name: str,
                rule: str) -> int:
     found = mujoco.mj_name2id(model, kind, name)
@@ -109,8 +124,8 @@ class Below(Rule):
         object.__setattr__(self, "height", _number("Below", "height", self.height))
 
     def resolve(self, model):
-        body = _object_id(model, mujoco.mjtObj.mjOBJ_BODY, "body", self.body,
-                          f"Below({self.body!r}, {self.height})")
+        body = _moving_body(model, self.body, f"Below({self.body!r}, {self.height})",
+                            "its height is always 0")
         return dataclasses.replace(self, body_id=body)
 
     def met(self, xp, fields):
@@ -134,6 +149,7 @@ class Tilted(Rule):
     max_angle: float
     body_id: int = dataclasses.field(default=-1, compare=False, repr=False)
     reads = ("xmat",)
+    example = "Tilted('torso', 1.0)"
 
     def __post_init__(self):
         _name("Tilted", "body", self.body)
@@ -144,8 +160,8 @@ class Tilted(Rule):
         object.__setattr__(self, "max_angle", angle)
 
     def resolve(self, model):
-        body = _object_id(model, mujoco.mjtObj.mjOBJ_BODY, "body", self.body,
-                          f"Tilted({self.body!r}, {self.max_angle})")
+        body = _moving_body(model, self.body, f"Tilted({self.body!r}, {self.max_angle})",
+                            "its tilt is always 0")
         return dataclasses.replace(self, body_id=body)
 
     def met(self, xp, fields):
@@ -172,6 +188,7 @@ class Outside(Rule):
     high: float
     qpos_adr: int = dataclasses.field(default=-1, compare=False, repr=False)
     reads = ("qpos",)
+    example = "Outside('hinge', -0.2, 0.2)"
 
     def __post_init__(self):
         _name("Outside", "joint", self.joint)
@@ -215,6 +232,7 @@ class TimeLimit(Rule):
     """
 
     steps: int
+    example = "TimeLimit(500)"
 
     def __post_init__(self):
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) \
@@ -248,17 +266,25 @@ class Episodes:
         """(nbatch,) bool tensor: `check` on frame `frame`'s observations, its result checked.
 
         Raises:
-          ValueError: not a bool tensor of shape (nbatch,), naming the frame.
+          ValueError: not a bool tensor of shape (nbatch,) on the observations' device,
+            naming the frame.
         """
         import torch
         out = self.check(obs)
+        # the engine combines the verdict with its own flags there (a meta or another
+        # device's tensor would fail inside the engine, with torch's words)
+        device = next((v.device for v in obs.values() if isinstance(v, torch.Tensor)), None)
         if not (isinstance(out, torch.Tensor) and out.dtype == torch.bool
-                and tuple(out.shape) == (nbatch,)):
-            got = (f"{out.dtype} tensor of shape {tuple(out.shape)}"
-                   if isinstance(out, torch.Tensor) else type(out).__name__)
-            raise ValueError(f"terminate: the callable {getattr(self.check, '__name__', '')!r} "
-                             f"must return a bool tensor of shape ({nbatch},) (nbatch: does "
-                             f"each trajectory's episode end?), got {got} at frame {frame}")
+                and tuple(out.shape) == (nbatch,) and (device is None or out.device == device)):
+            got = type(out).__name__
+            if isinstance(out, torch.Tensor):
+                got = f"{out.dtype} tensor of shape {tuple(out.shape)}" + (
+                    f" on {out.device}" if device is not None and out.device != device else "")
+            name = getattr(self.check, "__name__", type(self.check).__name__)
+            where = "" if device is None else f" on {device} (the observations' device)"
+            raise ValueError(f"terminate: the callable {name!r} must return a bool tensor of "
+                             f"shape ({nbatch},){where} (nbatch: does each trajectory's "
+                             f"episode end?), got {got} at frame {frame}")
         return out
 
     @property
@@ -298,6 +324,13 @@ def parse(model: mujoco.MjModel, terminate: Any) -> Optional[Episodes]:
         raise TypeError(f"terminate: expected None, a rule of simloader.terminate (Below, "
                         f"Tilted, Outside, TimeLimit), a callable obs -> (nbatch,) bool tensor, "
                         f"or a non-empty sequence of them, got {terminate!r}")
+    for r in rules:
+        if isinstance(r, type):  # callable, but calling it makes an object, never a verdict
+            such = (f"such as {r.example}" if issubclass(r, Rule)
+                    else "(a rule of simloader.terminate or a callable obs -> (nbatch,) bool "
+                         "tensor), not its class")
+            raise TypeError(f"terminate: got the class {r.__name__}, expected an instance "
+                            f"{such}")
     checks = [r for r in rules if callable(r) and not isinstance(r, Rule)]
     bad = [r for r in rules if not isinstance(r, Rule) and not callable(r)]
     if bad:

@@ -319,10 +319,37 @@ def test_padding_refuses_members_it_cannot_pad(change, message):
     Mixture({"a": member(), "b": member(**change)})  # one member per batch: fine
 
 
-def test_padding_promotes_a_members_dtype_its_engine_chose():
-    mix = Mixture({"a": member(), "b": member(dtype=torch.float32)}, pad=True)
-    batch = next(iter(mix))
-    assert batch["state"].dtype == torch.float64  # the wider of the two
+@pytest.mark.parametrize("a, b, said", [
+    # one member's engine chooses (float64 on the CPU), the other says float32: the
+    # delivered dtype would change from batch to batch with the draws
+    (None, torch.float32, r"datasets\['b'\] has dtype torch.float32, datasets\['a'\] None "
+                          r"\(backend 'cpu' chooses\)"),
+    (torch.float32, torch.float64, r"datasets\['b'\] has dtype torch.float64, datasets\['a'\] "
+                                   r"torch.float32"),
+], ids=["engine-chosen", "said"])
+def test_padding_refuses_members_of_different_dtypes_at_construction(a, b, said):
+    with pytest.raises(ValueError, match=r"pad=True: " + said + r"; the float keys of padded "
+                                         r"batches \('state', \.\.\.\) need one dtype in every "
+                                         r"member: give every member the same dtype="):
+        Mixture({"a": member(dtype=a), "b": member(dtype=b)}, pad=True)
+    Mixture({"a": member(), "b": member()}, pad=True)  # one engine chooses for both: fine
+
+
+def test_padding_refuses_a_batch_of_another_dtype_than_its_member_said():
+    other = member(dtype=torch.float32)
+    # a member that says float64 but delivers float32 (its engine keeps its own configuration)
+    other.config = dataclasses.replace(other.config, dtype=torch.float64)
+    mix = Mixture({"a": member(dtype=torch.float64), "b": other}, weights=[1, 1], seed=0,
+                  pad=True)
+    tasks = mix.members(2 * 8)
+    mixed = next(j for j in range(8) if len(set(tasks[2 * j: 2 * j + 2])) == 2)
+    batches = iter(mix)
+    for _ in range(mixed):  # batches of one member: its own dtype throughout
+        next(batches)
+    with pytest.raises(ValueError, match=r"pad=True: key 'state' came in dtypes \{'.': "
+                                         r"torch.float\d\d, '.': torch.float\d\d\} from the "
+                                         r"members: padded batches need one dtype per key"):
+        next(batches)
 
 
 def test_padding_refuses_members_on_different_devices():
@@ -393,6 +420,18 @@ def test_bad_seed_and_pad_are_refused():
         Mixture([member()], seed=-1)
     with pytest.raises(TypeError, match=r"pad: expected True or False, got str 'yes'"):
         Mixture([member()], pad="yes")
+
+
+@pytest.mark.parametrize("weights, shares", [
+    ([1e308, 1e308], [0.5, 0.5]),  # their sum overflows to inf
+    ([1e308, 3e307], [1 / 1.3, 0.3 / 1.3]),
+    ([1e-320, 1e-320], [0.5, 0.5]),  # subnormal
+    ([1e-320, 3e-320], [0.25, 0.75]),
+], ids=["overflowing", "huge", "subnormal", "subnormal-unequal"])
+def test_weights_at_the_ends_of_the_floats_normalize(weights, shares):
+    mixture = Mixture([member(), member()], weights)
+    np.testing.assert_allclose(mixture.weights, shares, rtol=1e-12)
+    assert sorted(set(mixture.members(64).tolist())) == [0, 1]  # both members are drawn
 
 
 def test_weights_as_a_dict_follow_the_names():

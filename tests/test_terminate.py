@@ -346,3 +346,47 @@ def test_a_body_rule_leaves_a_policys_observations_as_they_are(backend, request)
         for key in ("state", "sensordata", "xpos"):
             torch.testing.assert_close(SEEN_OBS[t + 1][key].cpu(), batch[key][:, t].cpu(),
                                        rtol=0, atol=0, msg=f"{key} after step {t}")
+
+
+@pytest.mark.parametrize("rule, message", [
+    (T.Below("world", 0.1), r"terminate: Below\('world', 0.1\): body 'world' is the world "
+                            r"body, which never moves \(its height is always 0\): name a body "
+                            r"that moves \(the model's other bodies: \['cart', 'pole'\]\)"),
+    (T.Tilted("world", 1.0), r"terminate: Tilted\('world', 1.0\): body 'world' is the world "
+                             r"body, which never moves \(its tilt is always 0\)"),
+], ids=["Below", "Tilted"])
+def test_a_body_rule_on_the_world_body_is_refused(rule, message):
+    with pytest.raises(ValueError, match=message):
+        simloader.SimDataset("cartpole", nbatch=1, nstep=1, backend="cpu", terminate=rule)
+
+
+@pytest.mark.parametrize("terminate, message", [
+    (T.Below, r"terminate: got the class Below, expected an instance such as "
+              r"Below\('torso', 0.8\)"),
+    ([T.Outside, T.TimeLimit(5)], r"terminate: got the class Outside, expected an instance such "
+                                  r"as Outside\('hinge', -0.2, 0.2\)"),
+    (T.TimeLimit, r"got the class TimeLimit, expected an instance such as TimeLimit\(500\)"),
+    (torch.nn.Identity, r"terminate: got the class Identity, expected an instance \(a rule of "
+                        r"simloader.terminate or a callable obs -> \(nbatch,\) bool tensor\), "
+                        r"not its class"),
+], ids=["Below", "in-a-list", "TimeLimit", "not-a-rule"])
+def test_a_class_given_for_a_rule_is_refused_at_construction(terminate, message):
+    with pytest.raises(TypeError, match=message):
+        simloader.SimDataset("cartpole", nbatch=1, nstep=1, backend="cpu", terminate=terminate)
+
+
+@pytest.mark.parametrize("verdict, got", [
+    # a bool tensor of the right shape, elsewhere: the engine could not combine it
+    (lambda obs: torch.zeros(4, dtype=torch.bool, device="meta"),
+     r"got torch.bool tensor of shape \(4,\) on meta at frame 0"),
+    (lambda obs: obs["state"][:, 2:3].abs() > 0.25, r"got torch.bool tensor of shape \(4, 1\) "
+                                                    r"at frame 0"),
+    (lambda obs: bool(obs["state"][0, 2] > 0), r"got bool at frame 0"),
+], ids=["meta", "shape", "not-a-tensor"])
+def test_a_callables_verdict_not_a_bool_tensor_here_is_refused_at_its_first_call(verdict, got):
+    ds = simloader.SimDataset("cartpole", nbatch=4, nstep=3, backend="cpu", terminate=verdict)
+    with pytest.raises(ValueError, match=r"terminate: the callable '<lambda>' must return a bool "
+                                         r"tensor of shape \(4,\) on cpu \(the observations' "
+                                         r"device\) \(nbatch: does each trajectory's episode "
+                                         r"end\?\), " + got):
+        next(iter(ds))

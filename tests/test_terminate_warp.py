@@ -5,6 +5,8 @@ GPU these run MuJoCo Warp's CPU kernels (`SIMLOADER_WARP_ON_CPU=1`); on the GPU 
 same tests run the captured CUDA graph. (The walker's kinematics and the resume across batches
 are checked for every engine in test_terminate_mjx.py.)"""
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import pytest
@@ -75,3 +77,67 @@ def test_a_policy_sees_the_fresh_states():
 def test_a_callable_ends_episodes_as_a_rule_does():
     from test_terminate import check_callable
     check_callable("warp")
+
+
+def after_step_verdict(kind):
+    """Whether `episodes._after_step` finds one world's frame terminated by one rule of
+    `kind` whose test every kind it knows would pass: qpos 0 within no interval, height 0
+    below 2, tilt cosine 1 below 2."""
+    import warp as wp
+
+    from simloader.backends.warp import episodes
+    one = dict(device="cpu")
+    flags = [wp.zeros((1, 1), dtype=wp.bool, **one) for _ in range(3)]
+    wp.launch(episodes._after_step, dim=1, inputs=[
+        wp.zeros(1, dtype=wp.int64, **one), 1, 0, wp.array([kind], dtype=wp.int32, **one),
+        wp.zeros(1, dtype=wp.int32, **one), wp.array([2.0], dtype=wp.float32, **one),
+        wp.array([-2.0], dtype=wp.float32, **one), wp.zeros((1, 1), dtype=wp.vec3, **one),
+        wp.array(np.eye(3, dtype=np.float32)[None, None], dtype=wp.mat33, **one),
+        wp.zeros(1, dtype=wp.bool, **one), wp.zeros(1, dtype=wp.bool, **one),
+        wp.zeros(1, dtype=wp.int64, **one), *flags, wp.zeros((1, 1), dtype=wp.float32, **one)],
+        **one)
+    return bool(flags[0].numpy()[0, 0])
+
+
+def test_a_rule_kind_without_its_branch_meets_nothing_in_the_kernel():
+    # each known kind has its branch; another falls into none (not into the tilt test)
+    assert all(after_step_verdict(T.KINDS[k]) for k in ("outside", "below", "tilted"))
+    assert not after_step_verdict(len(T.KINDS))
+
+
+@dataclasses.dataclass(frozen=True)
+class Above(T.Rule):
+    """A rule of the user's own: the body's height above `height` (CPU and MJX evaluate its
+    `met`; the Warp kernel has no branch for its kind)."""
+
+    body: str
+    height: float
+    body_id: int = dataclasses.field(default=-1, repr=False)
+    reads = ("xpos",)
+
+    def resolve(self, model):
+        return dataclasses.replace(self, body_id=mujoco.mj_name2id(
+            model, mujoco.mjtObj.mjOBJ_BODY, self.body))
+
+    def met(self, xp, fields):
+        return fields["xpos"][:, self.body_id, 2] > self.height
+
+    def row(self):
+        return (len(T.KINDS), self.body_id, self.height, 0.0)
+
+
+class Unrowed(Above):
+    """A rule of the user's own without a row: `met` alone."""
+
+    row = T.Rule.row
+
+
+@pytest.mark.parametrize("rule, kind", [(Above("pole", 5.0), len(T.KINDS)),
+                                        (Unrowed("pole", 5.0), None)])
+def test_a_rule_kind_the_kernel_does_not_evaluate_is_refused_at_construction(rule, kind):
+    with pytest.raises(ValueError, match=rf"terminate: {type(rule).__name__}\(body='pole', "
+                                         rf"height=5.0\): its kind \(`row\(\)\[0\]`: {kind}\) "
+                                         rf"is none the Warp engine's kernel evaluates: outside "
+                                         rf"\(0\), below \(1\), tilted \(2\); use backend='cpu'"):
+        simloader.SimDataset("cartpole", nbatch=2, nstep=2, backend="warp", terminate=rule)
+    simloader.SimDataset("cartpole", nbatch=2, nstep=2, backend="cpu", terminate=rule)

@@ -442,10 +442,7 @@ class MixtureTransitions(torch.utils.data.Dataset):
             sampler = TaskBatches([len(p) for p in self.parts.values()],
                                   [p.stored.nbatch * p.per for p in self.parts.values()],
                                   batch_size, order, drop_last, seed)
-        try:
-            from torchdata.stateful_dataloader import StatefulDataLoader as Loader
-        except ImportError:
-            Loader = torch.utils.data.DataLoader
+        from simloader.loaders import StatefulDataLoader as Loader
         return Loader(self, batch_size=None, sampler=sampler, **kwargs)
 
 

@@ -440,7 +440,8 @@ class Transitions(torch.utils.data.Dataset):
         Each iteration is one epoch, in a new order drawn from `seed` and the epoch's number.
         With torchdata installed the loader is its `StatefulDataLoader`, which resumes:
         `loader.state_dict()` taken after any batch, loaded into a loader made the same way
-        (`load_state_dict`, even in a new process, with `num_workers` as it was), makes the
+        (`load_state_dict`, even in a new process, with `num_workers` as it was: a state of
+        another `num_workers` is refused by name), makes the
         next iteration deliver exactly the rest of that epoch, bit for bit, and the
         iterations after it the epochs that follow (the order's seed is in the state, so
         `seed=None` resumes too). The order's own state is `loader.sampler.state_dict()` (a
@@ -468,10 +469,7 @@ class Transitions(torch.utils.data.Dataset):
         view = object.__new__(Transitions)
         view.__dict__.update(self.__dict__)
         view.will_need = order != "random"  # a block is read whole, a random item alone
-        try:
-            from torchdata.stateful_dataloader import StatefulDataLoader as Loader
-        except ImportError:
-            Loader = torch.utils.data.DataLoader
+        from simloader.loaders import StatefulDataLoader as Loader
         return Loader(view, batch_size=None, sampler=sampler, **kwargs)
 
     def _read_ahead(self, blocks: np.ndarray, block: int) -> None:

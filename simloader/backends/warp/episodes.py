@@ -28,6 +28,8 @@ from simloader import terminate
 
 _PHYSICS = ("time", "qpos", "qvel", "act")  # a FULLPHYSICS row, in order
 OUTSIDE, BELOW, TILTED = (terminate.KINDS[k] for k in ("outside", "below", "tilted"))
+# the rule kinds `_after_step` has a branch for (a row of another kind would be met never)
+EVALUATED = {OUTSIDE: "outside", BELOW: "below", TILTED: "tilted"}
 
 
 @wp.func
@@ -74,7 +76,7 @@ def _after_step(t: wp.array(dtype=wp.int64), every: int, time_limit: int,
         elif kinds[r] == BELOW:
             if xpos[w, i][2] < a[r]:
                 met = True
-        else:
+        elif kinds[r] == TILTED:
             if xmat[w, i][2, 2] < a[r]:
                 met = True
     limit = time_limit > 0 and steps[w] >= wp.int64(time_limit)
@@ -104,6 +106,25 @@ def _begin(t: wp.array(dtype=wp.int64), every: int, pending: wp.array(dtype=wp.b
                 at[w, c] = fresh[w, draw, c]
             resets[w] = resets[w] + wp.int64(1)
             set_state(w, at, time, qpos, qvel, act, warmstart)
+
+
+def check_rules(rules: Any) -> None:
+    """Refuses, at construction, a rule (`terminate.Episodes.rules`) of a kind `_after_step`
+    does not evaluate: it would never end an episode on this engine.
+
+    Raises:
+      ValueError: naming the rule and its kind.
+    """
+    kinds = ", ".join(f"{name} ({kind})" for kind, name in EVALUATED.items())
+    for rule in rules.rules:
+        try:
+            kind = rule.row()[0]
+        except NotImplementedError:  # a rule of the user's own, with `met` alone
+            kind = None
+        if kind not in EVALUATED:
+            raise ValueError(f"terminate: {rule!r}: its kind (`row()[0]`: {kind}) is none the "
+                             f"Warp engine's kernel evaluates: {kinds}; use backend='cpu' or "
+                             f"'mjx'")
 
 
 class Episodes:

@@ -75,7 +75,8 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
       TypeError: `naconmax` or `njmax` not None or an integer.
       ValueError: the engine cannot run here (saying what is missing), MuJoCo Warp cannot
         simulate a model, models differ in an array MuJoCo Warp shares across trajectories, a
-        randomized field MuJoCo Warp cannot hold per trajectory, a record it does not keep.
+        randomized field MuJoCo Warp cannot hold per trajectory, a record it does not keep,
+        a `terminate=` rule its kernel does not evaluate.
     """
     naconmax = _positive("naconmax", options.get("naconmax"))
     njmax = _positive("njmax", options.get("njmax"))
@@ -99,6 +100,9 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
     pooled = set(_differing(puts, names))
     randomized = _randomized(config, puts[0]) if config.randomization is not None else set()
     _check_records(config)
+    if config.terminate is not None:
+        from simloader.backends.warp import episodes
+        episodes.check_rules(config.terminate)
     images = [o for o in config.observations if isinstance(o, observe.CameraImage)]
     why = cameras.refusal(images)
     if why:
