@@ -365,10 +365,19 @@ def _remove_below(parent: int, name: str, depth: int = 0) -> None:
         info = os.stat(name, dir_fd=parent, follow_symlinks=False)
     except FileNotFoundError:
         return
-    if not stat.S_ISDIR(info.st_mode):
-        os.unlink(name, dir_fd=parent)
-        return
-    fd = os.open(name, _DIRECTORY | _NOFOLLOW, dir_fd=parent)
+    try:
+        if not stat.S_ISDIR(info.st_mode):
+            os.unlink(name, dir_fd=parent)
+            return
+        fd = os.open(name, _DIRECTORY | _NOFOLLOW, dir_fd=parent)
+    except (IsADirectoryError, NotADirectoryError, OSError) as e:
+        if isinstance(e, FileNotFoundError):
+            return
+        if e.errno not in (errno.EISDIR, errno.ENOTDIR, errno.ELOOP):
+            raise
+        raise StoreChanged(f"{name}: swapped for another kind of entry while it was "
+                           f"removed; nothing outside the store was touched: remove "
+                           f"what is not the store's and write again") from None
     try:
         if (os.fstat(fd).st_dev, os.fstat(fd).st_ino) != (info.st_dev, info.st_ino):
             raise StoreChanged(f"{name}: changed while it was removed")
@@ -378,4 +387,8 @@ def _remove_below(parent: int, name: str, depth: int = 0) -> None:
             _remove_below(fd, entry, depth + 1)
     finally:
         os.close(fd)
-    os.rmdir(name, dir_fd=parent)
+    try:
+        os.rmdir(name, dir_fd=parent)
+    except NotADirectoryError:
+        raise StoreChanged(f"{name}: swapped for a file or a link while it was removed; "
+                           f"nothing outside the store was touched") from None
