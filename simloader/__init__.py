@@ -9,6 +9,7 @@
 from simloader import controls, initial, layout, observe, policy, randomize
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
+from simloader.known_faults import KnownFaultWarning
 from simloader.mixture import Mixture
 from simloader.observe import Camera
 from simloader.store import StoredDataset, write
@@ -20,6 +21,7 @@ __version__ = "0.1.0"
 __all__ = [
     "Batch",
     "Camera",
+    "KnownFaultWarning",
     "Mixture",
     "SimDataset",
     "StoredDataset",

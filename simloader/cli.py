@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 import simloader
 from simloader.store import StoreLocked, formats
-from simloader import backends, cli_specs, observe, threads
+from simloader import backends, cli_specs, known_faults, observe, threads
 
 DEFAULT_MODEL = "cartpole"
 # the registry's words, and its older spellings (still accepted; the library warns once)
@@ -229,8 +229,7 @@ def info(args: argparse.Namespace) -> None:
         return
     with from_arguments():
         description = simloader.describe(args.model, args.control_spec)
-        if args.record or args.randomize:
-            model = simloader.load_model(args.model)
+        model = simloader.load_model(args.model)
         if args.record:
             names = [name.strip() for name in args.record.split(",")]
             observations = observe.parse(model, names)
@@ -240,6 +239,9 @@ def info(args: argparse.Namespace) -> None:
             randomized = simloader.layout.describe_params(randomized_columns(model,
                                                                              args.randomize))
     print(description)
+    # no engine is chosen here: the faults of every engine, each naming its own
+    for line in known_faults.described([model], None):
+        print(line)
     if args.record:
         print("recorded keys (nbatch, nframes, ...) and their named parts:")
         print(recorded)

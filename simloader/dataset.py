@@ -9,7 +9,7 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import handoff, identity, layout, models, observe, resume, sharding
+from simloader import handoff, identity, known_faults, layout, models, observe, resume, sharding
 from simloader import policy as simloader_policy
 from simloader.backends import binding
 from simloader.backends.base import Backend, Stats
@@ -122,6 +122,11 @@ class SimDataset(torch.utils.data.IterableDataset):
     Raises:
       TypeError, ValueError: bad arguments, naming the argument, the expectation and the value;
         a batch that cannot fit in host memory (CPU engine), with its size.
+
+    Warns:
+      KnownFaultWarning: the model meets a known fault of the installed simulator on the
+        engine chosen (`simloader.known_faults`), naming it, the version that fixes it and the
+        model setting that avoids it; once per fault and model per process.
     """
 
     def __init__(self, model: Any, *, backend: str = "auto", nbatch: int, nstep: int,
@@ -146,6 +151,7 @@ class SimDataset(torch.utils.data.IterableDataset):
         self.engine: binding.BoundEngine = binding.bind(backend, backend_options, settings,
                                                         parts)
         self.config: SimConfig = self.engine.config
+        known_faults.warn_once(self.config.pool, self.config.backend)
         plan = self.config.randomization
         self.layout = layout.BatchLayout(self.config.model, self.config.control_spec,
                                          self.config.observations,
@@ -177,8 +183,9 @@ class SimDataset(torch.utils.data.IterableDataset):
 
     def describe(self) -> str:
         """Where the model came from, which columns of state, control and sensors mean what (by
-        object name), the recorded keys with the named parts `Batch.view` finds in them, and
-        what simulates."""
+        object name), the recorded keys with the named parts `Batch.view` finds in them, what
+        simulates, and the known faults of that simulator the model meets
+        (`simloader.known_faults`; each also warned once at construction, `KnownFaultWarning`)."""
         c = self.config
         text = (layout.describe(c.model, c.control_spec, self.source)
                 + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
@@ -197,7 +204,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         exact = "; deterministic: bit-identical batches for the same seed" if c.deterministic \
             else ""
         return text + (f"\nsimulated by: backend={c.backend!r} ({c.options.simulated_by()}; "
-                       f"chosen: {c.backend_reason}{where}{exact})")
+                       f"chosen: {c.backend_reason}{where}{exact})") + "".join(
+            "\n" + line for line in known_faults.described(c.pool, c.backend))
 
     def __len__(self) -> int:
         if self.config.num_batches is None:

@@ -38,7 +38,7 @@ import torch
 from simloader import threads
 from simloader.store.folder import Staged, StoreFolder, folders_above
 from simloader.store.zarr_format import (PROVENANCE, WRITTEN, ArraySpec, checksum_spec,
-                                         encode_shard, leaves, store_path, write_shard)
+                                         encode_shard, leaves, store_path)
 
 IN_FLIGHT = 2  # slots between their copy to the host and their commit, per writer
 
@@ -318,6 +318,22 @@ def commit_slot(folder: StoreFolder, specs: Mapping[str, ArraySpec], checksums: 
     _, _, changed = write_shard(folder, WRITTEN, slot, np.ones(1, dtype=bool))  # last
     folder.sync(changed)
     stages.add("sync", time.perf_counter() - start)
+
+
+def write_shard(folder: Any, spec: ArraySpec, slot: int, rows: np.ndarray,
+                durable: bool = True) -> tuple[int, int, list[str]]:
+    """One batch slot of one array (`encode_shard`) written to its file at once (the
+    checksums' and the marks' small shards; the write pipeline stages the others).
+
+    `folder`: the store's `StoreFolder`. Returns the file's size, its CRC-32, and the folders
+    to fsync before the slot is committed (`durable`: the file itself is fsync'd before its
+    rename)."""
+    if spec.empty:
+        return 0, 0, []
+    parts, size, crc = encode_shard(spec, rows)
+    file = spec.shard_key(slot)
+    folder.write(file, parts, durable)
+    return size, crc, folders_above(file, spec.name)
 
 
 def _all(pool: ThreadPoolExecutor, work: Any, items: list, undo: Any) -> list:

@@ -76,6 +76,19 @@ def load_models(stored: Any, count: int) -> list[mujoco.MjModel]:
     return pool
 
 
+def kept_models(stored: Any) -> Optional[list[mujoco.MjModel]]:
+    """The store's pool of models as kept, or None where it kept none or they cannot be
+    read (what asks can do without them: `known_faults.stored_warning`)."""
+    kept = stored.info.get("models")
+    count = kept.get("count") if isinstance(kept, dict) else None
+    if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= 1 << 16:
+        return None
+    try:
+        return load_models(stored, count)
+    except ValueError:
+        return None
+
+
 class StoredCameras:
     """The cameras a `StoredDataset` renders on read, checked against its store at
     construction: the model (from the store, or `model=` checked against the store's

@@ -9,7 +9,7 @@ import json
 import uuid
 from typing import Any, Optional
 
-from simloader import identity
+from simloader import identity, known_faults
 from simloader.store.zarr_format import FORMAT
 
 
@@ -56,7 +56,9 @@ def provenance(dataset: Any, batches: int) -> dict:
             "versions": versions(),
             # the models it simulated, kept as MJB files (`pixels.save_models`): a store of
             # states renders its cameras on read with them
-            "models": {"kind": kind, "count": len(pool)}}
+            "models": {"kind": kind, "count": len(pool)},
+            # the simulator's known faults this stream met (`known_faults`): flagged at open
+            "known_faults": known_faults.recorded(dataset)}
 
 
 def fingerprint_digest(fingerprint: Any) -> str:

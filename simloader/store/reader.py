@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import functools
 import os
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 
-from simloader import sharding
+from simloader import known_faults, sharding
 from simloader.layout import did_you_mean
 from simloader.store import integrity, order as orders
 from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedStore,
@@ -151,14 +152,26 @@ class StoredDataset(torch.utils.data.Dataset):
         damaged = store.damaged(verify=verify, progress=None)
         if damaged:
             raise DamagedStore(integrity.describe_damage(self.path, damaged))
+        faulted = self.known_fault()
+        if faulted is not None:
+            warnings.warn(f"StoredDataset: {self.path}: {faulted}",
+                          known_faults.KnownFaultWarning, stacklevel=3)
+
+    def known_fault(self) -> Optional[str]:
+        """What the simulator's known faults (`simloader.known_faults`) did to the stored
+        trajectories, said in words, or None where none applied."""
+        from simloader.store import pixels
+        return known_faults.stored_warning(self.info,
+                                           models=lambda: pixels.kept_models(self))
 
     def __len__(self) -> int:
         return len(self.slots) * self.nbatch
 
     def describe(self) -> str:
         """What the stored batches hold (the writer's dataset's `describe()`: which columns
-        of each key mean what)."""
-        return self.info["describe"]
+        of each key mean what), and a known fault of the simulator it was written under."""
+        said, faulted = self.info["describe"], self.known_fault()
+        return said if faulted is None or "known fault" in said else f"{said}\n{faulted}"
 
     @functools.cached_property
     def _arrays(self) -> dict[str, StoredArray]:

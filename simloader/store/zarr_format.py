@@ -29,7 +29,7 @@ Layout, chosen for writers that never coordinate and readers that never decode t
   name can make a path outside the store, and the key itself is kept in the array's
   attribute `key`.
 
-A shard is written by `write_shard` in zarr's sharding format (inner chunks in C order,
+A shard is encoded by `encode_shard` in zarr's sharding format (inner chunks in C order,
 then the index of (offset, length) pairs), and read back by `simloader.store.shards`; the
 tests read every store through zarr-python as well.
 """
@@ -329,23 +329,6 @@ def encode_shard(spec: ArraySpec, rows: np.ndarray, clock: Any = None) -> tuple[
         clock.add("compress", encoded - start if spec.compressed else 0.0)
         clock.add("checksum", time.perf_counter() - encoded)
     return parts, sum(memoryview(p).nbytes for p in parts), crc
-
-
-def write_shard(folder: Any, spec: ArraySpec, slot: int, rows: np.ndarray,
-                durable: bool = True) -> tuple[int, int, list[str]]:
-    """One batch slot of one array (`encode_shard`) written to its file at once (the
-    checksums' and the marks' small shards; the write pipeline stages the others).
-
-    `folder`: the store's `StoreFolder`. Returns the file's size, its CRC-32, and the folders
-    to fsync before the slot is committed (`durable`: the file itself is fsync'd before its
-    rename)."""
-    if spec.empty:
-        return 0, 0, []
-    from simloader.store.folder import folders_above
-    parts, size, crc = encode_shard(spec, rows)
-    file = spec.shard_key(slot)
-    folder.write(file, parts, durable)
-    return size, crc, folders_above(file, spec.name)
 
 
 def crc_of(folder: Any, name: str, chunk: int = 1 << 22) -> int:
