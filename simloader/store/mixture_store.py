@@ -25,8 +25,8 @@ from simloader.store import lock, ownership, pipeline
 from simloader.store.folder import StoreFolder
 from simloader.store.provenance import (StoreMismatch, differences, fingerprint,
                                         fingerprint_digest, new_identity, versions)
-from simloader.store.reader import (OPENERS, StoredDataset, item_index, key_kinds, nest,
-                                    transition_indices)
+from simloader.store.frames import item_index, key_kinds, transition_indices
+from simloader.store.reader import OPENERS, StoredDataset, nest
 from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, leaves, store_path
 
 KIND = "mixture"
@@ -435,12 +435,12 @@ class MixtureTransitions(torch.utils.data.Dataset):
         from simloader.store import order as orders
         if self.stored.pad:
             first = next(iter(self.parts.values()))
-            block = first.stored.nbatch * first.per
+            block = first.block
             sampler: Any = orders.BlockOrder(len(self), batch_size, order, block, 8,
                                              drop_last, seed)
         else:
             sampler = TaskBatches([len(p) for p in self.parts.values()],
-                                  [p.stored.nbatch * p.per for p in self.parts.values()],
+                                  [p.block for p in self.parts.values()],
                                   batch_size, order, drop_last, seed)
         from simloader.loaders import StatefulDataLoader as Loader
         return Loader(self, batch_size=None, sampler=sampler, **kwargs)

@@ -30,6 +30,27 @@ import torch
 ORDERS = ("quasi_random", "random", "sequential")
 
 
+def pattern_loader(view: Any, n: int, batch_size: int, order: str, block: int,
+                   window: Optional[int], drop_last: bool, seed: Optional[int], arrays: int,
+                   kwargs: dict, ahead: Optional[Callable[[np.ndarray, int], None]] = None
+                   ) -> torch.utils.data.DataLoader:
+    """The loader every reading pattern (transitions, windows) hands out: a `BlockOrder` of
+    its `n` items in blocks of `block` (one batch slot's), `window` blocks shuffled together
+    (default: as many as the open-shard table holds for `arrays` arrays read per block),
+    over a copy of `view` that reads whole shards in block orders; each batch one
+    `view.gather` (no per-item tensors, no collation), resumable
+    (`simloader.loaders.StatefulDataLoader`)."""
+    from simloader.loaders import StatefulDataLoader
+    from simloader.store.shards import MAX_OPEN
+    sampler = BlockOrder(n, batch_size, order, block,
+                         window or max(1, MAX_OPEN // (2 * arrays)), drop_last, seed,
+                         ahead=ahead)
+    copy = object.__new__(type(view))
+    copy.__dict__.update(view.__dict__)
+    copy.will_need = order != "random"  # a block is read whole, a random item alone
+    return StatefulDataLoader(copy, batch_size=None, sampler=sampler, **kwargs)
+
+
 class BlockOrder(torch.utils.data.Sampler):
     """Batches of `batch_size` indices of `range(n)` in one of `ORDERS`, each batch's indices
     in increasing order; a new order each epoch, drawn from `seed` and the epoch's number

@@ -7,7 +7,7 @@ import functools
 import os
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 import torch
@@ -20,32 +20,16 @@ from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedS
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.folder import StoreFolder
-from simloader.store.shards import MAX_OPEN, StoredArray
+from simloader.store.frames import checked_keys, item_index, steps_and_frames, transition_indices
+from simloader.store.shards import StoredArray
+
+if TYPE_CHECKING:
+    from simloader.store.windows import Episodes, Windows
 
 
 # kinds of stores that read as another dataset than `StoredDataset`: {kind: (is_kind(path),
 # opener(path, *args, **kwargs))}, filled by their modules (`mixture_store`)
 OPENERS: dict[str, tuple[Callable[[str], bool], Callable[..., Any]]] = {}
-
-
-def item_index(i: Any, n: int) -> int:
-    """Item `i` of `n` (negative counts from the end), or the TypeError / IndexError a
-    sequence raises, naming the dataset."""
-    if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
-        raise TypeError(f"StoredDataset: index must be an int, got {type(i).__name__}")
-    if not -n <= i < n:
-        raise IndexError(f"StoredDataset: index {i} out of range for {n} trajectories")
-    return int(i) % n
-
-
-def transition_indices(ks: Any, n: int) -> np.ndarray:
-    """Transitions `ks` of `n` as int64 indices in range (negative counts from the end), or
-    the IndexError naming the first out of range."""
-    ks = np.asarray(ks, dtype=np.int64).reshape(-1)
-    if len(ks) and (ks.min() < -n or ks.max() >= n):
-        bad = int(ks[(ks < -n) | (ks >= n)][0])
-        raise IndexError(f"Transitions: index {bad} out of range for {n} transitions")
-    return ks % max(n, 1)
 
 
 def nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
@@ -231,6 +215,40 @@ class StoredDataset(torch.utils.data.Dataset):
                            drop_flagged=diverged == "drop",
                            context=(context,) if isinstance(context, str) else tuple(context))
 
+    def windows(self, length: int, *, state: str | Sequence[str] = "state",
+                context: str | Sequence[str] = (), ends: str = "cross",
+                actions: str = "produced", diverged: str = "drop") -> "Windows":
+        """Every window of `length` consecutive frames (see `simloader.store.windows`, whose
+        table maps DreamerV3's, TD-MPC2's, torchrl's and LeRobot's conventions to `ends=` and
+        `actions=`). A trajectory's frames are its `initial_state` (`first=True`) and its
+        stored frames; a store written with `continue_episodes=True` is read as streams (the
+        batches of one rank, worker and row joined in order); a window never spans two.
+
+        Args:
+          length: frames per window.
+          state: the per-frame keys each window holds (as `transitions`).
+          context: per-trajectory keys, one value per window.
+          ends: "cross" (DreamerV3), "inside" (TD-MPC2, `SliceSampler(strict_length=True)`)
+            or "pad" (LeRobot: `mask` False past the episode's end).
+          actions: "produced" (the row that produced frame t, NaN at a `first` frame) or
+            "next" (the row applied after frame t; zeros after an episode's last frame).
+          diverged: "drop" leaves out the trajectories flagged diverged (a continued stream
+            is cut there); "keep" keeps them.
+        """
+        from simloader.store.windows import Windows
+        return Windows(self, length, (state,) if isinstance(state, str) else tuple(state),
+                       ends, actions, diverged,
+                       (context,) if isinstance(context, str) else tuple(context))
+
+    def episodes(self, *, state: str | Sequence[str] = "state",
+                 context: str | Sequence[str] = (), actions: str = "produced",
+                 diverged: str = "drop") -> "Episodes":
+        """Whole episodes (variable length, split at resets): item `i` a dict of
+        `(length, ...)` tensors with a window's keys (see `windows`)."""
+        from simloader.store.windows import Episodes
+        return Episodes(self, (state,) if isinstance(state, str) else tuple(state), diverged,
+                        (context,) if isinstance(context, str) else tuple(context), actions)
+
     def flagged(self) -> np.ndarray:
         """Per stored trajectory: flagged `diverged` or `overflow` (bool); read slot by slot
         through the bounded table of open shards."""
@@ -295,40 +313,6 @@ def _take(rows: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:
         np.take(rows, at, axis=0, out=out.reshape(-1, rows.shape[1]), mode="clip")
 
 
-# batch keys with one value per trajectory (and no frame axis, whatever their width)
-PER_TRAJECTORY = ("initial_state", "diverged", "overflow", "policy/version")
-PER_TRAJECTORY_GROUPS = ("params/", "provenance/")
-
-
-def _steps_and_frames(stored: StoredDataset) -> tuple[int, int]:
-    """(nstep, nframes) of the store, from its root."""
-    nstep, every = stored.info.get("nstep"), int(stored.info["record_every"])
-    if not isinstance(nstep, int) or isinstance(nstep, bool) or nstep < 1 or nstep % every:
-        raise DamagedStore(f"{os.path.join(stored.path, 'zarr.json')}: the attribute "
-                           f"simloader.nstep is {nstep!r}, expected a positive multiple of "
-                           f"record_every={every}")
-    return nstep, nstep // every
-
-
-def key_kinds(stored: StoredDataset) -> tuple[list[str], list[str]]:
-    """(per-frame keys, per-trajectory keys) of a store. Per frame: arrays
-    `ntrajectories x nframes x ...` (`nframes = nstep // record_every`, from the store's
-    root) of a recorded or policy key. Per trajectory: the keys of `PER_TRAJECTORY` and
-    `PER_TRAJECTORY_GROUPS` (`initial_state` is `ntrajectories x nstate`, which may equal
-    `nframes`), and every array without a time axis. `control` is neither: it is every
-    transition's action."""
-    nstep, nframes = _steps_and_frames(stored)
-    frames, constants = [], []
-    for name, meta in stored.metas.items():
-        shape = meta["shape"]
-        if name in PER_TRAJECTORY or name.startswith(PER_TRAJECTORY_GROUPS) or \
-                len(shape) < 2 or shape[1] not in (nstep, nframes):
-            constants.append(name)
-        elif shape[1] == nframes and name != "control":
-            frames.append(name)
-    return sorted(frames), sorted(constants)
-
-
 class Transitions(torch.utils.data.Dataset):
     """The transitions of a store: item `k` is `{KEY: s_t, "control": a_t, "next/KEY": s_t+1}`
     for every state key, over the trajectories not flagged diverged (by default). With
@@ -350,34 +334,12 @@ class Transitions(torch.utils.data.Dataset):
                 f"was stopped before its first batch was complete, or the marks were "
                 f"removed); there is nothing to pair. Calling simloader.write with the same "
                 f"dataset writes it")
-        per_frame, per_trajectory = key_kinds(stored)
-        for key in keys:
-            if key in per_frame:
-                continue
-            if key in per_trajectory:
-                raise KeyError(f"state: {key!r} is per-trajectory (one value per trajectory, "
-                               f"no frame axis); pass it as context=({key!r},) to have it "
-                               f"with each transition; per-frame keys: {per_frame}")
-            if key == "control":
-                raise KeyError(f"state: 'control' is every transition's action already; "
-                               f"per-frame keys: {per_frame}")
-            raise KeyError(f"state: expected a per-frame key of the store (shape "
-                           f"ntrajectories x nframes x ...), got {key!r}"
-                           f"{did_you_mean(key, per_frame)}; per-frame keys: {per_frame}")
-        constants = []
-        for key in context:
-            found = [n for n in per_trajectory if n == key or n.startswith(key + "/")]
-            if not found:
-                where = "is per-frame: pass it in state=" if key in per_frame else \
-                    f"is not a per-trajectory key of the store{did_you_mean(key, per_trajectory)}"
-                raise KeyError(f"context: {key!r} {where}; per-trajectory keys: "
-                               f"{per_trajectory}")
-            constants += [n for n in found if n not in constants]
+        constants = checked_keys(stored, keys, context)
         self.stored = stored
         self.keys = keys
         self.context = tuple(constants)
         self.every = int(stored.info["record_every"])
-        nstep, self.nframes = _steps_and_frames(stored)
+        nstep, self.nframes = steps_and_frames(stored)
         # every index `gather` takes is then in range: frames of `nframes`, controls of nstep
         if stored.metas["control"]["shape"][1] != nstep:
             raise DamagedStore(f"{stored.layouts['control'].file}: shape "
@@ -474,16 +436,15 @@ class Transitions(torch.utils.data.Dataset):
         """
         if shuffle is not None:
             order = "random" if shuffle else "sequential"
-        arrays = len(self.keys) + 2  # the state keys, control and initial_state
-        block = self.stored.nbatch * self.per  # one slot's transitions (where none dropped)
-        sampler = orders.BlockOrder(len(self), batch_size, order, block,
-                                    window or max(1, MAX_OPEN // (2 * arrays)), drop_last,
-                                    seed, ahead=self._read_ahead)
-        view = object.__new__(Transitions)
-        view.__dict__.update(self.__dict__)
-        view.will_need = order != "random"  # a block is read whole, a random item alone
-        from simloader.loaders import StatefulDataLoader as Loader
-        return Loader(view, batch_size=None, sampler=sampler, **kwargs)
+        return orders.pattern_loader(self, len(self), batch_size, order, self.block, window,
+                                     drop_last, seed, len(self.keys) + 2, kwargs,
+                                     ahead=self._read_ahead)
+
+    @property
+    def block(self) -> int:
+        """One batch slot's transitions (where none were dropped): a quasi-random order's
+        block, one shard per array."""
+        return self.stored.nbatch * self.per
 
     def _read_ahead(self, blocks: np.ndarray, block: int) -> None:
         """The shard files of the blocks of transitions starting at `blocks`, read into the

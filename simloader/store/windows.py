@@ -1,0 +1,199 @@
+"""Windows of T consecutive frames, and whole episodes: what world models train and are
+evaluated on, cut from a store's streams (`simloader.store.frames`).
+
+The conventions a world model trains in, by name:
+
+| | `ends=` | `actions=` |
+| --- | --- | --- |
+| DreamerV3 | `"cross"`: windows run across an episode end, the fresh frame `first=True` (`is_first`: the model resets its latent there) | `"next"`: the action taken after frame t |
+| TD-MPC2, torchrl `SliceSampler(strict_length=True)` | `"inside"`: every window inside one episode; episodes shorter than the window are never sampled | `"produced"`: the action that produced frame t (NaN at a `first` frame) |
+| LeRobot, DIAMOND, IRIS | `"pad"`: windows start anywhere inside an episode and are padded past its end, `mask` False there (`_is_pad`) | `"next"` |
+
+Under `actions="next"` the last frame of an episode (a frame that ended it, or the last one
+stored) has no action after it: its row is zeros (a padded frame's too).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from simloader.store import frames as stream_frames
+from simloader.store import order as orders
+from simloader.store.frames import FrameTable
+
+ENDS = ("cross", "inside", "pad")
+ACTIONS = ("produced", "next")
+
+
+class _FramePattern(torch.utils.data.Dataset):
+    """What windows and episodes share: the store's frame table over the kept trajectories,
+    the keys checked, and `read` of any positions (tensors, cameras rendered for exactly
+    those frames)."""
+
+    def __init__(self, stored: Any, keys: tuple[str, ...], diverged: str,
+                 context: tuple[str, ...], actions: str):
+        if diverged not in ("drop", "keep"):
+            raise ValueError(f"diverged: expected 'drop' or 'keep', got {diverged!r}")
+        if actions not in ACTIONS:
+            raise ValueError(f"actions: expected one of {ACTIONS}, got {actions!r}")
+        if not len(stored.slots):
+            raise ValueError(f"windows: the store at {stored.path!r} has no committed batch "
+                             f"slot yet; calling simloader.write with the same dataset writes "
+                             f"it")
+        self.stored, self.keys, self.actions = stored, keys, actions
+        self.context = stream_frames.checked_keys(stored, keys, context)
+        self.drop_flagged = diverged == "drop"
+        self.every = int(stored.info["record_every"])
+        self.will_need = False  # read whole shards (set by `loader` for block orders)
+
+    @functools.cached_property
+    def table(self) -> FrameTable:
+        """The frames of the kept streams, made at the first use (it reads the flags, the
+        provenance and the `first` marks of every slot)."""
+        kept = (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
+                np.arange(len(self.stored)))
+        # a trajectory's initial state leads it where every key asked has one
+        return stream_frames.build(self.stored, kept, initial=self.keys == ("state",))
+
+    def read(self, positions: np.ndarray, limit: Optional[np.ndarray] = None
+             ) -> dict[str, torch.Tensor]:
+        """The frames at `positions` (B, L) as tensors (B, L, ...); `limit` (B,): one past
+        the last real position of each row (padding after it: zeros, flags False, `mask`)."""
+        table = self.table
+        real = None
+        if limit is not None:
+            real = positions < limit[:, None]
+            positions = np.where(real, positions, (limit - 1)[:, None])
+        out = stream_frames.read(self.stored, table, positions, self.keys, self.context,
+                                 self.every, self.will_need)
+        if self.actions == "next":
+            after = positions + 1
+            inside = after < table.episode_end[positions]
+            if real is not None:
+                inside &= np.r_[real[:, 1:].T, np.zeros((1, len(real)), bool)].T
+            following = stream_frames.read(self.stored, table, np.where(inside, after,
+                                                                         positions),
+                                           (), (), self.every, self.will_need)["control"]
+            following[~inside] = 0
+            out["control"] = following
+        for key in self.context:  # one value per window: its first frame's trajectory's
+            out[key] = out[key][:, 0]
+        if real is not None:
+            for key, value in out.items():
+                if key not in self.context:
+                    value[~real] = 0
+            out["mask"] = real
+        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}
+        cameras = self.stored.cameras
+        if cameras is not None:
+            states = out["state"] if "state" in out else stream_frames.read(
+                self.stored, table, positions, ("state",), (), self.every)["state"]
+            b, length = positions.shape
+            trajectories = table.trajectory[positions.reshape(-1)]
+            for key, images in cameras.frames(states.reshape(b * length, 1, -1),
+                                              trajectories).items():
+                images = images.reshape(b, length, *images.shape[2:])
+                if real is not None:
+                    images[torch.from_numpy(~real)] = 0
+                tensors[key] = images
+        return tensors
+
+    def _loader(self, n: int, block: int, batch_size: int, order: str, drop_last: bool,
+                window: Optional[int], seed: Optional[int], kwargs: dict
+                ) -> torch.utils.data.DataLoader:
+        return orders.pattern_loader(self, n, batch_size, order, block, window, drop_last,
+                                     seed, len(self.keys) + 2, kwargs)
+
+
+class Windows(_FramePattern):
+    """Every window of `length` consecutive frames of a store (`StoredDataset.windows`): item
+    `i` is a dict of tensors, `gather(indices)` a batch `(B, length, ...)`: the per-frame
+    keys asked, `control` (see `actions`), `first`, `terminated`, `truncated` (where the store
+    has episodes), `mask` under `ends="pad"`, each `context` key `(B, ...)` (the window's
+    first frame's trajectory's), and the cameras of `StoredDataset(cameras=)` rendered for
+    the window's frames only. Windows never span two streams; a stream's frames are every
+    trajectory's initial state (`first=True`) and its stored frames, and a continued store's
+    batches joined (`simloader.store.frames`). The conventions are the module's table."""
+
+    def __init__(self, stored: Any, length: int, keys: tuple[str, ...], ends: str,
+                 actions: str, diverged: str, context: tuple[str, ...]):
+        if isinstance(length, bool) or not isinstance(length, (int, np.integer)) or length < 1:
+            raise ValueError(f"length: expected a positive int (frames per window), got "
+                             f"{length!r}")
+        if ends not in ENDS:
+            raise ValueError(f"ends: expected one of {ENDS}, got {ends!r}")
+        super().__init__(stored, keys, diverged, context, actions)
+        self.length, self.ends = int(length), ends
+
+    @functools.cached_property
+    def _starts(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """Each window's first position, and under "pad" one past its episode's end."""
+        table, length = self.table, self.length
+        if self.ends == "cross":
+            first, end = table.segments()
+        else:
+            first, end = table.episodes()
+        room = end - first if self.ends == "pad" else np.maximum(end - first - length + 1, 0)
+        offsets = np.r_[0, np.cumsum(room)[:-1]].astype(np.int64)
+        starts = np.repeat(first, room) + (np.arange(int(room.sum())) - np.repeat(offsets, room))
+        limits = np.repeat(end, room) if self.ends == "pad" else None
+        return starts.astype(np.int64), limits
+
+    def __len__(self) -> int:
+        return len(self._starts[0])
+
+    @property
+    def block(self) -> int:
+        """Windows per batch slot, about (a quasi-random order's block: one shard each)."""
+        return max(1, len(self) // max(1, len(self.stored.slots)))
+
+    def gather(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
+        """The windows `indices` (negative counts from the end) as a batch `(B, length, ...)`."""
+        ks = stream_frames.transition_indices(indices, len(self))
+        starts, limits = self._starts
+        positions = starts[ks][:, None] + np.arange(self.length)
+        return self.read(positions, None if limits is None else limits[ks])
+
+    def __getitem__(self, k: Any) -> dict[str, torch.Tensor]:
+        if isinstance(k, (int, np.integer)) and not isinstance(k, bool):
+            return {n: v[0] for n, v in self.gather([k]).items()}
+        return self.gather(k)
+
+    def __getitems__(self, ks: Sequence[int]) -> list[dict[str, torch.Tensor]]:
+        out = self.gather(ks)
+        return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
+
+    def loader(self, batch_size: int, order: str = "quasi_random", drop_last: bool = False,
+               window: Optional[int] = None, seed: Optional[int] = None,
+               **kwargs: Any) -> torch.utils.data.DataLoader:
+        """A DataLoader of batches of `batch_size` windows, as `Transitions.loader` (the same
+        orders, each batch one gather; with torchdata a `StatefulDataLoader` that resumes
+        mid-epoch, with `num_workers` as it was)."""
+        return self._loader(len(self), self.block, batch_size, order, drop_last, window, seed,
+                            kwargs)
+
+
+class Episodes(_FramePattern):
+    """Whole episodes of a store (`StoredDataset.episodes`): item `i` is episode `i` (from a
+    `first` frame to the frame before the next one, or to its stream's end) as a dict of
+    tensors `(length, ...)`, with the keys a window has (`control` as `actions` says; each
+    `context` key its value)."""
+
+    def __len__(self) -> int:
+        return len(self.table.episodes()[0])
+
+    def __getitem__(self, i: Any) -> dict[str, torch.Tensor]:
+        i = stream_frames.item_index(i, len(self))
+        first, end = self.table.episodes()
+        positions = np.arange(first[i], end[i])[None]
+        return {k: v[0] for k, v in self.read(positions).items()}
+
+    def lengths(self) -> np.ndarray:
+        """Every episode's number of frames."""
+        first, end = self.table.episodes()
+        return end - first
