@@ -235,3 +235,18 @@ def test_the_cameras_of_a_window_are_its_frames_rendered(tmp_path):
         trajectory, frame = windows.table.trajectory[p], windows.table.frame[p]
         assert torch.equal(batch[key][w, t], streamed[int(trajectory)][key][frame])
     assert batch[key].shape == (len(windows), 4, 16, 16, 3)
+
+
+def test_a_mixture_stores_windows_carry_their_task(tmp_path):
+    mixture = simloader.Mixture({"a": cartpole(nbatch=2, nstep=8),
+                                 "b": cartpole(nbatch=2, nstep=8, seed=9)})
+    path = simloader.write(mixture, tmp_path / "m.zarr", batches=6, progress=False)
+    stored = simloader.StoredDataset(path)
+    windows = stored.windows(5)
+    assert len(windows) == sum(len(t.windows(5)) for t in stored.tasks.values())
+    batch = windows.gather(np.arange(len(windows)))
+    assert batch["state"].shape[1:] == (5, 5) and set(batch["task"].tolist()) == {0, 1}
+    a = stored.tasks["a"].windows(5)
+    assert torch.equal(batch["state"][:len(a)], a.gather(np.arange(len(a)))["state"])
+    seen = sum(len(b["task"]) for b in windows.loader(7, seed=1))
+    assert seen == len(windows)

@@ -269,12 +269,18 @@ class StoredMixture(torch.utils.data.Dataset):
         again["task"] = torch.tensor(self._index[name], dtype=torch.int64)
         return again
 
-    def transitions(self, *args: Any, **kwargs: Any) -> "MixtureTransitions":
+    def transitions(self, *args: Any, **kwargs: Any) -> "MixturePattern":
         """Every task's `transitions(...)` in one dataset: its batches mix the tasks' rows,
         padded to the widest task, with `"task"` per row and `"mask/KEY"` where the widths
         differ (one task's alone: `tasks[NAME].transitions()`)."""
         parts = {n: self.tasks[n].transitions(*args, **kwargs) for n in self._present}
-        return MixtureTransitions(self, parts)
+        return MixturePattern(self, parts)
+
+    def windows(self, *args: Any, **kwargs: Any) -> "MixturePattern":
+        """Every task's `windows(...)` in one dataset, with `"task"` per row (padded to the
+        widest task where the store was written from `pad=True`), as `transitions`."""
+        return MixturePattern(self, {n: self.tasks[n].windows(*args, **kwargs)
+                                     for n in self._present})
 
     @functools.cached_property
     def _plan(self) -> dict[str, tuple[tuple, torch.dtype, int]]:
@@ -367,10 +373,11 @@ def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],
     return nest(out)
 
 
-class MixtureTransitions(torch.utils.data.Dataset):
-    """The transitions of every task of a mixture's store, task after task (in the mixture's
-    order): `gather(ks)` reads each task's part of `ks` with that task's own `gather` and pads
-    the rows together (`pad_rows`). `loader` is `Transitions.loader`'s, over all of them."""
+class MixturePattern(torch.utils.data.Dataset):
+    """A reading pattern (transitions, windows) of every task of a mixture's store, task
+    after task (in the mixture's order): `gather(ks)` reads each task's part of `ks` with that
+    task's own pattern and pads the rows together (`pad_rows`). `loader` is the patterns'
+    loader, over all of them."""
 
     def __init__(self, stored: StoredMixture, parts: Mapping[str, Any]):
         self.stored, self.parts = stored, dict(parts)
@@ -413,8 +420,11 @@ class MixtureTransitions(torch.utils.data.Dataset):
             found = [tuple(x[key].shape[1:]) for x in samples if key in x]
             if len(set(found)) > 1 or len(found) < len(samples):
                 dtype = next(x[key].dtype for x in samples if key in x)
-                # control with record_every > 1: (steps, ncontrol), masked per column
-                lead = len(found[0]) - 1 if key == "control" else 0
+                # masked per column: a window's frame axis leads (`frame_axes`), and
+                # control with record_every > 1 is (steps, ncontrol)
+                part = next(iter(self.parts.values()))
+                framed = getattr(part, "frame_axes", 0) if key not in part.context else 0
+                lead = len(found[0]) - 1 if key == "control" else framed
                 out[key] = (tuple(max(f[d] for f in found) for d in range(len(found[0]))),
                             dtype, lead)
         return out

@@ -130,6 +130,8 @@ class Windows(_FramePattern):
         super().__init__(stored, keys, diverged, context, actions)
         self.length, self.ends = int(length), ends
 
+    frame_axes = 1  # a batch's keys are (B, length, ...), context keys aside
+
     @functools.cached_property
     def _starts(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
         """Each window's first position, and under "pad" one past its episode's end."""
