@@ -7,7 +7,7 @@ import functools
 import os
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Callable, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
@@ -22,9 +22,7 @@ from simloader.store import shards
 from simloader.store.folder import StoreFolder
 from simloader.store.frames import checked_keys, item_index, steps_and_frames, transition_indices
 from simloader.store.shards import StoredArray
-
-if TYPE_CHECKING:
-    from simloader.store.windows import Episodes, Windows
+from simloader.store.windows import Episodes, Windows
 
 
 # kinds of stores that read as another dataset than `StoredDataset`: {kind: (is_kind(path),
@@ -235,7 +233,6 @@ class StoredDataset(torch.utils.data.Dataset):
           diverged: "drop" leaves out the trajectories flagged diverged (a continued stream
             is cut there); "keep" keeps them.
         """
-        from simloader.store.windows import Windows
         return Windows(self, length, (state,) if isinstance(state, str) else tuple(state),
                        ends, actions, diverged,
                        (context,) if isinstance(context, str) else tuple(context))
@@ -245,7 +242,6 @@ class StoredDataset(torch.utils.data.Dataset):
                  diverged: str = "drop") -> "Episodes":
         """Whole episodes (variable length, split at resets): item `i` a dict of
         `(length, ...)` tensors with a window's keys (see `windows`)."""
-        from simloader.store.windows import Episodes
         return Episodes(self, (state,) if isinstance(state, str) else tuple(state), diverged,
                         (context,) if isinstance(context, str) else tuple(context), actions)
 
@@ -442,8 +438,8 @@ class Transitions(torch.utils.data.Dataset):
 
     @property
     def block(self) -> int:
-        """One batch slot's transitions (where none were dropped): a quasi-random order's
-        block, one shard per array."""
+        """The transitions of one batch slot (where none were dropped), which a
+        quasi-random order reads as a block (one shard per array)."""
         return self.stored.nbatch * self.per
 
     def _read_ahead(self, blocks: np.ndarray, block: int) -> None:

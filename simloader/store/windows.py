@@ -30,7 +30,7 @@ ENDS = ("cross", "inside", "pad")
 ACTIONS = ("produced", "next")
 
 
-class _FramePattern(torch.utils.data.Dataset):
+class FramePattern(torch.utils.data.Dataset):
     """What windows and episodes share: the store's frame table over the kept trajectories,
     the keys checked, and `read` of any positions (tensors, cameras rendered for exactly
     those frames)."""
@@ -110,7 +110,7 @@ class _FramePattern(torch.utils.data.Dataset):
                                      seed, len(self.keys) + 2, kwargs)
 
 
-class Windows(_FramePattern):
+class Windows(FramePattern):
     """Every window of `length` consecutive frames of a store (`StoredDataset.windows`): item
     `i` is a dict of tensors, `gather(indices)` a batch `(B, length, ...)`: the per-frame
     keys asked, `control` (see `actions`), `first`, `terminated`, `truncated` (where the store
@@ -151,7 +151,8 @@ class Windows(_FramePattern):
 
     @property
     def block(self) -> int:
-        """Windows per batch slot, about (a quasi-random order's block: one shard each)."""
+        """The windows of one batch slot, about, which a quasi-random order reads as a
+        block (one shard per array)."""
         return max(1, len(self) // max(1, len(self.stored.slots)))
 
     def gather(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -180,7 +181,7 @@ class Windows(_FramePattern):
                             kwargs)
 
 
-class Episodes(_FramePattern):
+class Episodes(FramePattern):
     """Whole episodes of a store (`StoredDataset.episodes`): item `i` is episode `i` (from a
     `first` frame to the frame before the next one, or to its stream's end) as a dict of
     tensors `(length, ...)`, with the keys a window has (`control` as `actions` says; each
