@@ -250,3 +250,47 @@ def test_a_mixture_stores_windows_carry_their_task(tmp_path):
     assert torch.equal(batch["state"][:len(a)], a.gather(np.arange(len(a)))["state"])
     seen = sum(len(b["task"]) for b in windows.loader(7, seed=1))
     assert seen == len(windows)
+
+
+def test_a_diverged_trajectory_is_in_no_window_and_cuts_its_stream(tmp_path):
+    control = np.zeros((3, 5, 1))
+    control[1, 2] = np.inf  # row 1 of every batch diverges
+    plain = cartpole(nbatch=3, nstep=5, control=control)
+    path = simloader.write(plain, tmp_path / "d.zarr", batches=2, progress=False)
+    stored = simloader.StoredDataset(path)
+    windows = stored.windows(3, context="diverged")
+    assert len(windows) == 4 * 4  # 4 kept trajectories of 6 frames: 4 windows each
+    assert not windows.gather(np.arange(len(windows)))["diverged"].any()
+    kept = stored.windows(3, diverged="keep")
+    assert len(kept) == 6 * 4
+    continued = cartpole(nbatch=3, nstep=5, control=control, continue_episodes=True)
+    path = simloader.write(continued, tmp_path / "c.zarr", batches=3, progress=False)
+    table = simloader.StoredDataset(path).windows(3).table
+    first, end = table.segments()
+    # rows 0 and 2 run on as one stream each (16 frames); row 1's batches are all left out
+    assert sorted((end - first).tolist()) == [16, 16]
+
+
+def test_a_continued_stream_missing_a_batch_is_cut_there(tmp_path):
+    ds = cartpole(nbatch=2, nstep=5, continue_episodes=True)
+    path = simloader.write(ds, tmp_path / "c.zarr", batches=4, progress=False)
+    mark = os.path.join(path, "provenance", "written", "c", "1")
+    os.unlink(mark)  # batch 1 not committed (a store still being written looks so)
+    windows = simloader.StoredDataset(path).windows(3)
+    first, end = windows.table.segments()
+    # per row: batch 0 with its initial state (6 frames), then batches 2 and 3 joined, led
+    # by batch 2's initial state as a fresh start (11 frames)
+    assert sorted((end - first).tolist()) == [6, 6, 11, 11]
+    assert windows.table.first[first].all()
+
+
+def test_windows_of_a_store_recording_every_second_step(tmp_path):
+    ds = cartpole(nbatch=2, nstep=10, record_every=2)
+    path = simloader.write(ds, tmp_path / "e.zarr", batches=1, progress=False)
+    stored = simloader.StoredDataset(path)
+    batch = stored.windows(3).gather([0, 1])
+    item = stored[int(stored.windows(3).table.trajectory[0])]
+    assert batch["control"].shape == (2, 3, 2, 1)  # the 2 rows between two frames
+    assert torch.isnan(batch["control"][0, 0]).all()  # the initial state: nothing produced it
+    assert torch.equal(batch["control"][0, 1], item["control"][0:2])
+    assert torch.equal(batch["state"][0, 1:], item["state"][:2])
