@@ -294,3 +294,13 @@ def test_windows_of_a_store_recording_every_second_step(tmp_path):
     assert torch.isnan(batch["control"][0, 0]).all()  # the initial state: nothing produced it
     assert torch.equal(batch["control"][0, 1], item["control"][0:2])
     assert torch.equal(batch["state"][0, 1:], item["state"][:2])
+
+
+def test_windows_of_a_key_without_values(tmp_path):
+    xml = """<mujoco><worldbody><body><joint name="j" type="slide"/><geom size=".1"/>
+    </body></worldbody><actuator><motor joint="j"/></actuator></mujoco>"""
+    ds = simloader.SimDataset(xml, backend="cpu", nbatch=2, nstep=4, nthread=1,
+                              record=("state", "sensordata"))
+    path = simloader.write(ds, tmp_path / "n.zarr", batches=1, progress=False)
+    batch = simloader.StoredDataset(path).windows(2, state=("state", "sensordata")).gather([0])
+    assert batch["sensordata"].shape == (1, 2, 0) and batch["state"].shape[:2] == (1, 2)

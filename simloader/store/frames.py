@@ -259,6 +259,8 @@ def read(stored: Any, table: FrameTable, positions: np.ndarray, keys: Sequence[s
         stored_frames = f >= 0
         s_at, i_at = at[stored_frames], at[~stored_frames]
         for key in keys:
+            if not out[key].size:
+                continue  # a key without values (sensordata of a model without sensors)
             seq = arrays[key].slot(slot, will_need)  # nbatch x nframes x ...
             flat = seq.reshape(seq.shape[0] * seq.shape[1], -1)
             out[key].reshape(n, -1)[s_at] = flat[r[stored_frames] * seq.shape[1] +
@@ -275,8 +277,9 @@ def read(stored: Any, table: FrameTable, positions: np.ndarray, keys: Sequence[s
             seq = arrays[key].slot(slot, will_need)
             out[key][s_at] = seq[r[stored_frames], f[stored_frames]]
         for key in context:
-            seq = arrays[key].slot(slot, will_need)
-            out[key].reshape(n, -1)[at] = seq.reshape(seq.shape[0], -1)[r]
+            if out[key].size:
+                seq = arrays[key].slot(slot, will_need)
+                out[key].reshape(n, -1)[at] = seq.reshape(seq.shape[0], -1)[r]
     first = table.first[flat_positions]
     out["first"] = first
     if out["control"].dtype.kind == "f":
