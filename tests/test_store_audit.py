@@ -196,8 +196,9 @@ def test_paths_no_file_can_have_are_refused_by_name(tmp_path):
         simloader.write(tiny(), dangling, batches=1, progress=False)
 
 
-def test_names_too_long_and_a_dotdot_from_nowhere_are_refused_before_anything(tmp_path):
-    os.chdir(tmp_path)
+def test_names_too_long_and_a_dotdot_from_nowhere_are_refused_before_anything(tmp_path,
+                                                                             monkeypatch):
+    monkeypatch.chdir(tmp_path)
     simloader.write(tiny(), "store.zarr", batches=1, progress=False)
     before = files_of("store.zarr")
     with pytest.raises(ValueError, match=r"goes up \('..'\) from 'new', which is not a folder"):
@@ -209,14 +210,14 @@ def test_names_too_long_and_a_dotdot_from_nowhere_are_refused_before_anything(tm
     simloader.write(tiny(), "store.zarr/../other.zarr", batches=1, progress=False)  # fine
 
 
-def test_a_path_near_the_systems_limit_is_written_whole(tmp_path):
+def test_a_path_near_the_systems_limit_is_written_whole(tmp_path, monkeypatch):
     """The store's files are reached relative to its open folder, so a store whose own path
     is close to PATH_MAX (4096) is written and read like any other."""
     deep = str(tmp_path)
     while len(deep) < 3900:
         deep = os.path.join(deep, "d" * 200)
     os.makedirs(deep)
-    os.chdir(deep)  # only relative paths work past PATH_MAX
+    monkeypatch.chdir(deep)  # only relative paths work past PATH_MAX
     path = simloader.write(tiny(), "s" * 100, batches=2, progress=False)
     assert len(simloader.StoredDataset(path)) == 4
 
