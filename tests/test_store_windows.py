@@ -205,6 +205,9 @@ def test_windows_of_other_keys_start_at_the_first_stored_frame(stores):
     assert torch.equal(batch["sensordata"][0], item["sensordata"][:4])
     assert torch.equal(batch["initial_state"][0], item["initial_state"])
     assert batch["first"][0, 0] and torch.isnan(batch["control"][0, 0]).all()
+    # a store without episodes: the flags are there, False
+    assert not batch["terminated"].any() and not batch["truncated"].any()
+    assert batch["terminated"].shape == (1, 4)
 
 
 def test_bad_arguments_are_refused_by_name(stores):

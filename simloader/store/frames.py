@@ -230,8 +230,9 @@ def read(stored: Any, table: FrameTable, positions: np.ndarray, keys: Sequence[s
     """The values at `positions` (any shape; flat positions of `table`): each per-frame key
     `(*shape, ...)` (a trajectory's initial state for `state` at an INITIAL frame), `control`
     the rows that produced each frame (`every x ncontrol` with `record_every > 1`; NaN at a
-    `first` frame: nothing produced it), `first`, `terminated`, `truncated` (False where the
-    store has none, and at initial frames), and each `context` key its trajectory's value."""
+    `first` frame: nothing produced it), `first`, `terminated`, `truncated` (always there:
+    False where the store has no episodes, and at initial frames), and each `context` key
+    its trajectory's value."""
     shape = positions.shape
     flat_positions = positions.reshape(-1)
     trajectory = table.trajectory[flat_positions]
@@ -248,8 +249,9 @@ def read(stored: Any, table: FrameTable, positions: np.ndarray, keys: Sequence[s
     width = control.trailing[1:]
     out["control"] = np.empty((n, *((every,) if every > 1 else ()), *width),
                               dtype=control.dtype)
+    # False where the store has no episodes (the keys are there either way)
     flags = [k for k in ("terminated", "truncated") if k in arrays]
-    for key in flags:
+    for key in ("terminated", "truncated"):
         out[key] = np.zeros(n, dtype=bool)
     for key in context:
         out[key] = np.empty((n, *arrays[key].trailing), dtype=arrays[key].dtype)

@@ -113,8 +113,8 @@ class FramePattern(torch.utils.data.Dataset):
 class Windows(FramePattern):
     """Every window of `length` consecutive frames of a store (`StoredDataset.windows`): item
     `i` is a dict of tensors, `gather(indices)` a batch `(B, length, ...)`: the per-frame
-    keys asked, `control` (see `actions`), `first`, `terminated`, `truncated` (where the store
-    has episodes), `mask` under `ends="pad"`, each `context` key `(B, ...)` (the window's
+    keys asked, `control` (see `actions`), `first`, `terminated`, `truncated` (False where
+    the store has no episodes), `mask` under `ends="pad"`, each `context` key `(B, ...)` (the window's
     first frame's trajectory's), and the cameras of `StoredDataset(cameras=)` rendered for
     the window's frames only. Windows never span two streams; a stream's frames are every
     trajectory's initial state (`first=True`) and its stored frames, and a continued store's
