@@ -307,3 +307,16 @@ def test_windows_of_a_key_without_values(tmp_path):
     path = simloader.write(ds, tmp_path / "n.zarr", batches=1, progress=False)
     batch = simloader.StoredDataset(path).windows(2, state=("state", "sensordata")).gather([0])
     assert batch["sensordata"].shape == (1, 2, 0) and batch["state"].shape[:2] == (1, 2)
+
+
+def test_a_padded_mixture_stores_windows_are_padded_per_column(tmp_path):
+    wide = simloader.SimDataset("gymnasium/inverted_double_pendulum", backend="cpu", nbatch=2,
+                                nstep=8, nthread=1)
+    mixture = simloader.Mixture({"a": cartpole(nbatch=2, nstep=8), "b": wide}, pad=True)
+    path = simloader.write(mixture, tmp_path / "p.zarr", batches=3, progress=False)
+    windows = simloader.StoredDataset(path).windows(4)
+    batch = windows.gather(np.arange(len(windows)))
+    narrow = batch["task"] == 0
+    assert batch["state"].shape[1:] == (4, 7) and batch["mask/state"].shape[1:] == (7,)
+    assert not batch["mask/state"][narrow, 5:].any() and batch["mask/state"][~narrow].all()
+    assert (batch["state"][narrow][..., 5:] == 0).all()
