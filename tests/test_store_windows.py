@@ -169,7 +169,7 @@ def test_next_actions_are_produced_ones_shifted_with_zeros_at_episode_ends(store
     a, b = produced.gather(k), following.gather(k)
     assert torch.equal(a["state"], b["state"])
     positions = produced._starts[0][:, None] + np.arange(10)
-    ends = produced.table.episode_end[positions]
+    ends = produced.table.episode_end(positions)
     inside = positions + 1 < ends
     for w, t in zip(*np.nonzero(inside[:, :-1])):
         assert torch.equal(b["control"][w, t], a["control"][w, t + 1])

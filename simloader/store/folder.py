@@ -112,21 +112,7 @@ class StoreFolder:
         done: list[str] = []
         try:
             for part in _parts(name):
-                try:
-                    below = os.open(part, _DIRECTORY | _NOFOLLOW, dir_fd=fd)
-                except FileNotFoundError:
-                    if not create:
-                        raise FileNotFoundError(errno.ENOENT, "no such folder",
-                                                self.where("/".join(done + [part]))) from None
-                    try:
-                        os.mkdir(part, 0o777, dir_fd=fd)
-                    except FileExistsError:
-                        pass
-                    below = self._open_below(fd, part, done)
-                except OSError as e:
-                    if e.errno not in (errno.ELOOP, errno.ENOTDIR):
-                        raise
-                    raise self.changed("/".join(done + [part])) from None
+                below = self._open_below(fd, part, "/".join(done + [part]), create)
                 os.close(fd)
                 fd = below
                 done.append(part)
@@ -135,13 +121,24 @@ class StoreFolder:
             raise
         return fd
 
-    def _open_below(self, fd: int, part: str, done: list[str]) -> int:
+    def _open_below(self, fd: int, part: str, name: str, create: bool) -> int:
+        """Folder `part` of the folder `fd` (`name` from the root), made first where
+        `create` and missing."""
         try:
             return os.open(part, _DIRECTORY | _NOFOLLOW, dir_fd=fd)
+        except FileNotFoundError:
+            if not create:
+                raise FileNotFoundError(errno.ENOENT, "no such folder",
+                                        self.where(name)) from None
         except OSError as e:
             if e.errno not in (errno.ELOOP, errno.ENOTDIR):
                 raise
-            raise self.changed("/".join(done + [part])) from None
+            raise self.changed(name) from None
+        try:
+            os.mkdir(part, 0o777, dir_fd=fd)
+        except FileExistsError:
+            pass
+        return self._open_below(fd, part, name, create=False)
 
     def changed(self, name: str) -> StoreChanged:
         return StoreChanged(f"{self.where(name)}: a link, or not a folder, where the store at "
@@ -151,14 +148,19 @@ class StoreFolder:
                             f"written through it: remove the link, or put the store's own "
                             f"folder back")
 
-    def entries(self, name: str = "") -> list[tuple[str, str]]:
-        """(entry, kind) of folder `name`'s entries, kind one of "folder", "file", "link",
-        "other" (links are not followed)."""
+    def entries(self, name: str = "") -> list[tuple[str, str, int]]:
+        """(entry, kind, size) of folder `name`'s entries, kind one of "folder", "file",
+        "link", "other", or "gone" (removed while listed); links are not followed."""
         with self.directory(name) as fd:
             out = []
             with os.scandir(fd) as listing:
                 for entry in listing:
-                    out.append((entry.name, _kind(entry)))
+                    try:
+                        info = entry.stat(follow_symlinks=False)
+                    except FileNotFoundError:
+                        out.append((entry.name, "gone", 0))
+                        continue
+                    out.append((entry.name, _mode_kind(info.st_mode), info.st_size))
         return out
 
     def kind(self, name: str) -> Optional[str]:
@@ -247,7 +249,7 @@ class StoreFolder:
         except BaseException:
             os.close(directory)
             raise
-        staged = Staged(self, directory, fd, temporary, last, head)
+        staged = Staged(directory, fd, temporary, last)
         try:
             with os.fdopen(os.dup(fd), "wb", closefd=True) as f:
                 for part in parts:
@@ -293,10 +295,8 @@ class Staged:
     """A temporary file written beside its name, its folder held open until it is renamed
     (so it is renamed in the folder it was written in, whatever happened to paths since)."""
 
-    def __init__(self, folder: StoreFolder, directory: int, fd: int, temporary: str, last: str,
-                 head: str):
-        self.folder, self.directory, self.fd = folder, directory, fd
-        self.temporary, self.last, self.head = temporary, last, head
+    def __init__(self, directory: int, fd: int, temporary: str, last: str):
+        self.directory, self.fd, self.temporary, self.last = directory, fd, temporary, last
 
     def fsync(self) -> None:
         os.fsync(self.fd)
@@ -343,13 +343,6 @@ def _parts(name: str) -> list[str]:
     return parts
 
 
-def _kind(entry: os.DirEntry) -> str:
-    try:
-        return _mode_kind(entry.stat(follow_symlinks=False).st_mode)
-    except FileNotFoundError:
-        return "gone"
-
-
 def _mode_kind(mode: int) -> str:
     if stat.S_ISLNK(mode):
         return "link"
@@ -370,16 +363,17 @@ def _remove_below(parent: int, name: str, depth: int = 0) -> None:
             os.unlink(name, dir_fd=parent)
             return
         fd = os.open(name, _DIRECTORY | _NOFOLLOW, dir_fd=parent)
-    except (IsADirectoryError, NotADirectoryError, OSError) as e:
-        if isinstance(e, FileNotFoundError):
-            return
+    except FileNotFoundError:
+        return
+    except OSError as e:
         if e.errno not in (errno.EISDIR, errno.ENOTDIR, errno.ELOOP):
             raise
         raise StoreChanged(f"{name}: swapped for another kind of entry while it was "
                            f"removed; nothing outside the store was touched: remove "
                            f"what is not the store's and write again") from None
     try:
-        if (os.fstat(fd).st_dev, os.fstat(fd).st_ino) != (info.st_dev, info.st_ino):
+        opened = os.fstat(fd)
+        if (opened.st_dev, opened.st_ino) != (info.st_dev, info.st_ino):
             raise StoreChanged(f"{name}: changed while it was removed")
         with os.scandir(fd) as listing:
             names = [e.name for e in listing]

@@ -21,6 +21,7 @@ read per key and batch slot.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -117,36 +118,45 @@ def checked_keys(stored: Any, keys: Sequence[str], context: Sequence[str]) -> tu
 
 @dataclasses.dataclass
 class FrameTable:
-    """Every frame of the store's kept streams, end to end (see the module's docstring)."""
+    """Every frame of the store's kept streams, end to end (see the module's docstring). Per
+    position only what cannot be derived (13 bytes a frame); where episodes and segments end
+    is found from their starts."""
 
     trajectory: np.ndarray  # (F,) int64: the stored trajectory of each position
-    frame: np.ndarray  # (F,) int64: its frame in that trajectory (INITIAL: its initial state)
-    first: np.ndarray  # (F,) bool: a fresh start
-    segment_end: np.ndarray  # (F,) int64: one past the last position of its segment
-    episode_end: np.ndarray  # (F,) int64: one past the last position of its episode
+    frame: np.ndarray  # (F,) int32: its frame in that trajectory (INITIAL: its initial state)
+    first: np.ndarray  # (F,) bool: a fresh start (every segment's first position is one)
+    segment_starts: np.ndarray  # (S,) int64, ascending: each segment's first position
 
     def __len__(self) -> int:
         return len(self.trajectory)
 
+    @functools.cached_property
+    def _firsts(self) -> np.ndarray:
+        return np.flatnonzero(self.first)
+
+    def episode_end(self, positions: np.ndarray) -> np.ndarray:
+        """One past the last position of each position's episode: the next fresh start (a
+        segment's end is one too), or the table's end."""
+        firsts = self._firsts
+        return np.r_[firsts, len(self)][np.searchsorted(firsts, positions, side="right")]
+
     def episodes(self) -> tuple[np.ndarray, np.ndarray]:
         """(first position, one past the last) of every episode, in order."""
-        starts = np.flatnonzero(self.first)
-        return starts, self.episode_end[starts]
+        starts = self._firsts
+        return starts, np.r_[starts[1:], len(self)].astype(np.int64)
 
     def segments(self) -> tuple[np.ndarray, np.ndarray]:
         """(first position, one past the last) of every segment (a stream, or a part of one
         between missing or left-out batches), in order."""
-        starts = np.flatnonzero(np.r_[True, self.segment_end[1:] != self.segment_end[:-1]]) \
-            if len(self) else np.zeros(0, dtype=np.int64)
-        return starts, self.segment_end[starts]
+        starts = self.segment_starts
+        return starts, np.r_[starts[1:], len(self)].astype(np.int64)
 
 
 def build(stored: Any, kept: np.ndarray, initial: bool) -> FrameTable:
     """The frame table of `stored`'s trajectories `kept` (ascending stored indices), with
     each segment's leading initial state where `initial`."""
     nframes = steps_and_frames(stored)[1]
-    pieces = _chains(stored, kept)  # (trajectories in stream order, chain start flags)
-    order, starts = pieces
+    order, starts = _chains(stored, kept)  # trajectories in stream order, chain starts
     n = len(order)
     lead = starts & initial  # a chain's first trajectory leads with its initial state
     per = nframes + lead.astype(np.int64)
@@ -154,25 +164,17 @@ def build(stored: Any, kept: np.ndarray, initial: bool) -> FrameTable:
     offsets = np.r_[0, np.cumsum(per)[:-1]].astype(np.int64)
     trajectory = np.repeat(order, per)
     within = np.arange(total, dtype=np.int64) - np.repeat(offsets, per)
-    frame = within - np.repeat(lead.astype(np.int64), per)
+    frame = (within - np.repeat(lead.astype(np.int64), per)).astype(np.int32)
+    del within
     first = np.zeros(total, dtype=bool)
-    first[offsets[starts]] = True  # a segment's first frame, initial or not
+    segment_starts = offsets[starts]
+    first[segment_starts] = True  # a segment's first frame, initial or not
     stored_first = _stored_first(stored, order)
     if stored_first is not None:
         kept_frames = frame >= 0
         first[kept_frames] |= stored_first[np.repeat(np.arange(n), per)[kept_frames],
                                            frame[kept_frames]]
-    # segment ends: a chain runs from its first trajectory's offset to the next chain's
-    chain = np.cumsum(starts) - 1  # each trajectory's chain
-    chain_end = np.r_[offsets[starts][1:], total].astype(np.int64)
-    segment_end = chain_end[np.repeat(chain, per)] if n else np.zeros(0, dtype=np.int64)
-    # episode ends: the next first position, or the segment's end
-    firsts = np.flatnonzero(first)
-    following = np.searchsorted(firsts, np.arange(total), side="right")
-    nxt = np.r_[firsts, total][following]
-    episode_end = np.minimum(nxt, segment_end)
-    return FrameTable(trajectory, frame, first, segment_end.astype(np.int64),
-                      episode_end.astype(np.int64))
+    return FrameTable(trajectory, frame, first, segment_starts)
 
 
 def _chains(stored: Any, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -210,9 +212,8 @@ def _stored_first(stored: Any, order: np.ndarray) -> Any:
     nbatch = stored.nbatch
     slots = stored.slots[order // nbatch]
     out = np.empty((len(order), first.trailing[0]), dtype=bool)
-    for slot in np.unique(slots):
-        at = np.flatnonzero(slots == slot)
-        out[at] = first.slot(int(slot))[order[at] % nbatch]
+    for slot, at in group_by_slot(slots):
+        out[at] = first.slot(slot)[order[at] % nbatch]
     return out
 
 

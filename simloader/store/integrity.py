@@ -69,7 +69,7 @@ def survey(folder: StoreFolder) -> Survey:
                                ) from None
         # files first: an array's zarr.json before its chunk folder `c`
         entries.sort(key=lambda e: e[1] == "folder")
-        for name, kind in entries:
+        for name, kind, size in entries:
             rel = f"{relative}/{name}" if relative else name
             inner = f"{below}/{name}" if below else name
             if kind == "link":
@@ -87,11 +87,7 @@ def survey(folder: StoreFolder) -> Survey:
                     walk(rel, None, "")
             elif array is not None:
                 slot = inner.split("/")[0]
-                if slot.isdigit():
-                    try:
-                        size = folder.stat(rel).st_size
-                    except FileNotFoundError:
-                        continue
+                if slot.isdigit() and kind != "gone":
                     sizes.setdefault(array, {})[int(slot)] = size
             elif name == "zarr.json" and relative:
                 meta = folder.read_json(rel)
@@ -115,12 +111,9 @@ def marks(folder: StoreFolder) -> dict[int, int]:
         return out  # absent; or a link, which the survey names
     except OSError as e:
         raise DamagedStore(f"{folder.where(where)}: cannot be listed ({e.strerror})") from None
-    for name, kind in entries:
+    for name, kind, size in entries:
         if name.isdigit() and kind == "file":
-            try:
-                out[int(name)] = folder.stat(f"{where}/{name}").st_size
-            except FileNotFoundError:
-                pass
+            out[int(name)] = size
     return out
 
 

@@ -45,7 +45,7 @@ def counts(mixture: Any, batches: int) -> list[int]:
 
 
 def task_path(root: str, name: str) -> str:
-    return os.path.join(root, TASKS, store_path(name))
+    return os.path.join(root, *task_name(name).split("/"))
 
 
 def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, progress: bool,
@@ -72,7 +72,7 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
             # a link is refused before anything is removed or written (as a store's are)
             kind = folder.kind(TASKS)
             if kind not in (None, "folder") or (kind == "folder" and any(
-                    k == "link" for _, k in folder.entries(TASKS))):
+                    k == "link" for _, k, _ in folder.entries(TASKS))):
                 raise ownership.NotAStore(f"path: the mixture store at {path!r} holds links "
                                           f"under {TASKS}/, which simloader never writes; "
                                           f"remove them")
@@ -100,9 +100,9 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
                     "zarr_format": 3, "node_type": "group", "attributes": {}}, durable=True)
             if stored is None or kept.get("members") != members:
                 # the members named before any of their stores is made or grown
+                folder.sync([TASKS])
                 _write_root(folder, {**mine, "batches": kept.get("batches", 0),
                                      "counts": kept.get("counts", [0] * len(members))})
-                folder.sync([TASKS, ""])
             reports = []
             for name, member, n in zip(mixture.names, mixture.datasets, mine["counts"]):
                 if n:
@@ -160,13 +160,14 @@ def _members(mixture: Any, folder: StoreFolder, recorded: Any) -> dict[str, dict
     recorded = recorded if isinstance(recorded, dict) else {}
     out = {}
     for name, member in zip(mixture.names, mixture.datasets):
-        digest = fingerprint_digest(fingerprint(member))
+        mine = fingerprint(member)
+        digest = fingerprint_digest(mine)
         meta = folder.read_json(task_name(name) + "/zarr.json") \
             if folder.kind(task_name(name)) == "folder" else None
         kept = ((meta or {}).get("attributes") or {}).get(ATTRIBUTE)
         was = recorded.get(name)
         if isinstance(kept, dict) and "fingerprint" in kept:
-            differ = differences(kept["fingerprint"], fingerprint(member))
+            differ = differences(kept["fingerprint"], mine)
             if differ:
                 raise StoreMismatch(f"the store at {folder.path!r} holds another "
                                     f"configuration for task {name!r}; it cannot be "

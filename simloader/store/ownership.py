@@ -95,10 +95,10 @@ def _listed(names: list[str]) -> str:
     return shown + (f" and {len(names) - _SHOWN} more" if len(names) > _SHOWN else "")
 
 
-def check_path(path: str, *, member_of: Optional[str] = None) -> None:
+def check_path(path: str) -> None:
     """The checks by path, before anything is opened: a path at all, not a system folder,
-    not a file or a link to nothing, not inside another store (`member_of`: the mixture
-    store whose `tasks/` this member's store lies in). Reads only."""
+    not a file or a link to nothing, not inside another store (a mixture's members are
+    opened through its folder instead). Reads only."""
     if path == "":
         raise NotAStore("path: expected the folder of a store, got an empty path")
     if "\0" in path:
@@ -115,8 +115,7 @@ def check_path(path: str, *, member_of: Optional[str] = None) -> None:
         raise NotAStore(f"path: {path!r} is a file, not a folder; a store is a folder: pass a "
                         f"new path")
     outer = enclosing_store(path)
-    if outer is not None and (member_of is None or
-                              os.path.realpath(outer) != os.path.realpath(member_of)):
+    if outer is not None:
         raise NotAStore(f"path: {path!r} lies inside the store at {outer!r}; a store inside "
                         f"a store makes the outer one unreadable (its readers refuse what "
                         f"they do not know) and a replace=True of the outer one would remove "
@@ -133,11 +132,10 @@ def _check_names(path: str) -> None:
             if not os.path.isdir(before):
                 raise NotAStore(f"path: {path!r} goes up ('..') from {before!r}, which is not "
                                 f"a folder; pass the path without '..'")
-        elif len(part.encode()) > _name_max(os.sep.join(parts[:k]) or "."):
+        elif len(part.encode()) > (most := _name_max(os.sep.join(parts[:k]) or ".")):
             raise NotAStore(f"path: the name {part[:40]!r}... of {path[:60]!r}... is "
                             f"{len(part.encode())} bytes, longer than the file system allows "
-                            f"({_name_max(os.sep.join(parts[:k]) or '.')}); pass a shorter "
-                            f"name")
+                            f"({most}); pass a shorter name")
 
 
 def _name_max(folder: str) -> int:
@@ -168,12 +166,13 @@ def check_contents(folder: StoreFolder, replace: bool) -> None:
     """Refuses (`NotAStore`) a folder a store may not be written to: anything but an empty
     folder, a simloader store or a killed creation; and links among a store's own entries.
     Reads only, through the open folder."""
-    entries = dict(folder.entries())
+    entries = {name: kind for name, kind, _ in folder.entries()}
     if not entries:
         return
     if root_attribute(folder) is not None or _creation(folder, entries):
+        own = own_names(folder)
         refuse_links(folder, [n for n, kind in entries.items() if kind == "link" and
-                              (n in (ROOT, LOCK) or n in own_names(folder))])
+                              (n in (ROOT, LOCK) or n in own)])
         return
     which = "replace=True replaces a simloader store only; " if replace else ""
     raise NotAStore(f"path: {folder.path!r} is a folder that is not a simloader store (it "
@@ -201,7 +200,7 @@ def _creation(folder: StoreFolder, entries: dict[str, str]) -> bool:
             return False
         # the slots' array, and the models kept for rendering on read (`pixels.MODELS`)
         return all(n in (ROOT, "written", "models") or LEFTOVER.search(n)
-                   for n, _ in folder.entries("provenance"))
+                   for n, _, _ in folder.entries("provenance"))
     return True
 
 
@@ -220,14 +219,11 @@ def own_names(folder: StoreFolder) -> set[str]:
     mixture store's `tasks`, the top folders of the arrays its checksums' record names, and
     the folders holding only arrays and groups simloader writes. Links are not among them
     (the caller refuses those)."""
-    out = set()
-    kind = folder.kind
-    if kind("provenance") == "folder":
-        out.add("provenance")
+    folders = {name for name, kind, _ in folder.entries() if kind == "folder"}
+    out = {"provenance"} & folders
     attribute = root_attribute(folder)
-    if attribute is not None and attribute.get("kind") == "mixture" and \
-            kind("tasks") == "folder":
-        out.add("tasks")
+    if attribute is not None and attribute.get("kind") == "mixture":
+        out |= {"tasks"} & folders
     try:
         checks = folder.read_json(CHECKSUM + "/" + ROOT)
     except (OSError, DamagedStore):
@@ -236,10 +232,8 @@ def own_names(folder: StoreFolder) -> set[str]:
         if isinstance(checks, dict) else None
     if isinstance(arrays, list):
         out.update(a.split("/")[0] for a in arrays if isinstance(a, str) and
-                   kind(a.split("/")[0]) == "folder")
-    for name, what in folder.entries():
-        if what == "folder" and name not in out and _written_by_simloader(folder, name, 0):
-            out.add(name)
+                   a.split("/")[0] in folders)
+    out.update(name for name in folders - out if _written_by_simloader(folder, name, 0))
     return out
 
 
@@ -260,14 +254,14 @@ def _written_by_simloader(folder: StoreFolder, name: str, depth: int) -> bool:
         return False
     return all(entry == ROOT or LEFTOVER.search(entry) or
                (what == "folder" and _written_by_simloader(folder, f"{name}/{entry}", depth + 1))
-               for entry, what in entries)
+               for entry, what, _ in entries)
 
 
-def own_entries(folder: StoreFolder) -> list[str]:
-    """The store's own top-level entries (its root, groups, arrays, and the killed writers'
-    temporary files beside them), its lock aside."""
+def own_entries(folder: StoreFolder) -> list[tuple[str, str]]:
+    """(name, kind) of the store's own top-level entries (its root, groups, arrays, and the
+    killed writers' temporary files beside them), its lock aside."""
     own = own_names(folder)
-    return [name for name, kind in folder.entries()
+    return [(name, kind) for name, kind, _ in folder.entries()
             if name != LOCK and (name == ROOT or LEFTOVER.search(name) or name in own)]
 
 
@@ -275,9 +269,8 @@ def clear(folder: StoreFolder) -> None:
     """`replace=True`: removes the store's own entries (never following a link; the lock,
     which the caller holds, and entries the store did not make stay). The root goes first:
     a store half removed is not a store, and readers opened before say it was replaced."""
-    entries = own_entries(folder)
-    for name in sorted(entries, key=lambda n: n != ROOT):
-        if folder.kind(name) == "folder":
+    for name, kind in sorted(own_entries(folder), key=lambda e: e[0] != ROOT):
+        if kind == "folder":
             folder.remove_tree(name)
         else:
             folder.unlink(name)

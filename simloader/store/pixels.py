@@ -79,14 +79,25 @@ def load_models(stored: Any, count: int) -> list[mujoco.MjModel]:
 def kept_models(stored: Any) -> Optional[list[mujoco.MjModel]]:
     """The store's pool of models as kept, or None where it kept none or they cannot be
     read (what asks can do without them: `known_faults.stored_warning`)."""
-    kept = stored.info.get("models")
-    count = kept.get("count") if isinstance(kept, dict) else None
-    if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= 1 << 16:
-        return None
     try:
-        return load_models(stored, count)
+        return load_models(stored, _count(stored))
     except ValueError:
         return None
+
+
+def _count(stored: Any) -> int:
+    """How many models the store kept, from its root (`ValueError` where the entry is not
+    one `save_models` writes)."""
+    kept = stored.info.get("models")
+    count = kept.get("count") if isinstance(kept, dict) else None
+    if not isinstance(kept, dict) or kept.get("kind") not in ("model", "models", "variants") or \
+            not isinstance(count, int) or isinstance(count, bool) or \
+            not 1 <= count <= 1 << 16 or (kept["kind"] == "variants" and count < 2):
+        raise ValueError(f"cameras: the store at {stored.path!r} says its models are "
+                         f"{kept!r} (expected kind 'model' with count 1, 'models' with one "
+                         f"per batch row, or 'variants' with the base model and at least one "
+                         f"variant): its root was edited or damaged; pass model=")
+    return count
 
 
 class StoredCameras:
@@ -181,15 +192,7 @@ def _models(stored: Any, model: Any) -> tuple[list[mujoco.MjModel], str]:
                          f"kept the model in its stores: pass the model that wrote it, "
                          f"model= (a name, an MJCF path or an MjModel; the list of a "
                          f"models= stream; checked against the store's digest)")
-    count = kept.get("count")
-    if kept.get("kind") not in ("model", "models", "variants") or not isinstance(count, int) \
-            or isinstance(count, bool) or not 1 <= count <= 1 << 16 or \
-            (kept["kind"] == "variants" and count < 2):
-        raise ValueError(f"cameras: the store at {stored.path!r} says its models are "
-                         f"{kept!r} (expected kind 'model' with count 1, 'models' with one "
-                         f"per batch row, or 'variants' with the base model and at least one "
-                         f"variant): its root was edited or damaged; pass model=")
-    pool = load_models(stored, count)
+    pool = load_models(stored, _count(stored))
     _check(stored, pool, kept["kind"], f"cameras: the store's model files in "
                                         f"{stored.folder.where(MODELS)} do not match its "
                                         f"digests (edited?); pass model=")

@@ -134,17 +134,14 @@ class StoredDataset(torch.utils.data.Dataset):
         damaged = store.damaged(verify=verify, progress=None)
         if damaged:
             raise DamagedStore(integrity.describe_damage(self.path, damaged))
-        faulted = self.known_fault()
-        if faulted is not None:
-            warnings.warn(f"StoredDataset: {self.path}: {faulted}",
-                          known_faults.KnownFaultWarning, stacklevel=3)
-
-    def known_fault(self) -> Optional[str]:
-        """What the simulator's known faults (`simloader.known_faults`) did to the stored
-        trajectories, said in words, or None where none applied."""
+        # judged once (a store from before faults were recorded is judged by its models,
+        # which are read for it)
         from simloader.store import pixels
-        return known_faults.stored_warning(self.info,
-                                           models=lambda: pixels.kept_models(self))
+        self.known_fault: Optional[str] = known_faults.stored_warning(
+            self.info, models=lambda: pixels.kept_models(self))
+        if self.known_fault is not None:
+            warnings.warn(f"StoredDataset: {self.path}: {self.known_fault}",
+                          known_faults.KnownFaultWarning, stacklevel=3)
 
     def __len__(self) -> int:
         return len(self.slots) * self.nbatch
@@ -152,7 +149,7 @@ class StoredDataset(torch.utils.data.Dataset):
     def describe(self) -> str:
         """What the stored batches hold (the writer's dataset's `describe()`: which columns
         of each key mean what), and a known fault of the simulator it was written under."""
-        said, faulted = self.info["describe"], self.known_fault()
+        said, faulted = self.info["describe"], self.known_fault
         return said if faulted is None or "known fault" in said else f"{said}\n{faulted}"
 
     @functools.cached_property

@@ -73,7 +73,7 @@ class FramePattern(torch.utils.data.Dataset):
                                  self.every, self.will_need)
         if self.actions == "next":
             after = positions + 1
-            inside = after < table.episode_end[positions]
+            inside = after < table.episode_end(positions)
             if real is not None:
                 inside &= np.r_[real[:, 1:].T, np.zeros((1, len(real)), bool)].T
             following = stream_frames.read(self.stored, table, np.where(inside, after,
@@ -103,12 +103,6 @@ class FramePattern(torch.utils.data.Dataset):
                 tensors[key] = images
         return tensors
 
-    def _loader(self, n: int, block: int, batch_size: int, order: str, drop_last: bool,
-                window: Optional[int], seed: Optional[int], kwargs: dict
-                ) -> torch.utils.data.DataLoader:
-        return orders.pattern_loader(self, n, batch_size, order, block, window, drop_last,
-                                     seed, len(self.keys) + 2, kwargs)
-
 
 class Windows(FramePattern):
     """Every window of `length` consecutive frames of a store (`StoredDataset.windows`): item
@@ -120,6 +114,8 @@ class Windows(FramePattern):
     trajectory's initial state (`first=True`) and its stored frames, and a continued store's
     batches joined (`simloader.store.frames`). The conventions are the module's table."""
 
+    frame_axes = 1  # a batch's keys are (B, length, ...), context keys aside
+
     def __init__(self, stored: Any, length: int, keys: tuple[str, ...], ends: str,
                  actions: str, diverged: str, context: tuple[str, ...]):
         if isinstance(length, bool) or not isinstance(length, (int, np.integer)) or length < 1:
@@ -129,8 +125,6 @@ class Windows(FramePattern):
             raise ValueError(f"ends: expected one of {ENDS}, got {ends!r}")
         super().__init__(stored, keys, diverged, context, actions)
         self.length, self.ends = int(length), ends
-
-    frame_axes = 1  # a batch's keys are (B, length, ...), context keys aside
 
     @functools.cached_property
     def _starts(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
@@ -177,8 +171,8 @@ class Windows(FramePattern):
         """A DataLoader of batches of `batch_size` windows, as `Transitions.loader` (the same
         orders, each batch one gather; with torchdata a `StatefulDataLoader` that resumes
         mid-epoch, with `num_workers` as it was)."""
-        return self._loader(len(self), self.block, batch_size, order, drop_last, window, seed,
-                            kwargs)
+        return orders.pattern_loader(self, len(self), batch_size, order, self.block, window,
+                                     drop_last, seed, len(self.keys) + 2, kwargs)
 
 
 class Episodes(FramePattern):
