@@ -328,3 +328,25 @@ def test_a_store_written_anew_at_the_same_path_is_read_anew(tmp_path):
     group = zarr.open_group(path, mode="r")
     assert np.array_equal(again[4]["state"].numpy(), group["state"][4])
     assert len(again.transitions()) == 6 * 4
+
+
+CONTINUED_WINDOWS = """
+import resource, sys, simloader
+resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+windows = simloader.StoredDataset(sys.argv[1]).windows(4)
+n = sum(len(b["state"]) for b in windows.loader(64, num_workers=2))
+print(len(windows), n)
+"""
+
+
+def test_windows_of_a_continued_store_of_600_slots_under_ulimit_256(tmp_path):
+    """A continued stream runs across every slot of its worker: building its frame table
+    read the provenance of all 600 slots (once as views that kept each map, and its
+    descriptor, open: refused at slot 249), then every window, read by two workers."""
+    path = simloader.write(tiny(continue_episodes=True), tmp_path / "c.zarr", batches=600,
+                           progress=False)
+    out = subprocess.run([sys.executable, "-c", CONTINUED_WINDOWS, path], capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    count, read = map(int, out.stdout.split())
+    assert count == read == 2 * (600 * 3 + 1 - 3)  # per row: 1 initial + 1800 frames

@@ -186,10 +186,14 @@ def _chains(stored: Any, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not fingerprint.get("continue_episodes") or not len(kept):
         return kept, np.ones(len(kept), dtype=bool)
     arrays = stored.arrays()
+    nbatch = stored.nbatch
     columns = {}
     for name in ("rank", "batch", "row", "num_workers"):
-        values = np.concatenate([arrays["provenance/" + name].slot(int(s))
-                                 for s in stored.slots]).astype(np.int64)
+        # copied out slot by slot: a view would keep each slot's map (and its descriptor)
+        # open past the bounded table of open shards
+        values = np.empty(len(stored.slots) * nbatch, dtype=np.int64)
+        for k, slot in enumerate(stored.slots):
+            values[k * nbatch:(k + 1) * nbatch] = arrays["provenance/" + name].slot(int(slot))
         columns[name] = values[kept]
     workers = np.maximum(columns["num_workers"], 1)
     worker = columns["batch"] % workers
