@@ -232,10 +232,13 @@ def test_killed_worker_is_reported_promptly(fresh_python):
         result = json.loads(output)
         reports = result["reports"]
         # no DataLoader(timeout=...) needed: torch's SIGCHLD handler raises RuntimeError naming
-        # the worker at once. A batch in transit from the dead worker may fail first, with the
-        # ConnectionResetError or EOFError of fetching its shared memory from a dead process
-        assert reports and reports[0][2] < 5, (context, result)
-        assert reports[-1][:2] == ["RuntimeError", True] and reports[-1][2] < 5, (context, result)
+        # the worker at once, or at the latest its 5 s status check does (on a loaded CI machine
+        # the check came first, at 5.04 s). A death gone unnoticed reaches the script's 20 s
+        # limit, so 15 s tells prompt from never with room for a loaded machine. A batch in
+        # transit from the dead worker may fail first, with the ConnectionResetError or EOFError
+        # of fetching its shared memory from a dead process
+        assert reports and reports[0][2] < 15, (context, result)
+        assert reports[-1][:2] == ["RuntimeError", True] and reports[-1][2] < 15, (context, result)
         assert {r[0] for r in reports[:-1]} <= {"ConnectionResetError", "ConnectionRefusedError",
                                                 "EOFError"}, (context, result)
         # at most the batches the loader had asked for ahead (2 workers x prefetch_factor 2)
