@@ -9,7 +9,8 @@ from typing import Any, Optional
 import mujoco
 import torch
 
-from simloader import handoff, identity, known_faults, layout, models, observe, resume, sharding
+from simloader import (handoff, identity, known_faults, layout, models, observe, resume,
+                       sharding, streams)
 from simloader import policy as simloader_policy
 from simloader.backends import binding
 from simloader.backends.base import Backend, Stats
@@ -140,6 +141,10 @@ class SimDataset(torch.utils.data.IterableDataset):
                  deterministic: Optional[bool] = None, sim_device: Any = None,
                  terminate: Any = None, **backend_options: Any):
         super().__init__()
+        # what it was made with, for `reseeded`
+        self._arguments = {**{k: v for k, v in locals().items()
+                              if k not in ("self", "__class__", "backend_options")},
+                           **backend_options}
         binding.check_keywords(backend_options, _KEYWORDS)
         settings, parts = validate(
             model, nbatch=nbatch, nstep=nstep, control=control, control_spec=control_spec,
@@ -160,14 +165,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         self._stats = Stats.of(self.engine.counters)
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
-        self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
-        self._pending: Optional[dict] = None  # the one the current iterator resumes from
-        self._progress: Optional[tuple] = None  # (shard, next index, backend, produced)
-
-    def __getstate__(self) -> dict[str, Any]:
-        # a copy for a DataLoader worker starts its own iteration: the running iterator's
-        # backend (threads, device buffers) stays behind
-        return {**self.__dict__, "_progress": None}
+        # where the iterator is: progress (shard, next index, backend, produced, stream tags)
+        self._position = resume.Position()
 
     @property
     def model(self) -> mujoco.MjModel:
@@ -212,6 +211,10 @@ class SimDataset(torch.utils.data.IterableDataset):
             raise TypeError("SimDataset with num_batches=None is endless and has no len()")
         return self.config.num_batches
 
+    def reseeded(self, seed: int) -> "SimDataset":
+        """The same dataset with another `seed` (a new dataset: its stream starts afresh)."""
+        return SimDataset(**{**self._arguments, "seed": seed})
+
     def make_backend(self, shard: Optional[sharding.Shard] = None) -> Backend:
         """The backend for a shard (default: the calling process's), e.g. to benchmark it."""
         shard = shard or sharding.current_shard(self._rank)
@@ -222,18 +225,20 @@ class SimDataset(torch.utils.data.IterableDataset):
         """Where this iterator (this DataLoader worker, or this process) is in the stream.
 
         Small and JSON-serializable; usable by torchdata's `StatefulDataLoader`. Loading it into
-        a dataset of the same configuration resumes exactly after the last delivered batch.
+        a dataset of the same configuration resumes exactly after the last delivered batch
+        (the stream keys' episode counters too: `simloader.streams`).
         """
-        if self._progress is None:  # nothing delivered since the last load or iter()
-            return self._loaded or self._pending or {
-                "version": resume.VERSION,
-                "config": identity.fingerprint(self.config),
-                "shard": None, "next_index": None, "trajectories": None}
-        shard, next_index, backend, produced = self._progress
+        saved = self._position.saved(lambda: {
+            "version": resume.VERSION, "config": identity.fingerprint(self.config),
+            "shard": None, "next_index": None, "trajectories": None, "streams": None})
+        if saved is not None:  # nothing delivered since the last load or iter()
+            return saved
+        shard, next_index, backend, produced, tags = self._position.progress
         return {"version": resume.VERSION,
                 "config": identity.fingerprint(self.config),
                 "shard": [shard.worker, shard.num_workers, shard.rank],
-                "next_index": next_index, "trajectories": backend.checkpoint(produced)}
+                "next_index": next_index, "trajectories": backend.checkpoint(produced),
+                "streams": tags.state()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Resumes the stream saved by `state_dict()` at the next iteration.
@@ -242,25 +247,13 @@ class SimDataset(torch.utils.data.IterableDataset):
           ValueError: the state belongs to a stream of another configuration.
         """
         resume.check(self.config, state)
-        self._loaded, self._pending, self._progress = state, None, None
+        self._position.load(state)
 
     def __iter__(self) -> Iterator[Batch]:
-        # the loaded position is taken by iter(), not by the first next(): a loader may make an
-        # iterator and drop it unstarted (StatefulDataLoader does when it resumes from the end
-        # of an epoch), and the next iterator must start the next epoch, not find it again
         if self.config.policy is not None:
             simloader_policy.check_worker(self.config.policy)
         shard = sharding.current_shard(self._rank)
-        loaded, self._loaded = self._loaded, None
-        self._pending, self._progress = loaded, None
-        if loaded is not None and loaded["next_index"] is not None:
-            saved = [shard.worker, shard.num_workers, shard.rank]
-            if loaded["shard"] != saved:
-                raise ValueError(f"state_dict: saved by worker/num_workers/rank "
-                                 f"{loaded['shard']}, resumed as {saved}")
-        else:
-            loaded = None
-        return self._batches(shard, loaded)
+        return self._batches(shard, self._position.start(shard, "next_index"))
 
     def _batches(self, shard: sharding.Shard,
                  loaded: Optional[dict]) -> Iterator[dict[str, torch.Tensor]]:
@@ -271,9 +264,13 @@ class SimDataset(torch.utils.data.IterableDataset):
             if loaded["trajectories"] is not None:
                 with handoff.current_device_kept():
                     backend.restore(loaded["trajectories"])
+        tags = streams.StreamTags(shard, self.config.nbatch, self.config.continue_episodes,
+                                  None if loaded is None else loaded.get("streams"))
         for index, batch, produced in self.stream(
                 backend, shard.indices(self.config.num_batches, start)):
-            self._progress = (shard, index + shard.num_workers, backend, produced)
+            tags.tag(batch)
+            self._position.progress = (shard, index + shard.num_workers, backend, produced,
+                                       tags)
             yield batch
 
     def stream(self, backend: Backend, indices: Iterable[int]) -> Iterator[tuple]:

@@ -28,7 +28,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from simloader import resume, sharding
+from simloader import resume, sharding, streams
 from simloader.identity import short
 from simloader.batch import Batch
 from simloader.dataset import SimDataset
@@ -130,13 +130,7 @@ class Mixture(torch.utils.data.IterableDataset):
         self._plan = _pad_plan(self.names, self.datasets) if pad else None
         # workers do not see the process group: keep the rank of the constructing process
         self._rank = sharding.distributed_rank()
-        self._loaded: Optional[dict] = None  # a state_dict to resume from at the next __iter__
-        self._pending: Optional[dict] = None  # the one the current iterator resumes from
-        self._progress: Optional[tuple] = None  # (shard, next position)
-
-    def __getstate__(self) -> dict[str, Any]:
-        # a copy for a DataLoader worker starts its own iteration
-        return {**self.__dict__, "_progress": None}
+        self._position = resume.Position()  # progress: (shard, next position)
 
     # -- what it is ------------------------------------------------------------------------
 
@@ -160,6 +154,12 @@ class Mixture(torch.utils.data.IterableDataset):
                 lines.append(f"  {key} {shape}{' mask/' + key if padded else ''}: {fills}")
         return "\n".join(lines)
 
+    def reseeded(self, seed: int) -> "Mixture":
+        """The same mixture with another `seed`, member i's seed `seed + i` (a new mixture:
+        its stream starts afresh)."""
+        members = [ds.reseeded(int(seed) + i) for i, ds in enumerate(self.datasets)]
+        return Mixture(dict(zip(self.names, members)), list(self.weights), seed, pad=self.pad)
+
     def members(self, draws: int) -> np.ndarray:
         """The member index of each of the first `draws` draws (batches, or with `pad=True`
         groups of `len(datasets)` rows of a batch), as the schedule draws them."""
@@ -178,12 +178,13 @@ class Mixture(torch.utils.data.IterableDataset):
         and every member's own `state_dict()`. JSON-serializable; usable by torchdata's
         `StatefulDataLoader`. Loading it into a mixture of the same configuration resumes
         exactly after the last delivered batch."""
-        if self._progress is None:  # nothing delivered since the last load or iter()
-            return self._loaded or self._pending or {
-                "kind": KIND, "version": VERSION, "config": self._config(), "shard": None,
-                "position": None, "members": {n: ds.state_dict()
-                                              for n, ds in zip(self.names, self.datasets)}}
-        shard, position = self._progress
+        saved = self._position.saved(lambda: {
+            "kind": KIND, "version": VERSION, "config": self._config(), "shard": None,
+            "position": None, "members": {n: ds.state_dict()
+                                          for n, ds in zip(self.names, self.datasets)}})
+        if saved is not None:  # nothing delivered since the last load or iter()
+            return saved
+        shard, position = self._position.progress
         return {"kind": KIND, "version": VERSION, "config": self._config(),
                 "shard": [shard.worker, shard.num_workers, shard.rank], "position": position,
                 "members": {n: ds.state_dict() for n, ds in zip(self.names, self.datasets)}}
@@ -212,29 +213,20 @@ class Mixture(torch.utils.data.IterableDataset):
                 resume.check(ds.config, members.get(name))
             except ValueError as e:
                 raise ValueError(f"state_dict: member {name!r}: {e}") from None
-        self._loaded, self._pending, self._progress = state, None, None
+        self._position.load(state)
 
     # -- the stream ------------------------------------------------------------------------
 
     def __iter__(self) -> Iterator[Batch]:
-        # the loaded position is taken by iter(), not by the first next() (as SimDataset: a
-        # loader may make an iterator and drop it unstarted at the end of an epoch)
         shard = sharding.current_shard(self._rank)
-        loaded, self._loaded = self._loaded, None
-        self._pending, self._progress = loaded, None
-        start = None
-        if loaded is not None and loaded["position"] is not None:
-            saved = [shard.worker, shard.num_workers, shard.rank]
-            if loaded["shard"] != saved:
-                raise ValueError(f"state_dict: saved by worker/num_workers/rank "
-                                 f"{loaded['shard']}, resumed as {saved}")
-            start = loaded["position"]
+        loaded = self._position.start(shard, "position")
+        start = None if loaded is None else loaded["position"]
         # every member's iterator now (cheap: a member's engine and prefetch thread start at
         # its first batch), each from its saved place or afresh, in this worker, so that its
         # own sharding gives this worker its part of the member's stream
         iterators = []
         for name, ds in zip(self.names, self.datasets):
-            if loaded is not None and start is not None:
+            if loaded is not None:
                 ds.load_state_dict(loaded["members"][name])
             iterators.append(iter(ds))
         return self._batches(shard, start, iterators)
@@ -252,7 +244,9 @@ class Mixture(torch.utils.data.IterableDataset):
                     except StopIteration:  # the member drawn has ended: so has the mixture
                         return
                 out = self._padded(draws, batches) if self.pad else _tagged(draws[0], batches[0])
-                self._progress = (shard, position + shard.num_workers)
+                # a member's stream ids, made unique across the members
+                out[streams.STREAM] = out[streams.STREAM] * len(self.datasets) + out["task"]
+                self._position.progress = (shard, position + shard.num_workers)
                 yield out
         finally:
             for it in iterators:  # stops the members' prefetch threads, frees their engines

@@ -8,7 +8,7 @@ warmstart included), stored bit-exactly as base64 so that the state stays JSON-s
 from __future__ import annotations
 
 import base64
-from typing import Any
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -83,3 +83,46 @@ def check(config: SimConfig, state: Any) -> None:
         more = f"; and {len(diff) - 6} more" if len(diff) > 6 else ""
         raise ValueError("state_dict: the saved stream has another configuration: "
                          + "; ".join(diff[:6]) + more)
+
+
+class Position:
+    """Where one iterator of a stream is, for `state_dict()`: what `SimDataset` and `Mixture`
+    share. A loaded state is taken by `iter()` (`start`), not by the first `next()`: a
+    loader may make an iterator and drop it unstarted (torchdata's `StatefulDataLoader` does
+    when it resumes from the end of an epoch), and the next iterator must start the next
+    epoch, not find it again. A copy sent to a DataLoader worker starts its own iteration:
+    the running iterator's progress stays behind (`__getstate__`)."""
+
+    def __init__(self) -> None:
+        self.loaded: Optional[dict] = None  # a state_dict to resume from at the next iter()
+        self.pending: Optional[dict] = None  # the one the current iterator resumes from
+        self.progress: Any = None  # what the current iterator delivered up to (its own)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "progress": None}
+
+    def load(self, state: dict) -> None:
+        self.loaded, self.pending, self.progress = state, None, None
+
+    def start(self, shard: Any, where: str) -> Optional[dict]:
+        """At `iter()`: the loaded state if it holds a position (its key `where` not None) and
+        was saved by this shard's worker and rank, None to start afresh.
+
+        Raises:
+          ValueError: the state was saved by another worker, worker count or rank."""
+        loaded, self.loaded = self.loaded, None
+        self.pending, self.progress = loaded, None
+        if loaded is None or loaded.get(where) is None:
+            return None
+        saved = [shard.worker, shard.num_workers, shard.rank]
+        if loaded["shard"] != saved:
+            raise ValueError(f"state_dict: saved by worker/num_workers/rank {loaded['shard']}, "
+                             f"resumed as {saved}")
+        return loaded
+
+    def saved(self, initial: Callable[[], dict]) -> Optional[dict]:
+        """The state to save when nothing was delivered since the last load or `iter()`
+        (`initial()`: a stream's state at its start), or None once something was."""
+        if self.progress is not None:
+            return None
+        return self.loaded or self.pending or initial()

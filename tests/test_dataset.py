@@ -28,7 +28,10 @@ def test_schema_shapes_never_squeezed():
     batch = next(iter(cartpole(nbatch=1, nstep=1)))
     m = simloader.load_model("cartpole")
     nstate = mujoco.mj_stateSize(m, S.mjSTATE_FULLPHYSICS)
-    assert set(batch) == {"state", "sensordata", "control", "initial_state", "diverged"}
+    assert set(batch) == {"state", "sensordata", "control", "initial_state", "diverged",
+                          "stream", "episode", "initial_first"}
+    for key in ("stream", "episode", "initial_first"):
+        assert batch[key].shape == (1,)
     assert batch["state"].shape == (1, 1, nstate)
     assert batch["sensordata"].shape == (1, 1, m.nsensordata)
     assert batch["control"].shape == (1, 1, m.nu)
@@ -63,8 +66,11 @@ def test_workers_shard_the_stream_without_repeats():
     assert len(two) == 6
     # workers draw the batches of the single-process stream, interleaved back in order
     for a, b in zip(single, two):
-        for key in a:
+        for key in set(a) - set(simloader.streams.KEYS):
             assert torch.equal(a[key], b[key])
+    # each worker's rows are streams of their own (worker w of 2: batches w, w + 2, ...)
+    assert [b["stream"].tolist() for b in two] == [[0, 1, 2, 3], [4, 5, 6, 7]] * 3
+    assert [b["episode"].tolist() for b in two] == [[k] * 4 for k in (0, 0, 1, 1, 2, 2)]
     # no trajectory repeats across batches
     controls_seen = torch.cat([b["control"].flatten(1) for b in two])
     assert len(torch.unique(controls_seen, dim=0)) == 6 * 4

@@ -60,8 +60,14 @@ def assert_same(a, b):
             assert a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]), k
 
 
-def without_task(batch):
-    return {k: v for k, v in batch.items() if k != "task"}
+def without_task(batch, ntasks=3):
+    """The member's own batch: no task, and its own stream ids (a mixture's are made unique
+    across the members: member id * ntasks + task)."""
+    out = {k: v for k, v in batch.items() if k != "task"}
+    task = int(batch["task"])
+    assert ((batch["stream"] - task) % ntasks == 0).all()
+    out["stream"] = (batch["stream"] - task) // ntasks
+    return out
 
 
 # -- the schedule ---------------------------------------------------------------------------
@@ -259,7 +265,7 @@ def test_padding_holds_every_members_rows_and_masks_the_real_columns():
             torch.full((r,), int(p["task"]), dtype=torch.int64) for p, r in zip(parts, rows)]))
         assert set(batch) == {"state", "sensordata", "xpos", "control", "initial_state",
                               "diverged", "params", "task", "mask/params/body_mass[pole]",
-                              *("mask/" + k for k in widths)}
+                              *("mask/" + k for k in widths), *simloader.streams.KEYS}
         start = 0
         for part, r in zip(parts, rows):
             sl = slice(start, start + r)

@@ -132,7 +132,8 @@ def test_default_record_keeps_the_batch_of_today(rich_model):
     ds = simloader.SimDataset(rich_model, backend="cpu", nbatch=2, nstep=5, num_batches=1)
     batch = next(iter(ds))
     assert isinstance(batch, Batch)
-    assert list(batch) == ["state", "sensordata", "control", "initial_state", "diverged"]
+    assert list(batch) == ["state", "sensordata", "control", "initial_state", "diverged",
+                           "stream", "episode", "initial_first"]
     assert batch["state"].shape == (2, 5, ds.config.nstate)
 
 

@@ -124,7 +124,9 @@ simloader.write(ds, sys.argv[1], batches=int(sys.argv[2]), progress=False,
 """
 
 
-@pytest.mark.parametrize("compression", [None, "zstd"])
+# raw in the slow runs only (the suite's time): the compressed store's kills cover the same
+# pipeline, with the slower commits that widen the window a kill lands in
+@pytest.mark.parametrize("compression", [pytest.param(None, marks=pytest.mark.slow), "zstd"])
 def test_a_writer_killed_ten_times_at_random_moments_resumes_to_the_same_store(
         tmp_path, compression):
     """kill -9 while slots are in the pipeline (copied, written, synced, renamed), ten times:
