@@ -48,7 +48,8 @@ napoleon_use_ivar = True  # "Attributes:" sections as fields, not second descrip
 nitpicky = True
 nitpick_ignore_regex = [
     # Types of other libraries in the signatures: the build is offline, without intersphinx.
-    (r"py:.*", r"(numpy|torch|mujoco|jax|collections\.abc|typing|os|pathlib|abc)(\..*)?"),
+    (r"py:.*", r"(numpy|torch|mujoco|jax|collections\.abc|typing|os|pathlib|abc|tensordict"
+               r"|torchrl)(\..*)?"),
 ]
 nitpick_ignore = [
     # Internal types in public signatures; the API reference does not document them.

@@ -1,25 +1,10 @@
 """simloader in torchrl: batches as `TensorDict`s in torchrl's keys, and a collector.
 
 `to_tensordict(batch)` lays a simloader batch out as torchrl's collectors do, one row per step,
-`batch_size=[nbatch, n]` (rows are trajectories, the time axis second):
-
-| torchrl key | shape | from the simloader batch |
-| --- | --- | --- |
-| `observation` (or the names `observation=` picks) | `[B, n, ...]` | the frame before the step: row 0 is the trajectory's `initial_state`, row t frame t - 1 (a copy: the two are joined) |
-| `action` | `[B, n, ncontrol]` (`[B, n, k, ncontrol]` with `record_every=k`) | the control rows applied after the observation, that produced `("next", "observation")` (a view) |
-| `("next", "observation")` | `[B, n, ...]` | frame t (a view) |
-| `("next", "terminated" / "truncated" / "done")` | `[B, n, 1]` bool | the frame's `terminated`, `truncated`, and either (False without `terminate=`) |
-| `is_init` | `[B, n, 1]` bool | the observation starts an episode: `initial_first` at row 0, else the stored `first` of frame t - 1 |
-| `("collector", "traj_ids")` | `[B, n]` int64 | the trajectory (episode of a stream, `simloader.streams`) the observation belongs to: unique across batches, DataLoader workers, ranks and resets; a continued episode keeps its id from batch to batch. A row whose `mask` is False has an id of its own, negative, so that `SliceSampler(traj_key=...)` never joins it to a trajectory |
-| `("collector", "mask")` | `[B, n]` bool | the row is a physics step: False where frame t is a fresh state after a reset (`first`: the step into it was never simulated, its action NaN) and on every row of a trajectory flagged `diverged` (or `overflow`) |
-| `policy_version` | `[B, n]` int64 | `policy/version`, with `policy=` |
-| `("policy", KEY)` | `[B, n, ...]` | the policy's extras at the step (the first step's with `record_every=k`) |
-| `("next", KEY)` | `[B, n, ...]` | every other recorded key, cameras too, as it is (a view) |
-| `params`, `task`, `diverged`, ... | `[B, n, ...]` | the per-trajectory keys, expanded over the rows (views) |
-
-Where an observed key has no initial value (anything but `state`: a camera, `sensordata`, a
-recorded field), the rows start at frame 0 instead: `n = nframes - 1`, row t is frame t to
-frame t + 1, and all observation keys are views.
+`batch_size=[nbatch, n]` (rows are trajectories, the time axis second): `observation` (row 0 a
+trajectory's `initial_state`), `action` (the row applied after it), `("next", ...)`, the flags
+shaped `[..., 1]`, `is_init`, `("collector", "traj_ids")` and `("collector", "mask")` (the rows
+that are physics steps). docs/torchrl.md has the full mapping, in one table.
 
 Feed a replay buffer the physics rows: `rb.extend(td[td["collector", "mask"]])` (rows stay in
 trajectory order), or `rb.extend(td.reshape(-1))` where every row is one (no `terminate=`,
