@@ -8,6 +8,7 @@ cameras and lights, the BVH refit, the render).
 
 from __future__ import annotations
 
+import collections
 import types
 from typing import Any, Callable
 
@@ -20,6 +21,7 @@ from simloader.backends.warp import cameras as warp_cameras
 from simloader.backends.warp import runtime
 
 S = mujoco.mjtState
+CONTEXTS = 2  # render contexts kept, by world count (a loader's batch size and its last one)
 
 
 class StoredRenderer:
@@ -54,37 +56,50 @@ class StoredRenderer:
                         for name, spec in (("qpos", S.mjSTATE_QPOS),
                                            ("mocap_pos", S.mjSTATE_MOCAP_POS),
                                            ("mocap_quat", S.mjSTATE_MOCAP_QUAT))}
-        self.nworld = 0
+        # render contexts by world count, the latest CONTEXTS: a render call draws every world
+        # of its context, so a batch of 1,024 frames drawn in one grown to 16,384 for another
+        # loader cost 16 times its own frames (a loader's batches are one size, but its
+        # last one, and two loaders of different batch sizes may take turns)
+        self.contexts: collections.OrderedDict[int, types.SimpleNamespace] = \
+            collections.OrderedDict()
 
-    def _grow(self, nworld: int) -> None:
-        """A model, data and render context of `nworld` worlds (made again only to grow)."""
+    def _context(self, nworld: int) -> types.SimpleNamespace:
+        """A model, data and render context of exactly `nworld` worlds, made at its first
+        use and kept while among the latest `CONTEXTS` used."""
+        if nworld in self.contexts:
+            self.contexts.move_to_end(nworld)
+            return self.contexts[nworld]
         import mujoco_warp as mjw
         wp = runtime.warp()
         wdevice = runtime.warp_device(self.device)
         with wp.ScopedDevice(wdevice):
-            self.m = mjw.put_model(self.model)
-            self.d = mjw.make_data(self.model, nworld=nworld)
+            m = mjw.put_model(self.model)
+            d = mjw.make_data(self.model, nworld=nworld)
             config = types.SimpleNamespace(model=self.model, nbatch=nworld, randomization=None)
-            self.cameras = warp_cameras.Cameras(config, self.images, self.m, self.d, wdevice)
-        self.fields = {name: wp.to_torch(getattr(self.d, name)) for name in self.columns}
-        self.frame = torch.zeros(1, dtype=torch.int64, device=self.device)
-        self.nworld = nworld
+            cameras = warp_cameras.Cameras(config, self.images, m, d, wdevice)
+        context = types.SimpleNamespace(
+            m=m, d=d, cameras=cameras,
+            fields={name: wp.to_torch(getattr(d, name)) for name in self.columns},
+            frame=torch.zeros(1, dtype=torch.int64, device=self.device))
+        self.contexts[nworld] = context
+        while len(self.contexts) > CONTEXTS:
+            self.contexts.popitem(last=False)
+        return context
 
     def frames(self, states: np.ndarray, model_of: Callable[[int], Any]) -> dict:
         """{image key: (n, nframes, *shape) tensor on the device} of FULLPHYSICS `states`."""
         n, nframes = states.shape[:2]
         worlds = n * nframes
-        if worlds > self.nworld:
-            self._grow(worlds)
+        context = self._context(worlds)
         flat = torch.from_numpy(np.ascontiguousarray(states.reshape(worlds, -1)))
         flat = flat.to(self.device, non_blocking=True)
         wp = runtime.warp()
         with wp.ScopedDevice(runtime.warp_device(self.device)):
             for name, cols in self.columns.items():
-                field = self.fields[name].view(self.nworld, -1)
+                field = context.fields[name].view(worlds, -1)
                 if len(cols):
-                    field[:worlds] = flat[:, torch.as_tensor(cols, device=self.device)].to(
+                    field[:] = flat[:, torch.as_tensor(cols, device=self.device)].to(
                         field.dtype)
-            buffers = self.cameras.frames(self.nworld, 1)
-            self.cameras.render(buffers, self.frame, want=False)
-        return {k: v[:worlds, 0].reshape(n, nframes, *v.shape[2:]) for k, v in buffers.items()}
+            buffers = context.cameras.frames(worlds, 1)
+            context.cameras.render(buffers, context.frame, want=False)
+        return {k: v[:, 0].reshape(n, nframes, *v.shape[2:]) for k, v in buffers.items()}
