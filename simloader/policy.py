@@ -327,6 +327,10 @@ class Caller:
     def __init__(self, policy: Callable, nbatch: int, ncontrol: int, nstep: int,
                  device: Optional[torch.device]):
         self.policy, self.nbatch, self.ncontrol, self.nstep = policy, nbatch, ncontrol, nstep
+        if device is not None and device.type == "cuda" and device.index is None:
+            # device="cuda" is the current CUDA device, where the policy's rows then are
+            # ("cuda:0" is no torch.device("cuda") to `!=`)
+            device = torch.device("cuda", torch.cuda.current_device())
         self.device = device
         self.extras: dict[str, torch.Tensor] = {}
 

@@ -411,6 +411,19 @@ def test_mjx_closed_loop_never_waits_on_the_host(impl, cache_dir):
     assert backend.deliver(produced)["qpos"].shape == (64, 20, 2)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_device_cuda_takes_a_policy_on_the_current_cuda_device():
+    """device="cuda" means the current CUDA device: a policy there ("cuda:0") is accepted
+    (it was refused as "not on the dataset's device cuda")."""
+    pytest.importorskip("warp")
+    model, policy = cartpole_policy()
+    policy.float().to("cuda")
+    ds = simloader.SimDataset(model, backend="warp", nbatch=8, nstep=5, policy=policy,
+                              device="cuda", num_batches=1)
+    assert next(iter(ds))["control"].device.type == "cuda"
+
+
 # -- the Warp engine's closed loop (`backends/warp/`) ----------------------------------------
 
 class Pusher(torch.nn.Module):
