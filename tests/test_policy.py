@@ -420,7 +420,7 @@ def test_device_cuda_takes_a_policy_on_the_current_cuda_device():
     model, policy = cartpole_policy()
     policy.float().to("cuda")
     ds = simloader.SimDataset(model, backend="warp", nbatch=8, nstep=5, policy=policy,
-                              device="cuda", num_batches=1)
+                              device="cuda", num_batches=1, record=("qpos", "qvel"))
     assert next(iter(ds))["control"].device.type == "cuda"
 
 
