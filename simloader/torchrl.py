@@ -128,6 +128,24 @@ def to_tensordict(batch: Mapping[str, Any],
     return TensorDict(out, batch_size=[nbatch, n], device=device)
 
 
+def _copy_weights(policy: Any, weights: Mapping[str, torch.Tensor]) -> None:
+    """`weights` (a state dict) copied into the acting `policy` in place, as one counted
+    update (`simloader.policy.updating`: no batch copies it half done)."""
+    if not isinstance(policy, torch.nn.Module):
+        raise TypeError(f"update_policy_weights_: the dataset's policy is a "
+                        f"{type(policy).__name__}, not a torch.nn.Module whose weights could "
+                        f"be copied")
+    own = policy.state_dict(keep_vars=True)
+    unknown = [k for k in weights if k not in own and k != "version"]
+    if unknown:
+        raise KeyError(f"update_policy_weights_: the policy has no weight {unknown[0]!r}; it "
+                       f"has {sorted(own)}")
+    with torch.no_grad(), simloader_policy.updating(policy):
+        for key, value in weights.items():
+            if key != "version":  # the update counter is the acting module's own
+                own[key].copy_(value)
+
+
 def _rows(value: torch.Tensor, nbatch: int, n: int) -> torch.Tensor:
     """A per-trajectory value (or a 0-d one, per batch) expanded over the rows: a view."""
     if value.dim() == 0:
@@ -145,8 +163,10 @@ class SimCollector(BaseCollector):
     (`simloader.policy.updating`). A batch is simulated with one version of the weights,
     copied as it starts, and names it (`policy_version`). Batches run ahead of the consumer,
     so a batch delivered after u updates acts with weights of at least update
-    `u - staleness` (`staleness`: `prefetch + 1` in one process; each DataLoader worker
-    adds `prefetch + 1 + prefetch_factor` batches of its own).
+    `u - staleness` (`staleness`: `prefetch + 1` in one process; with N DataLoader workers
+    `N * (prefetch + 1 + prefetch_factor)`). A mixture's members each run their own
+    batches ahead: there `staleness` counts a member's own batches (after an update, a
+    member's batches act with it from its `staleness + 1`-th delivery on).
 
     Args:
       dataset: a `SimDataset` or `Mixture`.
@@ -187,7 +207,9 @@ class SimCollector(BaseCollector):
         """Collects from `dataset` (in this process, or through a DataLoader's workers)."""
         self.dataset = dataset
         self._members = getattr(dataset, "datasets", (dataset,))
-        self.policy = self._members[0].config.policy
+        # the acting policies (a mixture's members may share one module, or have their own)
+        self.policies = list({id(m.config.policy): m.config.policy for m in self._members
+                              if m.config.policy is not None}.values())
         first = self._members[0].config
         self.frames_per_batch = self.requested_frames_per_batch = first.nbatch * first.nframes
         self.loader = (StatefulDataLoader(dataset, batch_size=None, **self._loader_kwargs)
@@ -216,33 +238,24 @@ class SimCollector(BaseCollector):
 
     def update_policy_weights_(self, policy_or_weights: Any = None, *,
                                worker_ids: Any = None, **kwargs: Any) -> None:
-        """Brings the acting policy to new weights: a module (its parameters and buffers are
-        copied) or a state dict, in one counted update; None when the training loop updated
+        """Brings the acting policy (each of a mixture's members') to new weights: a module
+        (its parameters and buffers are copied) or a state dict, in one counted update; None when the training loop updated
         the dataset's policy module itself (nothing to copy: the next batch begun copies
         its weights). Batches already begun keep the weights they began with (`staleness`).
 
         Raises:
           ValueError: the dataset has no `policy=`.
+          KeyError: a weight the policy does not have.
         """
-        if self.policy is None:
+        if not self.policies:
             raise ValueError("update_policy_weights_: the dataset has no policy= (its "
                              "controls act): there are no weights to update")
         if policy_or_weights is None:
             return
         weights = (policy_or_weights.state_dict()
                    if isinstance(policy_or_weights, torch.nn.Module) else policy_or_weights)
-        if not isinstance(self.policy, torch.nn.Module):
-            raise TypeError(f"update_policy_weights_: the dataset's policy is a "
-                            f"{type(self.policy).__name__}, not a torch.nn.Module whose weights "
-                            f"could be copied")
-        with torch.no_grad(), simloader_policy.updating(self.policy):
-            own = self.policy.state_dict(keep_vars=True)
-            for key, value in weights.items():
-                if key == "version":  # the update counter is the live module's own
-                    continue
-                if key not in own:
-                    raise KeyError(f"update_policy_weights_: the policy has no weight {key!r}")
-                own[key].copy_(value)
+        for policy in self.policies:
+            _copy_weights(policy, weights)
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         """Collects from now on from the dataset made again with `seed` (`SimDataset.

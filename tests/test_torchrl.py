@@ -222,3 +222,26 @@ def test_a_mixtures_streams_are_unique_across_its_members():
         for stream in batch["stream"].tolist():
             assert seen.setdefault(stream, int(batch["task"])) == int(batch["task"])
     assert sorted(seen) == list(range(8))
+
+
+def test_a_collector_over_a_mixture_updates_every_members_policy():
+    policy = Push()
+    members = {"a": cartpole(control=None, policy=policy, prefetch=1, nstep=4),
+               "b": cartpole(control=None, policy=policy, prefetch=1, nstep=4, seed=8)}
+    collector = SimCollector(simloader.Mixture(members, seed=2), total_frames=4 * 4 * 16)
+    assert collector.staleness == 2  # per member: its own batches begun ahead
+    trained = Push()
+    with torch.no_grad():
+        trained.force.fill_(0.5)
+    since = {0: 0, 1: 0}  # each member's batches delivered since the update
+    for k, td in enumerate(collector):
+        task = int(td["task"][0, 0])
+        if k == 0:
+            collector.update_policy_weights_(trained)
+            continue
+        since[task] += 1
+        if since[task] > collector.staleness:
+            assert torch.all(td["action"] == 0.5), (k, task)
+    assert min(since.values()) > collector.staleness  # both members showed it
+    with pytest.raises(KeyError, match="no weight 'bias'"):
+        collector.update_policy_weights_({"bias": torch.zeros(())})

@@ -56,6 +56,9 @@ class StoredRenderer:
                         for name, spec in (("qpos", S.mjSTATE_QPOS),
                                            ("mocap_pos", S.mjSTATE_MOCAP_POS),
                                            ("mocap_quat", S.mjSTATE_MOCAP_QUAT))}
+        # the columns of each field, on the device once (not a host-to-device copy a batch)
+        self.column_index = {name: torch.as_tensor(cols, dtype=torch.int64, device=self.device)
+                             for name, cols in self.columns.items() if len(cols)}
         # render contexts by world count, the latest CONTEXTS: a render call draws every world
         # of its context, so a batch of 1,024 frames drawn in one grown to 16,384 for another
         # loader cost 16 times its own frames (a loader's batches are one size, but its
@@ -95,11 +98,8 @@ class StoredRenderer:
         flat = flat.to(self.device, non_blocking=True)
         wp = runtime.warp()
         with wp.ScopedDevice(runtime.warp_device(self.device)):
-            for name, cols in self.columns.items():
-                field = context.fields[name].view(worlds, -1)
-                if len(cols):
-                    field[:] = flat[:, torch.as_tensor(cols, device=self.device)].to(
-                        field.dtype)
+            for name, cols in self.column_index.items():
+                context.fields[name].view(worlds, -1)[:] = flat[:, cols]
             buffers = context.cameras.frames(worlds, 1)
             context.cameras.render(buffers, context.frame, want=False)
         return {k: v[:, 0].reshape(n, nframes, *v.shape[2:]) for k, v in buffers.items()}
