@@ -105,17 +105,6 @@ def _digest(batch) -> str:
     return h.hexdigest()[:16]
 
 
-def _flat(batch, prefix=""):
-    """The batch's tensors by key (nested dicts, such as "params", as "params/KEY")."""
-    out = {}
-    for k, v in batch.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}/"))
-        else:
-            out[prefix + k] = v
-    return out
-
-
 def _again(ds, shard, index, batch) -> dict:
     """The rank's batch `index` simulated again from its seed, against `batch`: `draws`
     (initial_state and control bit-equal), `bit` (torch.equal on every key), `apart` (the
@@ -126,7 +115,10 @@ def _again(ds, shard, index, batch) -> dict:
         _, again, _ = next(iter(ds.stream(backend, [index])))
     finally:
         backend.close()
-    a, b = _flat(again), _flat(batch)
+    from simloader import streams
+    from simloader.batch import flat
+    # the stream keys name the delivering iterator's streams (`stream()` adds none)
+    a, b = flat(again), {k: v for k, v in flat(batch).items() if k not in streams.KEYS}
     differ = sorted(k for k in set(a) | set(b)
                     if k not in a or k not in b or not torch.equal(a[k], b[k]))
     apart = 0.0

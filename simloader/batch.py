@@ -21,7 +21,7 @@ back, without copies.
 from __future__ import annotations
 
 import collections
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from multiprocessing.reduction import ForkingPickler
 from typing import Any, Optional
 
@@ -99,6 +99,31 @@ class Batch(dict):
         # `view`, not `reshape`: a view or an error, never a silent copy
         flat = tensor.view(*lead, -1) if tensor.dim() > len(lead) else tensor.unsqueeze(-1)
         return flat[..., part.start:part.stop].view(*lead, *part.shape)
+
+
+def flat(batch: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Every tensor of a batch (or item) by its flat key: `batch["params"][KEY]` as
+    `"params/KEY"`, the name the layout, the stores and `nested` use. The one place batch
+    keys are flattened."""
+    out: dict[str, Any] = {}
+    for key, value in batch.items():
+        if isinstance(value, Mapping):
+            out.update(flat(value, prefix + key + "/"))
+        else:
+            out[prefix + key] = value
+    return out
+
+
+def nested(flat_keys: Mapping[str, Any]) -> dict[str, Any]:
+    """`flat`'s inverse: `"params/KEY"` back into `{"params": {KEY: ...}}`, as a batch holds
+    it."""
+    out: dict[str, Any] = {}
+    for name, value in flat_keys.items():
+        if name.startswith(PARAMS):
+            out.setdefault(PARAMS[:-1], {})[name[len(PARAMS):]] = value
+        else:
+            out[name] = value
+    return out
 
 
 def _rebuild(items: list, layout: Optional[BatchLayout]) -> Batch:

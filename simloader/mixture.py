@@ -30,7 +30,7 @@ import torch
 
 from simloader import resume, sharding, streams
 from simloader.identity import short
-from simloader.batch import Batch
+from simloader.batch import Batch, flat
 from simloader.dataset import SimDataset
 from simloader.layout import PARAMS
 
@@ -437,21 +437,10 @@ def _device(batch: Mapping) -> torch.device:
     return torch.device("cpu")
 
 
-def _flat(batch: Mapping) -> dict[str, torch.Tensor]:
-    """The batch's tensors by key, batch["params"][KEY] as "params/KEY" (the layout's name)."""
-    out = {}
-    for key, value in batch.items():
-        if isinstance(value, Mapping):
-            out.update({f"{key}/{k}": v for k, v in value.items()})
-        else:
-            out[key] = value
-    return out
-
-
 def _pad(plan: dict, names: list[str], tasks: list[int], batches: list[Batch]) -> Batch:
     """The batches' rows in one batch, every key padded to its widest member's trailing shape,
     with "task" per row and "mask/KEY" for each padded key."""
-    flats = [_flat(b) for b in batches]
+    flats = [flat(b) for b in batches]
     devices = {n: _device(b) for n, b in zip(names, batches)}
     if len(set(devices.values())) > 1:
         raise ValueError(f"pad=True: the members deliver on different devices {devices}; give "

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from simloader import layout, records, render
+from simloader.batch import flat
 
 # frames rendered per round: what is held in memory at once is this many frames of every row
 CHUNK = 32
@@ -134,29 +135,23 @@ def _items(source: Any, rows: list[int], model: Any) -> tuple[dict[str, np.ndarr
     if isinstance(source, StoredDataset):
         n = len(source)
         picked = [r for r in rows if -n <= r < n]
-        items = [_flat(source[r]) for r in picked]
+        items = [flat(source[r]) for r in picked]
         out = {k: np.stack([_numpy(item[k]) for item in items]) for k in items[0]} if items else {}
         out["_row"] = np.array([source.locate(r)[1] for r in picked], dtype=np.int64)
         return out, n, config
     if isinstance(source, Mapping):
-        flat = _flat(source)
-        if "state" not in flat and not any(k.startswith("camera/") for k in flat):
+        keys = flat(source)
+        if "state" not in keys and not any(k.startswith("camera/") for k in keys):
             raise ValueError(f"source: expected a batch of simloader (with \"state\" or a "
-                             f"camera), got a mapping of keys {sorted(flat)[:8]}")
-        n = next(iter(flat.values())).shape[0]
+                             f"camera), got a mapping of keys {sorted(keys)[:8]}")
+        n = next(iter(keys.values())).shape[0]
         picked = [r % n for r in rows if -n <= r < n]
-        out = {k: _numpy(v)[picked] for k, v in flat.items()
+        out = {k: _numpy(v)[picked] for k, v in keys.items()
                if getattr(v, "ndim", 0) >= 1 and v.shape[0] == n}
         out["_row"] = np.array(picked, dtype=np.int64)  # each shown row's row of its batch
         return out, n, config
     raise ValueError(f"source: expected a batch, a SimDataset, a StoredDataset or a store's "
                      f"path, got {type(source).__name__}")
-
-
-def _flat(item: Mapping) -> dict[str, Any]:
-    out = {k: v for k, v in item.items() if k != "params"}
-    out.update({f"params/{k}": v for k, v in item.get("params", {}).items()})
-    return out
 
 
 def _numpy(value: Any) -> np.ndarray:

@@ -26,8 +26,9 @@ from simloader.store.folder import StoreFolder
 from simloader.store.provenance import (StoreMismatch, differences, fingerprint,
                                         fingerprint_digest, new_identity, versions)
 from simloader.store.frames import item_index, key_kinds, transition_indices
-from simloader.store.reader import OPENERS, StoredDataset, nest
-from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, leaves, store_path
+from simloader.batch import flat, nested
+from simloader.store.reader import OPENERS, StoredDataset
+from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, store_path
 
 KIND = "mixture"
 TASKS = "tasks"  # the group of the members' stores
@@ -326,8 +327,8 @@ def _row(batch: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _batched(item: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-    """An item as a batch of one row, `params` flattened to `params/KEY` (`leaves`)."""
-    return {name: value[None] for name, value in leaves(item)}
+    """An item as a batch of one row, `params` flattened to `params/KEY` (`batch.flat`)."""
+    return {name: value[None] for name, value in flat(item).items()}
 
 
 def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],
@@ -371,7 +372,7 @@ def pad_rows(parts: Sequence[tuple[int, Mapping[str, torch.Tensor]]],
         out["mask/" + key] = mask
     out["task"] = torch.cat([torch.full((n,), t, dtype=torch.int64)
                              for (t, _), n in zip(parts, rows)])
-    return nest(out)
+    return nested(out)
 
 
 class MixturePattern(torch.utils.data.Dataset):

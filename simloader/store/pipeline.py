@@ -36,9 +36,10 @@ import numpy as np
 import torch
 
 from simloader import threads
+from simloader.batch import flat
 from simloader.store.folder import Staged, StoreFolder, folders_above
 from simloader.store.zarr_format import (PROVENANCE, WRITTEN, ArraySpec, checksum_spec,
-                                         encode_shard, leaves, store_path)
+                                         encode_shard, store_path)
 
 IN_FLIGHT = 2  # slots between their copy to the host and their commit, per writer
 
@@ -144,7 +145,7 @@ class _HostCopies:
         pinned: list[torch.Tensor] = []
         sources: list[torch.Tensor] = []
         events = []
-        for name, value in leaves(batch):
+        for name, value in flat(batch).items():
             if not isinstance(value, torch.Tensor) or not value.is_cuda:
                 rows[name] = (value.detach().numpy() if isinstance(value, torch.Tensor)
                               else value)

@@ -15,8 +15,9 @@ import torch
 from simloader import known_faults, sharding
 from simloader.layout import did_you_mean
 from simloader.store import integrity, order as orders
+from simloader.batch import flat, nested
 from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedStore,
-                                         batch_key, leaves)
+                                         batch_key)
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.folder import StoreFolder
@@ -28,17 +29,6 @@ from simloader.store.windows import Episodes, Windows
 # kinds of stores that read as another dataset than `StoredDataset`: {kind: (is_kind(path),
 # opener(path, *args, **kwargs))}, filled by their modules (`mixture_store`)
 OPENERS: dict[str, tuple[Callable[[str], bool], Callable[..., Any]]] = {}
-
-
-def nest(flat: Mapping[str, torch.Tensor]) -> dict[str, Any]:
-    """`params/KEY` back into `{"params": {KEY: ...}}`, as the batch held them."""
-    out: dict[str, Any] = {}
-    for name, value in flat.items():
-        if name.startswith("params/"):
-            out.setdefault("params", {})[name[len("params/"):]] = value
-        else:
-            out[name] = value
-    return out
 
 
 class StoredDataset(torch.utils.data.Dataset):
@@ -178,7 +168,7 @@ class StoredDataset(torch.utils.data.Dataset):
             i = item_index(i, len(self))
             for key, frames in self.cameras.frames(states[None], np.array([i])).items():
                 item[key] = frames[0]
-        return nest(item)
+        return nested(item)
 
     def provenance(self, i: int) -> dict[str, int]:
         """Where stored trajectory `i` comes from in the seeded stream: rank, batch (the
@@ -282,14 +272,14 @@ class StoredDataset(torch.utils.data.Dataset):
         batch = None
         for _, batch, _ in dataset.stream(dataset.make_backend(shard), indices):
             pass
-        flat = dict(leaves(batch))
+        flat_batch = flat(batch)
         row = where["row"]
         out = {}
         for name in self.keys:
-            value = flat[name]
+            value = flat_batch[name]
             out[name] = value[row] if value.ndim and value.shape[0] == self.nbatch \
                 else value.expand(self.nbatch)[row]
-        return nest({n: v.detach().cpu().clone() for n, v in out.items()})
+        return nested({n: v.detach().cpu().clone() for n, v in out.items()})
 
 
 def _take(rows: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:

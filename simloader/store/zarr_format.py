@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from simloader import threads
+from simloader.batch import flat
 
 FORMAT = 1  # of the `simloader` attribute and the layout below it
 ATTRIBUTE = "simloader"
@@ -139,15 +140,6 @@ _ZARR_DTYPES = {"b1": "bool", "u1": "uint8", "i1": "int8", "i2": "int16", "i4": 
                 "f2": "float16", "f4": "float32", "f8": "float64"}
 
 
-def leaves(batch: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """(store name, tensor) of every tensor of a batch; `params` is a dict of tensors."""
-    for key, value in batch.items():
-        if isinstance(value, Mapping):
-            yield from leaves(value, prefix + key + "/")
-        else:
-            yield prefix + key, value
-
-
 # characters kept as they are in a part of an array's path; the others are percent-encoded
 _PLAIN = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-.:[]()+,=@")
 _GROUPS = ("params", "policy", "provenance")  # KEY/NAME: a group, then one encoded part
@@ -201,7 +193,7 @@ def specs_of(batch: Mapping[str, Any], nbatch: int,
     (images) are compressed with zstd; the others are raw unless `compression="zstd"`, which
     compresses every chunk of 4 KiB or more (states: byte shuffle, then zstd)."""
     specs = []
-    for name, value in leaves(batch):
+    for name, value in flat(batch).items():
         if isinstance(value, torch.Tensor):  # shape and dtype, without a copy off the GPU
             shape = tuple(value.shape)
             dtype = torch.empty((), dtype=value.dtype).numpy().dtype
