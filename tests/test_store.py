@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import simloader
+from simloader.batch import flat
 from simloader.store.folder import StoreFolder
 from simloader.store import pipeline, zarr_format as store_format, provenance
 
@@ -52,16 +53,6 @@ def plain(**kwargs):
     """rich() without the camera (rendering dominates the time of the tests that use it)."""
     return rich(**{"record": ("state", "sensordata", "qpos", "ncon"), "record_every": 1,
                    **kwargs})
-
-
-def flat(batch, prefix=""):
-    out = {}
-    for k, v in batch.items():
-        if isinstance(v, dict):
-            out.update(flat(v, prefix + k + "/"))
-        else:
-            out[prefix + k] = v
-    return out
 
 
 def reference(ds, batches):
