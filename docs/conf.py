@@ -56,10 +56,6 @@ nitpick_ignore = [
     ("py:class", "simloader.sharding.Shard"),  # SimDataset.make_backend
     ("py:class", "simloader.backends.base.Backend"),  # SimDataset.make_backend, .stream
     ("py:class", "simloader.store.shards.StoredArray"),  # StoredDataset.arrays
-    # StoredDataset.transitions: documenting it as simloader.store.Transitions breaks its
-    # "[source]" page's links (viewcode links every class of store/reader.py under the name
-    # of the first one documented, simloader.StoredDataset), until simloader exports it.
-    ("py:class", "simloader.store.reader.Transitions"),
     ("py:class", "simloader.controls._Given"),  # base class of controls.Constant, .FromArray
 ]
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import simloader
-from simloader.store import order as orders, pipeline, reader, zarr_format as store_format
+from simloader.store import order as orders, pipeline, transitions, zarr_format as store_format
 
 pytest.importorskip("zarr")
 
@@ -104,10 +104,10 @@ def test_context_follows_the_trajectories_kept_when_diverged_ones_are_dropped(tm
 
 def test_a_gather_never_clips_an_index_out_of_range():
     rows, out = np.arange(6.0).reshape(3, 2), np.empty((2, 2))
-    reader._take(rows, np.array([0, 2]), out)
+    transitions._take(rows, np.array([0, 2]), out)
     assert out.tolist() == [[0, 1], [4, 5]]
     with pytest.raises(IndexError, match="row 3 of a shard of 3 rows"):
-        reader._take(rows, np.array([0, 3]), out)
+        transitions._take(rows, np.array([0, 3]), out)
 
 
 def batches(loader, epochs=1, first=None):

@@ -272,6 +272,10 @@ def test_a_diverged_trajectory_is_in_no_window_and_cuts_its_stream(tmp_path):
     first, end = table.segments()
     # rows 0 and 2 run on as one stream each (16 frames); row 1's batches are all left out
     assert sorted((end - first).tolist()) == [16, 16]
+    # kept, row 1's batches are not joined: each restarted afresh after its diverged one
+    table = simloader.StoredDataset(path).windows(3, diverged="keep").table
+    first, end = table.segments()
+    assert sorted((end - first).tolist()) == [6, 6, 6, 16, 16]
 
 
 def test_a_continued_stream_missing_a_batch_is_cut_there(tmp_path):

@@ -33,7 +33,8 @@ from simloader.store.zarr_format import DamagedStore
 from simloader.store.folder import StoreChanged
 from simloader.store.lock import StoreLocked
 from simloader.store.shards import StoreReplaced
-from simloader.store.reader import StoredDataset, Transitions
+from simloader.store.reader import StoredDataset
+from simloader.store.transitions import Transitions
 from simloader.store.front import write
 
 __all__ = ["DamagedStore", "StoreChanged", "StoreLocked", "StoreReplaced", "StoredDataset",

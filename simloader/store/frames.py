@@ -180,7 +180,7 @@ def build(stored: Any, kept: np.ndarray, initial: bool) -> FrameTable:
 def _chains(stored: Any, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The kept trajectories in stream order, and where a chain (a segment) starts: every
     trajectory of a store of independent batches; in a continued store, where a stream
-    begins or a batch before it is missing or left out."""
+    begins, a batch before it is missing or left out, or the one before it diverged."""
     kept = np.asarray(kept, dtype=np.int64)
     fingerprint = stored.info.get("fingerprint") or {}
     if not fingerprint.get("continue_episodes") or not len(kept):
@@ -204,6 +204,10 @@ def _chains(stored: Any, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     same_stream = np.r_[False, (rank[1:] == rank[:-1]) & (wk[1:] == wk[:-1]) &
                         (row[1:] == row[:-1])]
     follows = np.r_[False, batch[1:] == batch[:-1] + workers[order][1:]]
+    # a trajectory flagged diverged (kept under diverged="keep") is not continued: the
+    # engine restarts its row from a fresh initial state in the next batch
+    flagged = stored.flagged()[kept[order]]
+    follows[1:] &= ~flagged[:-1]
     return kept[order], ~(same_stream & follows)
 
 

@@ -1,4 +1,5 @@
-"""`StoredDataset` and `Transitions`: a store read back as torch datasets, and the
+"""`StoredDataset`: a store read back as a torch dataset (a trajectory an item), its reading
+patterns (`transitions`, `windows`, `episodes`: `simloader.store.pattern`), and the
 regeneration of a stored trajectory from its provenance."""
 
 from __future__ import annotations
@@ -6,7 +7,7 @@ from __future__ import annotations
 import functools
 import os
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any, Callable, Optional
 
 import numpy as np
@@ -14,15 +15,16 @@ import torch
 
 from simloader import known_faults, sharding
 from simloader.layout import did_you_mean
-from simloader.store import integrity, order as orders
+from simloader.store import integrity
 from simloader.batch import flat, nested
 from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedStore,
                                          batch_key)
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.folder import StoreFolder
-from simloader.store.frames import checked_keys, item_index, steps_and_frames, transition_indices
+from simloader.store.frames import item_index
 from simloader.store.shards import StoredArray
+from simloader.store.transitions import Transitions
 from simloader.store.windows import Episodes, Windows
 
 
@@ -194,11 +196,9 @@ class StoredDataset(torch.utils.data.Dataset):
             `state`, a per-frame one in `context`).
           ValueError: the store has no committed batch slot yet.
         """
-        if diverged not in ("drop", "keep"):
-            raise ValueError(f"diverged: expected 'drop' or 'keep', got {diverged!r}")
         return Transitions(self, (state,) if isinstance(state, str) else tuple(state),
-                           drop_flagged=diverged == "drop",
-                           context=(context,) if isinstance(context, str) else tuple(context))
+                           diverged,
+                           (context,) if isinstance(context, str) else tuple(context))
 
     def windows(self, length: int, *, state: str | Sequence[str] = "state",
                 context: str | Sequence[str] = (), ends: str = "cross",
@@ -280,257 +280,3 @@ class StoredDataset(torch.utils.data.Dataset):
             out[name] = value[row] if value.ndim and value.shape[0] == self.nbatch \
                 else value.expand(self.nbatch)[row]
         return nested({n: v.detach().cpu().clone() for n, v in out.items()})
-
-
-def _take(rows: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:
-    """`out[:] = rows[at]` (rows of a 2-D view of a shard) with no temporary: mode "clip"
-    skips the bounds pass that buffers `out`. The indices are in range by construction (the
-    keys' frame axes are checked against the store's root when a `Transitions` is made);
-    they are held to it here too (a min and a max), so that a bug raises instead of
-    clipping silently to the last row."""
-    if len(at) and (at.min() < 0 or at.max() >= len(rows)):
-        bad = int(at[(at < 0) | (at >= len(rows))][0])
-        raise IndexError(f"Transitions: row {bad} of a shard of {len(rows)} rows; this is a "
-                         f"bug in simloader, please report it")
-    if rows.shape[1]:  # a key without values (sensordata of a model without sensors)
-        np.take(rows, at, axis=0, out=out.reshape(-1, rows.shape[1]), mode="clip")
-
-
-class Transitions(torch.utils.data.Dataset):
-    """The transitions of a store: item `k` is `{KEY: s_t, "control": a_t, "next/KEY": s_t+1}`
-    for every state key, over the trajectories not flagged diverged (by default). With
-    `record_every = k` the action is the `k` control rows between two frames
-    (`k x ncontrol`). The first frame's predecessor is the initial state for the
-    key `"state"` (`initial_state`), so a trajectory gives `nframes` transitions; other keys
-    have no stored initial value and give `nframes - 1`. Each `context` key (a per-trajectory
-    value: `params/...`, ...) is in every item too, its trajectory's value. In a store of
-    episodes that end (`terminate=`: a stored `first`), a frame is never paired with the
-    fresh initial state that follows it: the transitions into a `first` frame are left out.
-    """
-
-    def __init__(self, stored: StoredDataset, keys: tuple[str, ...], drop_flagged: bool,
-                 context: tuple[str, ...] = ()):
-        if not len(stored.slots):
-            raise ValueError(
-                f"transitions: the store at {stored.path!r} has no committed batch slot yet "
-                f"(none of its {stored.info['batches']} slot(s) is marked written: its writer "
-                f"was stopped before its first batch was complete, or the marks were "
-                f"removed); there is nothing to pair. Calling simloader.write with the same "
-                f"dataset writes it")
-        constants = checked_keys(stored, keys, context)
-        self.stored = stored
-        self.keys = keys
-        self.context = tuple(constants)
-        self.every = int(stored.info["record_every"])
-        nstep, self.nframes = steps_and_frames(stored)
-        # every index `gather` takes is then in range: frames of `nframes`, controls of nstep
-        if stored.metas["control"]["shape"][1] != nstep:
-            raise DamagedStore(f"{stored.layouts['control'].file}: shape "
-                               f"{stored.metas['control']['shape']}, expected {nstep} control "
-                               f"rows per trajectory (nstep in the store's root)")
-        self.first = 0 if keys == ("state",) else 1  # frame 0's predecessor is stored
-        self.per = self.nframes - self.first
-        self.drop_flagged = drop_flagged
-        self.will_need = False  # read whole shards ahead (set by `loader` for block orders)
-
-    @functools.cached_property
-    def trajectories(self) -> np.ndarray:
-        """The stored trajectories whose transitions these are, read at the first use, not
-        when the view is made (it reads the flags of every slot)."""
-        return (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
-                np.arange(len(self.stored)))
-
-    @functools.cached_property
-    def pairs(self) -> Optional[np.ndarray]:
-        """In a store of episodes that end (a stored `first`), the transitions that are
-        physics, as `position * nframes + frame` (position in `trajectories`, frame the
-        transition's target), ascending; None in a store without resets (all of them). Read
-        slot by slot at the first use."""
-        if "first" not in self.stored.layouts:
-            return None
-        first, nbatch = self.stored.arrays()["first"], self.stored.nbatch
-        kept = self.trajectories
-        out = []
-        for k, slot in enumerate(self.stored.slots):
-            lo, hi = np.searchsorted(kept, [k * nbatch, (k + 1) * nbatch])
-            if lo == hi:
-                continue
-            flags = first.slot(int(slot))[kept[lo:hi] % nbatch, self.first:]
-            position, frame = np.nonzero(~flags)
-            out.append((lo + position) * self.nframes + frame + self.first)
-        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
-
-    def locate(self, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(stored trajectory, target frame) of transitions `ks` (in range)."""
-        if self.pairs is not None:
-            position, frames = np.divmod(self.pairs[ks], self.nframes)
-        else:
-            position, frames = np.divmod(ks, self.per)
-            frames = frames + self.first
-        return self.trajectories[position], frames
-
-    def __len__(self) -> int:
-        if self.pairs is not None:
-            return len(self.pairs)
-        return len(self.trajectories) * self.per
-
-    def __getitem__(self, k: int | Sequence[int]) -> dict[str, torch.Tensor]:
-        """Transition `k` (negative counts from the end; `IndexError` past it, which ends
-        iteration), or for a sequence of indices the batch of them (what `loader`'s batch
-        sampler asks for: no per-item tensors, no collation)."""
-        if isinstance(k, (int, np.integer)) and not isinstance(k, bool):
-            return {n: v[0] for n, v in self.gather([k]).items()}
-        return self.gather(k)
-
-    def __getitems__(self, ks: Sequence[int]) -> list[dict[str, torch.Tensor]]:
-        """A DataLoader's batch (`batch_size=B`): the items as views of one gather, which
-        the default collation stacks again. `loader()` skips both."""
-        out = self.gather(ks)
-        return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
-
-    def loader(self, batch_size: int, order: str = "quasi_random", drop_last: bool = False,
-               window: Optional[int] = None, seed: Optional[int] = None,
-               shuffle: Optional[bool] = None, **kwargs: Any) -> torch.utils.data.DataLoader:
-        """A DataLoader of batches of `batch_size` transitions, each read with one gather
-        per key and batch slot (a batch sampler hands the dataset all of a batch's indices,
-        `batch_size=None`: no per-item tensors are made or collated).
-
-        Each iteration is one epoch, in a new order drawn from `seed` and the epoch's number.
-        With torchdata installed the loader is its `StatefulDataLoader`, which resumes:
-        `loader.state_dict()` taken after any batch, loaded into a loader made the same way
-        (`load_state_dict`, even in a new process, with `num_workers` as it was: a state of
-        another `num_workers` is refused by name), makes the
-        next iteration deliver exactly the rest of that epoch, bit for bit, and the
-        iterations after it the epochs that follow (the order's seed is in the state, so
-        `seed=None` resumes too). The order's own state is `loader.sampler.state_dict()` (a
-        `simloader.store.order.BlockOrder`: the epoch, the batches handed out of it, the
-        seed). Without torchdata it is a plain `torch.utils.data.DataLoader`, which does not
-        resume.
-
-        Args:
-          order: `"quasi_random"` (default: blocks of one batch slot's transitions in
-            shuffled order, `window` blocks shuffled together; an epoch over a store bigger
-            than memory reads each shard once, whole: see `simloader.store.order`),
-            `"random"` (a full permutation) or `"sequential"`.
-          window: blocks shuffled together (default: as many as the open-shard table holds).
-          seed: the orders' seed (default: drawn from torch's generator, as `shuffle=True`).
-          shuffle: the older spelling: True is `order="random"`, False `"sequential"`.
-          kwargs: to the DataLoader (`num_workers=`, ...).
-        """
-        if shuffle is not None:
-            order = "random" if shuffle else "sequential"
-        return orders.pattern_loader(self, len(self), batch_size, order, self.block, window,
-                                     drop_last, seed, len(self.keys) + 2, kwargs,
-                                     ahead=self._read_ahead)
-
-    @property
-    def block(self) -> int:
-        """The transitions of one batch slot (where none were dropped), which a
-        quasi-random order reads as a block (one shard per array)."""
-        return self.stored.nbatch * self.per
-
-    def _read_ahead(self, blocks: np.ndarray, block: int) -> None:
-        """The shard files of the blocks of transitions starting at `blocks`, read into the
-        page cache in the background (see `order.BlockOrder`)."""
-        firsts = np.asarray(blocks, dtype=np.int64)
-        lasts = np.minimum(firsts + block, len(self)) - 1
-        rows = np.concatenate([np.arange(*(self.locate(np.array([a, b]))[0] + [0, 1]))
-                               for a, b in zip(firsts, lasts) if a <= b])
-        slots = np.unique(self.stored.slots[rows // self.stored.nbatch])
-        arrays = self.stored.arrays()
-        names = [*self.keys, "control", "initial_state", *self.context]
-        shards.read_ahead([arrays[n].layout.shard_file(self.stored.path, int(slot))
-                           for slot in slots for n in names if not arrays[n].layout.empty])
-
-    def gather(self, ks: Sequence[int]) -> dict[str, torch.Tensor]:
-        """The transitions `ks` as a dict of tensors `len(ks) x ...`: per key and batch slot
-        one `np.take` from the memory-mapped shard straight into the batch's tensor (indices
-        in increasing order, as `loader` hands them, need no reordering afterwards)."""
-        ks = transition_indices(ks, len(self))
-        ascending = bool((ks[1:] >= ks[:-1]).all())
-        order = None if ascending else np.argsort(ks, kind="stable")
-        if order is not None:
-            ks = ks[order]
-        trajectories, frames = self.locate(ks)
-        nbatch = self.stored.nbatch
-        slots = self.stored.slots[trajectories // nbatch]
-        rows = trajectories % nbatch
-        arrays = self.stored.arrays()
-        columns = self._allocate(len(ks), arrays)
-        filled = {k: v.numpy() for k, v in columns.items()}  # the same memory, for numpy
-        steps = np.arange(self.every)
-        bounds = np.flatnonzero(slots[1:] != slots[:-1]) + 1
-        for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(ks)]])):
-            slot, r, f = int(slots[a]), rows[a:b], frames[a:b]
-            for key in self.keys:
-                seq = arrays[key].slot(slot, self.will_need)  # nbatch x nframes x ...
-                flat = seq.reshape(seq.shape[0] * seq.shape[1], -1)
-                at = r * seq.shape[1] + f
-                _take(flat, at, filled["next/" + key][a:b])
-                _take(flat, at - (f > 0), filled[key][a:b])  # frame 0: itself, fixed below
-                if key == "state" and (f == 0).any():
-                    first = np.flatnonzero(f == 0)
-                    filled[key][a + first] = arrays["initial_state"].slot(
-                        slot, self.will_need)[r[first]]
-            control = arrays["control"].slot(slot, self.will_need)  # nbatch x nstep x ncontrol
-            flat = control.reshape(control.shape[0] * control.shape[1], -1)
-            at = (r * control.shape[1] + f * self.every)[:, None] + steps
-            _take(flat, at.reshape(-1), filled["control"][a:b])
-            for key in self.context:  # nbatch x ...: the trajectory's row
-                seq = arrays[key].slot(slot, self.will_need)
-                _take(seq.reshape(seq.shape[0], -1), r, filled[key][a:b])
-        cameras = self.stored.cameras
-        if cameras is not None:  # the frames of s_t and s_t+1, rendered from the states
-            now, after = self._states(filled, slots, rows, frames)
-            pair = np.stack([now, after], axis=1)  # (n, 2, nstate)
-            for key, images in cameras.frames(pair, trajectories).items():
-                columns[key] = images[:, 0].contiguous()
-                columns["next/" + key] = images[:, 1].contiguous()
-        if order is not None:  # back to the order asked for
-            inverse = np.empty_like(order)
-            inverse[order] = np.arange(len(order))
-            columns = {k: v[torch.from_numpy(inverse)] for k, v in columns.items()}
-        return columns
-
-    def _states(self, filled: Mapping[str, np.ndarray], slots: np.ndarray, rows: np.ndarray,
-                frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The FULLPHYSICS states of each transition's two frames (`state` and `next/state`
-        where the view pairs them, else read; frame 0's predecessor is the initial state)."""
-        if "state" in self.keys:
-            return filled["state"], filled["next/state"]
-        arrays = self.stored.arrays()
-        now = np.empty((len(rows), arrays["state"].layout.trailing[-1]))
-        after = np.empty_like(now)
-        # each slot read once per call: a compressed slot is decoded whole
-        read: dict[tuple[str, int], np.ndarray] = {}
-
-        def rows_of(name: str, slot: int) -> np.ndarray:
-            if (name, slot) not in read:
-                read[name, slot] = arrays[name].slot(slot)
-            return read[name, slot]
-
-        for k, (slot, r, f) in enumerate(zip(slots, rows, frames)):
-            seq = rows_of("state", int(slot))
-            after[k] = seq[r, f]
-            now[k] = seq[r, f - 1] if f > 0 else rows_of("initial_state", int(slot))[r]
-        return now, after
-
-    def _allocate(self, n: int, arrays: Mapping[str, StoredArray]) -> dict[str, torch.Tensor]:
-        """The batch's tensors, those of one dtype laid back to back in one storage: a
-        DataLoader worker hands a storage over through shared memory, one per dtype instead
-        of one per key (on 2 cores that hand-over cost more than the gather)."""
-        control = arrays["control"].trailing[1:]
-        shapes = {**{k: (arrays[k].trailing[1:], arrays[k].dtype) for k in self.keys},
-                  "control": (control if self.every == 1 else (self.every, *control),
-                              arrays["control"].dtype),
-                  **{"next/" + k: (arrays[k].trailing[1:], arrays[k].dtype) for k in self.keys},
-                  **{k: (arrays[k].trailing, arrays[k].dtype) for k in self.context}}
-        out = {}
-        for dtype in {d for _, d in shapes.values()}:
-            names = [k for k, (_, d) in shapes.items() if d == dtype]
-            sizes = [n * int(np.prod(shapes[k][0], dtype=np.int64)) for k in names]
-            flat = torch.from_numpy(np.empty(sum(sizes), dtype=dtype.newbyteorder("=")))
-            for name, part in zip(names, flat.split(sizes)):
-                out[name] = part.view(n, *shapes[name][0])
-        return {k: out[k] for k in shapes}  # in order: states, control, next states, context
-

@@ -23,85 +23,9 @@ import numpy as np
 import torch
 
 from simloader.store import frames as stream_frames
-from simloader.store import order as orders
-from simloader.store.frames import FrameTable
+from simloader.store.pattern import FramePattern
 
 ENDS = ("cross", "inside", "pad")
-ACTIONS = ("produced", "next")
-
-
-class FramePattern(torch.utils.data.Dataset):
-    """What windows and episodes share: the store's frame table over the kept trajectories,
-    the keys checked, and `read` of any positions (tensors, cameras rendered for exactly
-    those frames)."""
-
-    def __init__(self, stored: Any, keys: tuple[str, ...], diverged: str,
-                 context: tuple[str, ...], actions: str):
-        if diverged not in ("drop", "keep"):
-            raise ValueError(f"diverged: expected 'drop' or 'keep', got {diverged!r}")
-        if actions not in ACTIONS:
-            raise ValueError(f"actions: expected one of {ACTIONS}, got {actions!r}")
-        if not len(stored.slots):
-            raise ValueError(f"windows: the store at {stored.path!r} has no committed batch "
-                             f"slot yet; calling simloader.write with the same dataset writes "
-                             f"it")
-        self.stored, self.keys, self.actions = stored, keys, actions
-        self.context = stream_frames.checked_keys(stored, keys, context)
-        self.drop_flagged = diverged == "drop"
-        self.every = int(stored.info["record_every"])
-        self.will_need = False  # read whole shards (set by `loader` for block orders)
-
-    @functools.cached_property
-    def table(self) -> FrameTable:
-        """The frames of the kept streams, made at the first use (it reads the flags, the
-        provenance and the `first` marks of every slot)."""
-        kept = (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
-                np.arange(len(self.stored)))
-        # a trajectory's initial state leads it where every key asked has one
-        return stream_frames.build(self.stored, kept, initial=self.keys == ("state",))
-
-    def read(self, positions: np.ndarray, limit: Optional[np.ndarray] = None
-             ) -> dict[str, torch.Tensor]:
-        """The frames at `positions` (B, L) as tensors (B, L, ...); `limit` (B,): one past
-        the last real position of each row (padding after it: zeros, flags False, `mask`)."""
-        table = self.table
-        real = None
-        if limit is not None:
-            real = positions < limit[:, None]
-            positions = np.where(real, positions, (limit - 1)[:, None])
-        out = stream_frames.read(self.stored, table, positions, self.keys, self.context,
-                                 self.every, self.will_need)
-        if self.actions == "next":
-            after = positions + 1
-            inside = after < table.episode_end(positions)
-            if real is not None:
-                inside &= np.r_[real[:, 1:].T, np.zeros((1, len(real)), bool)].T
-            following = stream_frames.read(self.stored, table, np.where(inside, after,
-                                                                         positions),
-                                           (), (), self.every, self.will_need)["control"]
-            following[~inside] = 0
-            out["control"] = following
-        for key in self.context:  # one value per window: its first frame's trajectory's
-            out[key] = out[key][:, 0]
-        if real is not None:
-            for key, value in out.items():
-                if key not in self.context:
-                    value[~real] = 0
-            out["mask"] = real
-        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}
-        cameras = self.stored.cameras
-        if cameras is not None:
-            states = out["state"] if "state" in out else stream_frames.read(
-                self.stored, table, positions, ("state",), (), self.every)["state"]
-            b, length = positions.shape
-            trajectories = table.trajectory[positions.reshape(-1)]
-            for key, images in cameras.frames(states.reshape(b * length, 1, -1),
-                                              trajectories).items():
-                images = images.reshape(b, length, *images.shape[2:])
-                if real is not None:
-                    images[torch.from_numpy(~real)] = 0
-                tensors[key] = images
-        return tensors
 
 
 class Windows(FramePattern):
@@ -151,36 +75,12 @@ class Windows(FramePattern):
     def __len__(self) -> int:
         return len(self._starts[0])
 
-    @property
-    def block(self) -> int:
-        """The windows of one batch slot, about, which a quasi-random order reads as a
-        block (one shard per array)."""
-        return max(1, len(self) // max(1, len(self.stored.slots)))
-
     def gather(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
         """The windows `indices` (negative counts from the end) as a batch `(B, length, ...)`."""
         ks = stream_frames.transition_indices(indices, len(self))
         starts, limits = self._starts
         positions = starts[ks][:, None] + np.arange(self.length)
         return self.read(positions, None if limits is None else limits[ks])
-
-    def __getitem__(self, k: Any) -> dict[str, torch.Tensor]:
-        if isinstance(k, (int, np.integer)) and not isinstance(k, bool):
-            return {n: v[0] for n, v in self.gather([k]).items()}
-        return self.gather(k)
-
-    def __getitems__(self, ks: Sequence[int]) -> list[dict[str, torch.Tensor]]:
-        out = self.gather(ks)
-        return [dict(zip(out, values)) for values in zip(*(v.unbind(0) for v in out.values()))]
-
-    def loader(self, batch_size: int, order: str = "quasi_random", drop_last: bool = False,
-               window: Optional[int] = None, seed: Optional[int] = None,
-               **kwargs: Any) -> torch.utils.data.DataLoader:
-        """A DataLoader of batches of `batch_size` windows, as `Transitions.loader` (the same
-        orders, each batch one gather; with torchdata a `StatefulDataLoader` that resumes
-        mid-epoch, with `num_workers` as it was)."""
-        return orders.pattern_loader(self, len(self), batch_size, order, self.block, window,
-                                     drop_last, seed, len(self.keys) + 2, kwargs)
 
 
 class Episodes(FramePattern):
