@@ -40,6 +40,7 @@ def frames_per_second(loader, frames_per_item: int, seconds: float) -> float:
         n += len(batch["state"]) * frames_per_item
         if time.perf_counter() - start >= seconds:
             break
+    common.sync()  # the frames rendered on the GPU, all of them, are in the time
     elapsed = time.perf_counter() - start
     del it
     return n / elapsed

@@ -94,8 +94,13 @@ class StoredRenderer:
         n, nframes = states.shape[:2]
         worlds = n * nframes
         context = self._context(worlds)
-        flat = torch.from_numpy(np.ascontiguousarray(states.reshape(worlds, -1)))
-        flat = flat.to(self.device, non_blocking=True)
+        # through pinned memory (torch's caching host allocator: reused once its copy is
+        # done): an asynchronous copy, so that reading the next batch's states on the host
+        # runs while this one renders (a copy from pageable memory waited for the GPU)
+        host = torch.empty((worlds, states.shape[-1]),
+                           dtype=getattr(torch, np.dtype(states.dtype).name), pin_memory=True)
+        host.numpy()[...] = states.reshape(worlds, -1)
+        flat = host.to(self.device, non_blocking=True)
         wp = runtime.warp()
         with wp.ScopedDevice(runtime.warp_device(self.device)):
             for name, cols in self.column_index.items():
