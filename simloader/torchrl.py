@@ -14,17 +14,27 @@ window across two trajectories (docs/torchrl.md).
 
 from __future__ import annotations
 
+import multiprocessing
+import sys
 from collections.abc import Iterator, Mapping
 from typing import Any, Optional, Union
 
 import torch
 
+# torchrl, as it is imported, makes "spawn" the process-wide default start method where none
+# was set; a user's DataLoader workers (of every dataset, not only these) would then start
+# as spawned processes instead of the platform's default. Imported first from here, it leaves
+# the default as it found it (a user who imports torchrl first has torchrl's).
+_untouched = "torchrl" not in sys.modules and \
+    multiprocessing.get_start_method(allow_none=True) is None
 try:
     from tensordict import TensorDict
     from torchrl.collectors import BaseCollector
 except ImportError as e:  # pragma: no cover - said with what to install
     raise ImportError("simloader.torchrl needs torchrl and tensordict: pip install "
                       "'simloader[torchrl]'") from e
+if _untouched and multiprocessing.get_start_method(allow_none=True) is not None:
+    multiprocessing.set_start_method(None, force=True)
 
 from simloader import policy as simloader_policy
 from simloader import streams

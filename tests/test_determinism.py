@@ -56,7 +56,8 @@ def test_same_seed_gives_identical_batches_in_fresh_processes(fresh_python):
         SCRIPT, [([3], {"PYTHONHASHSEED": "1"}), ([3], {"PYTHONHASHSEED": "2"})]))
     assert len(first) == NUM_BATCHES
     assert set(first[0]) == {"state", "sensordata", "control", "initial_state", "diverged",
-                             "params/body_mass[pole]", "params/dof_damping[hinge]"}
+                             "params/body_mass[pole]", "params/dof_damping[hinge]",
+                             "stream", "episode", "initial_first"}
     assert first == second
     # not identical for want of randomness: every batch and every seed draws anew
     for key in ("state", "control", "initial_state", "params/body_mass[pole]"):

@@ -143,9 +143,10 @@ def test_diverged_flags_exactly_the_faulty_trajectory(cartpole, faulty, faulty_r
 
 def test_same_batch_schema_as_rollout_backend(faulty, faulty_rollout):
     mine, ref = faulty[1][0], faulty_rollout[0]
-    assert sorted(mine) == sorted(ref) == sorted(KEYS)
-    for key in KEYS:
+    assert sorted(mine) == sorted(ref) == sorted(KEYS + simloader.streams.KEYS)
+    for key in KEYS + simloader.streams.KEYS:
         assert mine[key].shape == ref[key].shape, key
+    for key in KEYS:
         native = (torch.bool,) * 2 if key == "diverged" else (torch.float32, torch.float64)
         assert (mine[key].dtype, ref[key].dtype) == native, key
 
@@ -485,7 +486,8 @@ def test_gpu_delivery_to_another_device_and_dtype(gpu_dataset, cache_dir):
     ds = simloader.SimDataset("cartpole", backend="mjx", nbatch=64, nstep=10, num_batches=1,
                               device="cpu", dtype=torch.float64, compilation_cache=cache_dir)
     batch = next(iter(ds))
-    assert {(v.device.type, v.dtype) for k, v in batch.items() if k != "diverged"} == {
+    floats = set(batch) - {"diverged", *simloader.streams.KEYS}
+    assert {(batch[k].device.type, batch[k].dtype) for k in floats} == {
         ("cpu", torch.float64)}
     assert batch["diverged"].device.type == "cpu"
 

@@ -100,6 +100,7 @@ def test_a_continued_stream_is_read_as_one_long_rollout(tmp_path):
 def slice_sampler_starts(table, length):
     """The windows torchrl's SliceSampler(slice_len=length, strict_length=True) draws over
     the same episodes: their first positions, sampled until every one was seen."""
+    import simloader.torchrl  # noqa: F401  (first: keeps this process's start method)
     from tensordict import TensorDict
     from torchrl.data import LazyTensorStorage, ReplayBuffer
     from torchrl.data.replay_buffers.samplers import SliceSampler
@@ -122,7 +123,7 @@ def slice_sampler_starts(table, length):
 
 
 def test_inside_windows_are_torchrls_strict_slices(stores):
-    pytest.importorskip("torchrl")
+    pytest.importorskip("simloader.torchrl")  # first: see test_torchrl.py
     windows = simloader.StoredDataset(stores["episodes"]).windows(5, ends="inside")
     ours = set(windows._starts[0].tolist())
     assert ours == slice_sampler_starts(windows.table, 5)

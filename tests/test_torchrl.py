@@ -13,10 +13,17 @@ from torch.utils.data import DataLoader
 import simloader
 from simloader.terminate import Outside
 
-torchrl = pytest.importorskip("torchrl")
+# simloader.torchrl first (it imports torchrl): torchrl's own import would make "spawn" the
+# default start method of this process, and the other tests' DataLoader workers spawned
+pytest.importorskip("simloader.torchrl")
+from simloader.torchrl import SimCollector, to_tensordict  # noqa: E402
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler  # noqa: E402
 
-from simloader.torchrl import SimCollector, to_tensordict  # noqa: E402
+
+def test_importing_it_leaves_the_default_start_method_as_it_was(fresh_python):
+    script = ("import multiprocessing as mp, simloader.torchrl, torchrl; "
+              "print(mp.get_start_method(allow_none=True))")
+    assert fresh_python(script, [([], {})])[0].strip() == "None"
 
 
 def cartpole(**kwargs):
