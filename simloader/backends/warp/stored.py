@@ -65,6 +65,7 @@ class StoredRenderer:
         # last one, and two loaders of different batch sizes may take turns)
         self.contexts: collections.OrderedDict[int, types.SimpleNamespace] = \
             collections.OrderedDict()
+        self.streams: dict[int, Any] = {}  # Warp's handles of torch's streams
 
     def _context(self, nworld: int) -> types.SimpleNamespace:
         """A model, data and render context of exactly `nworld` worlds, made at its first
@@ -84,6 +85,8 @@ class StoredRenderer:
             m=m, d=d, cameras=cameras,
             fields={name: wp.to_torch(getattr(d, name)) for name in self.columns},
             frame=torch.zeros(1, dtype=torch.int64, device=self.device))
+        # its arrays were filled on Warp's own stream; the renders run on torch's
+        wp.synchronize_device(wdevice)
         self.contexts[nworld] = context
         while len(self.contexts) > CONTEXTS:
             self.contexts.popitem(last=False)
@@ -102,9 +105,21 @@ class StoredRenderer:
         host.numpy()[...] = states.reshape(worlds, -1)
         flat = host.to(self.device, non_blocking=True)
         wp = runtime.warp()
-        with wp.ScopedDevice(runtime.warp_device(self.device)):
+        # MuJoCo Warp's kernels on torch's current stream, after the copy and the gathers
+        # queued there, and before whatever the reader queues there next (Warp's current
+        # stream is the process's: under the engines' lock)
+        with runtime.WARP_LOCK, wp.ScopedDevice(runtime.warp_device(self.device)), \
+                wp.ScopedStream(self._warp_stream(), sync_enter=False):
             for name, cols in self.column_index.items():
                 context.fields[name].view(worlds, -1)[:] = flat[:, cols]
             buffers = context.cameras.frames(worlds, 1)
             context.cameras.render(buffers, context.frame, want=False)
         return {k: v[:, 0].reshape(n, nframes, *v.shape[2:]) for k, v in buffers.items()}
+
+    def _warp_stream(self) -> Any:
+        """Warp's handle of torch's current stream on the device (made once per stream)."""
+        stream = torch.cuda.current_stream(self.device)
+        key = stream.cuda_stream
+        if key not in self.streams:
+            self.streams[key] = runtime.warp().stream_from_torch(stream)
+        return self.streams[key]
