@@ -183,6 +183,7 @@ def test_scale_out_script_on_cpu_ranks(checkout_env):
     assert "256 stored, ranks [0, 1]" in rows[1], rows[1]
 
 
+@pytest.mark.slow  # 40 s on 2 cores: the suite's time; test_scale_out_script_on_cpu_ranks runs it
 def test_scale_out_interleaves_layouts_and_repeats(checkout_env):
     """`--nodes 1 2 --repeats 2`: every layout (one node of 2 ranks, two nodes of 1, and the
     1-rank reference) runs twice, interleaved; a row gives the median and each repeat's ratio

@@ -173,6 +173,7 @@ def test_a_policy_sees_the_fresh_states():
     check_closed_loop("mjx")
 
 
+@pytest.mark.slow  # 27 s of MJX compilation on 2 cores; the CPU engine's runs in the suite
 def test_a_callable_ends_episodes_as_a_rule_does_in_the_closed_loop():
     """On MJX a callable runs in the closed loop, after every frame, on the observations the
     policy gets: the same flags, resets and states as the rule it spells."""
