@@ -4,9 +4,11 @@ whose items are the pairs of consecutive frames of one trajectory that are one p
 
 Which pairs, and in which order, the store's frame table says (`simloader.store.frames`: the
 kept trajectories, their `first` frames); the gather is this pattern's own: one `np.take` per
-key and batch slot from the memory-mapped shards straight into the batch's tensors, two
-frames an item, each key's `s_t` and `s_t+1` contiguous (`FramePattern.read` lays windows out
-frame after frame instead).
+key and batch slot from the memory-mapped shards straight into the batch's tensors (one
+storage per dtype, which a DataLoader worker hands over at once), two frames an item, each
+key's `s_t` and `s_t+1` contiguous. Through `FramePattern.read` (two reads, `s_t` and
+`s_t+1`: the same values) the loader ran at 0.57-0.59M transitions/s against this gather's
+0.74-0.79M (2 cores, 2 workers, batches of 4,096 of a 409,600-frame humanoid store).
 """
 
 from __future__ import annotations
