@@ -1,6 +1,7 @@
-"""The `simloader` command line: `quickstart` (stream batches, print throughput), `info` (what
-the columns mean), `bench` (simloader next to the raw simulators) and `warmup` (compile ahead of
-time: JAX's persistent compilation cache and MuJoCo Warp's kernel cache)."""
+"""The `simloader` command line: `quickstart` (stream batches, print throughput), `write`
+(simulate into a store), `info` (what the columns mean), `bench` (simloader next to the raw
+simulators), `warmup` (compile ahead of time: JAX's persistent compilation cache and MuJoCo
+Warp's kernel cache) and `video` (trajectories of a store or a model, side by side)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import argparse
 import contextlib
 import os
 import re
+import sys
 import time
 
 import mujoco
@@ -44,6 +46,30 @@ class ArgumentParser(argparse.ArgumentParser):
     def error(self, message: str) -> None:
         message = re.sub(r"\s*\n\s*", " ", str(message)).strip()
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} -h')\n")
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Help that shows every option's default (where it has one and the help does not say it
+    already)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if "default" in text or default is None or default is False or default == [] or \
+                default is argparse.SUPPRESS or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+# what the options without a help text of their own are
+OPTION_HELP = {"--nbatch": "trajectories per batch", "--nstep": "steps per trajectory",
+               "--batches": "batches in all", "--seed": "the seed all randomness derives from",
+               "--format": "the store's format"}
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Progress bars: on a terminal, unless --quiet (none into a pipe or a file)."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
 class BadArgument(Exception):
@@ -111,6 +137,7 @@ def stream_dataset(args: argparse.Namespace) -> simloader.SimDataset:
                                     or simloader.controls.Uniform(),
                                     randomize=randomize or None,
                                     initial_state=simloader.initial.Perturbed(),
+                                    terminate=getattr(args, "terminate", None) or None,
                                     num_batches=args.batches, seed=args.seed,
                                     # all cores: nothing here trains alongside the simulation
                                     nthread=threads.available_cpus(), **record)
@@ -141,7 +168,8 @@ def quickstart(args: argparse.Namespace) -> None:
     print(f"backend {ds.config.backend!r} ({ds.config.options.simulated_by()}), chosen: "
           f"{ds.config.backend_reason}")
     steps, start, first = 0, time.perf_counter(), None
-    for batch in tqdm(loader, total=args.batches, unit="batch"):
+    for batch in tqdm(loader, total=args.batches, unit="batch",
+                      disable=not show_progress(args)):
         if first is None:  # the first batch includes start-up (and compilation for MJX)
             first = time.perf_counter() - start
             start = time.perf_counter()
@@ -193,12 +221,21 @@ def write(args: argparse.Namespace) -> None:
             options = {"compression": args.compression} if args.compression else {}
             path = simloader.write(ds, args.out, batches=args.batches, format=args.format,
                                    num_workers=args.num_workers, replace=args.replace,
-                                   **options)
+                                   progress=show_progress(args), **options)
     except StoreLocked as e:  # another job writes it: a message, not a traceback
         raise SystemExit(f"simloader write: {e}") from None
-    print(f"simloader {simloader.__version__}: wrote {args.batches} x {args.nbatch} "
-          f"trajectories of {args.nstep} steps of {args.model!r} to {path} ({args.format})")
     report = getattr(path, "report", None)
+    asked = (f"{args.batches} x {args.nbatch} trajectories of {args.nstep} steps of "
+             f"{args.model!r}")
+    done = args.batches if report is None else report.batches
+    if done == 0:
+        said = f"nothing to write: {path} ({args.format}) already holds the {asked}"
+    elif done < args.batches:
+        said = (f"wrote {done} of the {asked} to {path} ({args.format}); it held the other "
+                f"{args.batches - done} batches already")
+    else:
+        said = f"wrote {asked} to {path} ({args.format})"
+    print(f"simloader {simloader.__version__}: {said}")
     if report is not None:  # where the time went, and what bounded the run
         print(f"write: {report}")
     hint = formats.read_hint(args.format, path)
@@ -290,6 +327,10 @@ def warmup(args: argparse.Namespace) -> None:
                                   nstep=args.nstep, control=simloader.controls.Uniform(),
                                   num_batches=1)
     print(ds.describe().splitlines()[-1])
+    if ds.config.backend == "cpu":
+        print("nothing to warm: the CPU engine compiles nothing (MuJoCo's C library runs as "
+              "it is); the GPU engines, mjx and warp, are the ones to warm")
+        return
     next(iter(ds))
     print(f"warm: compiled in {ds.stats.get('compile_s', 0.0):.1f} s, first batch after "
           f"{time.perf_counter() - start:.1f} s; later processes reuse the caches")
@@ -298,11 +339,11 @@ def warmup(args: argparse.Namespace) -> None:
 def video(args: argparse.Namespace) -> None:
     """A video of a store's trajectories, or of a batch freshly simulated from a model."""
     rows = args.rows
+    if args.out is None:
+        raise BadArgument("--out: expected the video file, ending in .mp4 or .gif")
     if os.path.isdir(args.source):  # a store is a folder, a model a name or a file
+        # (without --model: the model the store kept, where one model ran every trajectory)
         source, model = args.source, args.video_model
-        if model is None:
-            raise BadArgument("--model: a store does not keep its model; give the model that "
-                              "wrote it (a built-in name or an MJCF path) to render its states")
     else:
         with from_arguments():
             source = simloader.SimDataset(
@@ -312,14 +353,20 @@ def video(args: argparse.Namespace) -> None:
         model = None
     with from_arguments():
         path = simloader.video(source, args.out, model=model, rows=rows, camera=args.camera,
-                               size=tuple(args.size), fps=args.fps, lossless=args.lossless)
+                               size=tuple(args.size), fps=args.fps, lossless=args.lossless,
+                               progress=show_progress(args))
     print(f"simloader: wrote {path}")
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(prog="simloader", description=__doc__)
     parser.add_argument("--version", action="version", version=f"simloader {simloader.__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
+    add_parser = sub.add_parser
+
+    def add(name: str, **kwargs):  # every subcommand shows its options' defaults
+        return add_parser(name, formatter_class=HelpFormatter, **kwargs)
+    sub.add_parser = add
 
     q = sub.add_parser("quickstart", help="stream batches from a model and print throughput")
     add_model_argument(q)
@@ -333,6 +380,7 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--nstep", type=int, default=200)
     q.add_argument("--batches", type=int, default=20)
     q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(run=quickstart)
 
     wr = sub.add_parser("write", help="simulate batches into a store (zarr or Minari)",
@@ -379,6 +427,15 @@ def main(argv: list[str] | None = None) -> None:
     wr.add_argument("--replace", action="store_true",
                     help="replace a store (or Minari dataset) of other settings at --out "
                          "instead of refusing it")
+    wr.add_argument("--terminate", type=spec_option(cli_specs.parse_terminate, "--terminate"),
+                    action="append", default=[], metavar="RULE(ARGS)",
+                    help="episodes that end, repeatable (any rule ends one): a rule of "
+                         "simloader.terminate, e.g. 'below(torso, 0.8)', 'tilted(torso, 1.0)', "
+                         "'outside(hinge, -0.2, 0.2)', 'timelimit(500)'; the store then keeps "
+                         "terminated/truncated/first (default: none, every trajectory runs "
+                         "its nstep steps)")
+    wr.add_argument("--quiet", action="store_true",
+                    help="no progress bar (none either where stderr is not a terminal)")
     wr.set_defaults(run=write)
 
     i = sub.add_parser("info", help="print which state/control/sensor columns mean what")
@@ -426,14 +483,20 @@ def main(argv: list[str] | None = None) -> None:
 
     v = sub.add_parser("video", help="write an MP4 or GIF of trajectories of a store or a model",
                        description="Write an MP4 (or GIF) of trajectories side by side: of a "
-                                   "store (rendered from its states, with --model the model "
-                                   "that wrote it, or from its recorded camera), or of a batch "
+                                   "store (rendered from its states with the model it kept, or "
+                                   "--model, or from its recorded camera), or of a batch "
                                    "simulated from a model on the CPU (uniform controls, "
                                    "perturbed initial states).")
     v.add_argument("source", help="a store folder, or a built-in model name or MJCF path")
-    v.add_argument("out", help="the video file, ending in .mp4 or .gif")
-    v.add_argument("--model", dest="video_model", default=None,
-                   help="for a store: the model that wrote it (name or MJCF path)")
+    v.add_argument("out_file", nargs="?", default=None, metavar="OUT",
+                   help="the video file, ending in .mp4 or .gif (or --out)")
+    v.add_argument("--out", default=None,
+                   help="the video file, ending in .mp4 or .gif, as write's --out")
+    v.add_argument("--model", dest="video_model", default=None, metavar="MODEL",
+                   help="for a store: the model to render its states with (default: the one "
+                        "it kept; needed for a store of a model list, variants or "
+                        "randomized values)")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
     v.add_argument("--rows", type=int, nargs="+", default=[0, 1, 2, 3],
                    help="the trajectories to show (default: 0 1 2 3)")
     v.add_argument("--camera", default=None,
@@ -449,6 +512,10 @@ def main(argv: list[str] | None = None) -> None:
     v.add_argument("--seed", type=int, default=0, help="for a model: the seed (default 0)")
     v.set_defaults(run=video, model=None)
 
+    for each in sub.choices.values():  # every option says what it is (and its default)
+        for action in each._actions:
+            if action.help is None and action.option_strings:
+                action.help = OPTION_HELP.get(action.option_strings[0], action.dest)
     args = parser.parse_args(argv)
     sub_parser = sub.choices[args.command]
     option = getattr(args, "model_option", None)
@@ -456,10 +523,20 @@ def main(argv: list[str] | None = None) -> None:
         sub_parser.error(f"model: given twice and differently, {args.model!r} (positional) and "
                          f"--model {option!r}; give one")
     args.model = args.model or option or DEFAULT_MODEL
+    if args.command == "video":  # the file: positional or --out, as write's --out
+        if args.out_file is not None and args.out is not None and args.out_file != args.out:
+            sub_parser.error(f"out: given twice and differently, {args.out_file!r} "
+                             f"(positional) and --out {args.out!r}; give one")
+        args.out = args.out or args.out_file
     try:
         args.run(args)
     except BadArgument as e:
         sub_parser.error(str(e))
+    except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for an interrupt
+        kept = (f"; the store at {args.out} keeps every batch committed before it (the same "
+                f"command resumes)" if args.command == "write" else "")
+        print(f"simloader {args.command}: interrupted{kept}", file=sys.stderr)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""The small specs of `simloader write`'s `--control` and `--randomize`, read without `eval`.
+"""The small specs of `simloader write`'s `--control`, `--randomize` and `--terminate`, read
+without `eval`. `--terminate "below(torso, 0.8)"`: a rule of `simloader.terminate` by name.
 
 `--control "ou(std=0.3, tau=0.05)"`: a generator of `simloader.controls` by name (any case,
 `ou` for `OrnsteinUhlenbeck`), keyword arguments only. `--randomize
@@ -16,6 +17,7 @@ from typing import Any
 
 from simloader import controls
 from simloader import randomize as dr
+from simloader import terminate
 
 # lower-case name -> generator (FromArray needs an array: not from the command line)
 CONTROLS: dict[str, type] = {
@@ -29,6 +31,8 @@ DISTRIBUTIONS: dict[str, type] = {cls.__name__.lower(): cls
                                   for cls in (dr.Uniform, dr.LogUniform, dr.Normal)}
 OPERATIONS = {"set": dr.set, "scale": dr.scale, "add": dr.add}
 RANDOMIZE_FORM = "FIELD[:OBJ,...]=OP:DIST(ARGS)"
+RULES: dict[str, type] = {cls.__name__.lower(): cls for cls in (
+    terminate.Below, terminate.Tilted, terminate.Outside, terminate.TimeLimit)}
 
 
 def _arguments(fields: list[str]) -> str:
@@ -85,6 +89,20 @@ def parse_control(text: str) -> controls.Generator:
         return cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise ValueError(f"--control: {text!r}: {e}") from None
+
+
+def parse_terminate(text: str) -> terminate.Rule:
+    """The rule `--terminate` names, e.g. `"below(torso, 0.8)"`, `"timelimit(500)"` or
+    `"outside(hinge, -0.2, 0.2)"` (positional or keyword arguments; a bare word is a name).
+
+    Raises:
+      ValueError: naming `--terminate`, what it got and the choices.
+    """
+    cls, args, kwargs = _call(text, "--terminate", RULES, positional=True)
+    try:
+        return cls(*args, **kwargs)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--terminate: {text!r}: {e}") from None
 
 
 def parse_randomize(text: str) -> dr.Param:

@@ -44,8 +44,9 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
         memory: keep it short).
       model: what renders the states: the `SimDataset` that made them (its randomized
         geometry, variants and model lists included, from the batch's "params"), a model
-        name, an MJCF path or an `mujoco.MjModel`. Not needed for a `SimDataset` source or
-        for frames of a recorded camera.
+        name, an MJCF path or an `mujoco.MjModel`. Not needed for a `SimDataset` source,
+        for frames of a recorded camera, or for a store that kept the one model all its
+        trajectories ran with.
       rows: the trajectories to show.
       camera: a recorded camera's NAME (default: the first recorded one), or, to render from
         states, a camera of the model by name or id ("free" or -1: the free camera, the
@@ -75,6 +76,11 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
     if lossless and suffix != ".mp4":
         raise ValueError(f"lossless: only an MP4 can be lossless, got path {str(path)!r}")
     rows = _rows(rows)
+    if isinstance(source, (str, os.PathLike)):
+        from simloader.store.reader import StoredDataset
+        source = StoredDataset(source)
+    if model is None:
+        model = _kept_model(source)
     items, nbatch, config = _items(source, rows, model)
     bad = [r for r in rows if not -nbatch <= r < nbatch]
     if bad:
@@ -105,6 +111,22 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
             bar.update(chunk.shape[1])
         bar.close()
     return path
+
+
+def _kept_model(source: Any) -> Any:
+    """The model a store kept (`provenance/models/`), where one model rendered all its
+    trajectories as they ran (no model list, no variants, no randomized values); else None
+    (model= is then needed)."""
+    from simloader.store.reader import StoredDataset
+    if not isinstance(source, StoredDataset):
+        return None
+    from simloader.store import pixels
+    kept = source.info.get("models")
+    if not isinstance(kept, dict) or kept.get("kind") != "model" or \
+            any(k.startswith("params/") for k in source.layouts):
+        return None
+    models = pixels.kept_models(source)
+    return models[0] if models else None
 
 
 def _rows(rows: Any) -> list[int]:
@@ -194,8 +216,10 @@ def _renderer_models(model: Any, config: Any, items: dict):
             return config.model, lambda i: config.models[int(rows[i])]
         return config.model, render.model_of(config, params)
     if model is None:
-        raise ValueError("model: rendering states needs the model that made them: pass "
-                         "model= (the SimDataset, a model name, an MJCF path or an MjModel)")
+        raise ValueError("model: rendering states needs the model that made them, and this "
+                         "source keeps none to render each trajectory with (a batch, or a "
+                         "store of a model list, variants or randomized values): pass model= "
+                         "(the SimDataset, a model name, an MJCF path or an MjModel)")
     if isinstance(model, mujoco.MjModel):
         return model, lambda i: model
     if isinstance(model, (str, os.PathLike)):

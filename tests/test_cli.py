@@ -248,3 +248,102 @@ def test_write_bad_spec_is_one_line_naming_the_option(capsys, tmp_path, option, 
                                 option, value])
     assert err.startswith("simloader write: error: ") and expected in err, err
     assert not (tmp_path / "s").exists()
+
+
+# -- what #61 found: help, untrue output, progress into pipes, Ctrl-C, episodes ------------
+
+def test_help_names_every_subcommand_and_every_options_default(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    for name in ("quickstart", "write", "info", "bench", "warmup", "video"):
+        assert f"`{name}`" in out, name  # the description says what each does
+    with pytest.raises(SystemExit):
+        cli.main(["write", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    for said in ("--nbatch NBATCH trajectories per batch (default: 1024)",
+                 "--nstep NSTEP steps per trajectory (default: 200)",
+                 "--batches BATCHES batches in all (default: 20)",
+                 "--num-workers NUM_WORKERS DataLoader workers that simulate and write in "
+                 "parallel (default: 0)"):
+        assert said in out, said
+
+
+def test_write_says_what_it_wrote_and_nothing_when_the_store_was_complete(capsys, tmp_path):
+    out = str(tmp_path / "s.zarr")
+    argv = ["write", "--out", out, "--backend", "cpu", "--nbatch", "4", "--nstep", "5"]
+    cli.main(argv + ["--batches", "2"])
+    assert "wrote 2 x 4 trajectories of 5 steps" in capsys.readouterr().out
+    cli.main(argv + ["--batches", "3"])
+    said = capsys.readouterr().out
+    assert "wrote 1 of the 3 x 4 trajectories" in said and "held the other 2" in said, said
+    cli.main(argv + ["--batches", "3"])
+    said = capsys.readouterr().out
+    assert "nothing to write:" in said and "already holds the 3 x 4" in said, said
+    assert "wrote" not in said.split("write:")[0]
+
+
+def test_write_asks_for_episodes_with_terminate(capsys, tmp_path):
+    import simloader
+    out = str(tmp_path / "e.zarr")
+    cli.main(["write", "--out", out, "--backend", "cpu", "--nbatch", "4", "--nstep", "60",
+              "--batches", "1", "--terminate", "outside(hinge, -0.05, 0.05)",
+              "--terminate", "timelimit(40)"])
+    stored = simloader.StoredDataset(out)
+    item = stored[0]
+    assert {"terminated", "truncated", "first"} <= set(item)
+    assert bool(item["first"].any())
+    err = _usage_error(capsys, ["write", "--out", str(tmp_path / "f.zarr"), "--terminate",
+                                "above(torso, 1)"])
+    assert "--terminate: unknown name 'above'" in err and "below, tilted" in err
+
+
+def test_warmup_of_the_cpu_engine_says_there_is_nothing_to_warm(capsys):
+    cli.main(["warmup", "--nbatch", "4", "--nstep", "2"])
+    out = capsys.readouterr().out
+    assert "nothing to warm: the CPU engine compiles nothing" in out, out
+
+
+def test_video_of_a_store_needs_no_model_and_takes_out_as_write_does(capsys, tmp_path):
+    store = str(tmp_path / "v.zarr")
+    cli.main(["write", "--out", store, "--backend", "cpu", "--nbatch", "2", "--nstep", "6",
+              "--batches", "1"])
+    capsys.readouterr()
+    cli.main(["video", store, "--out", str(tmp_path / "a.gif"), "--rows", "0", "--size",
+              "16", "16"])
+    assert (tmp_path / "a.gif").stat().st_size > 0
+    err = _usage_error(capsys, ["video", store, str(tmp_path / "b.gif"), "--out",
+                                str(tmp_path / "c.gif")])
+    assert "out: given twice and differently" in err
+
+
+def test_no_progress_bar_into_a_pipe(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "simloader.cli", "write", "--out",
+                           str(tmp_path / "p.zarr"), "--backend", "cpu", "--nbatch", "4",
+                           "--nstep", "5", "--batches", "2"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "%|" not in proc.stderr and "it/s" not in proc.stderr, proc.stderr
+
+
+def test_ctrl_c_is_one_line_exit_130_and_the_store_stays_readable(tmp_path):
+    import os
+    import signal
+    import time
+    import simloader
+    out = str(tmp_path / "i.zarr")
+    proc = subprocess.Popen([sys.executable, "-m", "simloader.cli", "write", "--out", out,
+                             "--backend", "cpu", "--nbatch", "64", "--nstep", "200",
+                             "--batches", "400"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    marks = os.path.join(out, "provenance", "written", "c")
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None and not (
+            os.path.isdir(marks) and os.listdir(marks)):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().count("\n") == 0, err
+    assert err.startswith("simloader write: interrupted; the store at") and "resumes" in err
+    assert len(simloader.StoredDataset(out)) >= 64  # what was committed is there, readable

@@ -83,6 +83,10 @@ def test_a_store_renders_with_the_dataset_that_wrote_it(streamed, tmp_path):
                            size=(H, W), fps=10, lossless=True, progress=False)
     frames, _ = decode(path)
     np.testing.assert_array_equal(frames, batch["camera/free/rgb"][1].numpy())
+    # without model=: the store kept the model it was simulated with
+    path = simloader.video(tmp_path / "store", tmp_path / "k.mp4", rows=[1], size=(H, W),
+                           fps=10, lossless=True, progress=False)
+    np.testing.assert_array_equal(decode(path)[0], frames)
 
 
 def test_a_gif(streamed, tmp_path):
