@@ -39,6 +39,7 @@ default_role = "code"
 autodoc_mock_imports = ["jax", "jaxlib", "mujoco.mjx", "warp", "mujoco_warp"]
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
+autodoc_preserve_defaults = True  # control_spec=mujoco.mjtState.mjSTATE_CTRL, not 64
 autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": False}
 napoleon_google_docstring = True
 napoleon_numpy_docstring = True
