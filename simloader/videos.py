@@ -103,11 +103,19 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
     else:
         mj_model, model_of = _renderer_models(model, config, items)
         frames = _rendered_frames(mj_model, model_of, states, shown, camera, size)
+    # where episodes end (`first`): the shown frame of each row that is, or follows since the
+    # last shown one, a fresh start, framed in MARK
+    fresh = None
+    if "first" in items:
+        fresh = np.logical_or.reduceat(np.asarray(items["first"], bool), shown, axis=1)
     with _Writer(path, fps, lossless) as writer:
         bar = _progress(len(shown), progress, path)
+        done = 0
         for chunk in frames:  # (len(rows), k, h, w, 3) uint8
             for j in range(chunk.shape[1]):
-                writer.write(_tile(chunk[:, j]))
+                writer.write(_tile(chunk[:, j],
+                                   None if fresh is None else fresh[:, done + j]))
+            done += chunk.shape[1]
             bar.update(chunk.shape[1])
         bar.close()
     return path
@@ -260,16 +268,25 @@ def _size(size: Any) -> tuple[int, int]:
     return int(size[0]), int(size[1])
 
 
-def _tile(frames: np.ndarray) -> np.ndarray:
+MARK = (255, 64, 0)  # the frame around a fresh start (an episode's first frame)
+
+
+def _tile(frames: np.ndarray, marked: Optional[np.ndarray] = None) -> np.ndarray:
     """One picture of (n, h, w, 3) frames, 4 a line, padded black to even sides (H.264's
-    4:2:0 colour needs them)."""
+    4:2:0 colour needs them); the frames `marked` ((n,) bool) framed in `MARK` (in the
+    picture: the frames themselves are left as they are)."""
     n, h, w, _ = frames.shape
     cols = min(n, 4)
     lines = -(-n // cols)
     out = np.zeros((lines * h + (lines * h) % 2, cols * w + (cols * w) % 2, 3), np.uint8)
+    border = max(1, min(h, w) // 24)
     for i in range(n):
         r, c = divmod(i, cols)
-        out[r * h:(r + 1) * h, c * w:(c + 1) * w] = frames[i]
+        tile = out[r * h:(r + 1) * h, c * w:(c + 1) * w]
+        tile[...] = frames[i]
+        if marked is not None and marked[i]:
+            for edge in (tile[:border], tile[-border:], tile[:, :border], tile[:, -border:]):
+                edge[...] = MARK
     return out
 
 

@@ -140,3 +140,29 @@ def test_the_command_line_for_a_model_and_a_store(tmp_path):
               "--rows", "1", "--fps", "10", "--size", "32", "32", "--lossless"])
     frames, _ = decode(tmp_path / "s.mp4")
     assert frames.shape == (10, 32, 32, 3)
+
+
+def test_a_fresh_start_is_framed_and_nothing_else_changes(tmp_path):
+    from simloader.terminate import Outside
+    ds = simloader.SimDataset("cartpole", nbatch=2, nstep=30, backend="cpu", seed=1,
+                              control=simloader.controls.Uniform(),
+                              terminate=Outside("hinge", -0.03, 0.03),
+                              record=("state", simloader.Camera(-1, height=H, width=W)))
+    batch = next(iter(ds))
+    first = batch["first"].numpy()
+    assert first.any() and not first.all()
+    path = simloader.video(batch, tmp_path / "f.mp4", rows=[0, 1], fps=10, lossless=True,
+                           progress=False)
+    frames, _ = decode(path)
+    images = batch["camera/free/rgb"].numpy()
+    border = max(1, min(H, W) // 24)
+    for t in range(len(frames)):
+        for i in range(2):
+            tile = frames[t, :H, i * W:(i + 1) * W]
+            if first[i, t]:
+                assert (tile[:border] == simloader.videos.MARK).all()
+                np.testing.assert_array_equal(tile[border:-border, border:-border],
+                                              images[i, t, border:-border, border:-border])
+            else:
+                np.testing.assert_array_equal(tile, images[i, t])
+    assert images.flags.writeable and not (images[:, :, :border] == simloader.videos.MARK).all()
