@@ -11,6 +11,7 @@ import os
 import re
 import sys
 import time
+from typing import Any
 
 import mujoco
 import torch
@@ -358,7 +359,35 @@ def video(args: argparse.Namespace) -> None:
     print(f"simloader: wrote {path}")
 
 
-def main(argv: list[str] | None = None) -> None:
+def reference() -> str:
+    """The command line's reference page (docs/cli.md), made from its parser: every
+    subcommand's `--help` (`python -m simloader.cli --reference > docs/cli.md`; a test
+    checks the page is current)."""
+    parser, sub = build_parser()
+    columns = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "100"  # the same page whatever the terminal
+    try:
+        return _reference(parser, sub)
+    finally:
+        if columns is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = columns
+
+
+def _reference(parser: argparse.ArgumentParser, sub: Any) -> str:
+    parts = ["# Command line", "",
+             "Made from the parser (`python -m simloader.cli --reference > docs/cli.md`; a "
+             "test checks that it is current).", "", "```text", parser.format_help().rstrip(),
+             "```"]
+    for name, each in sub.choices.items():
+        parts += ["", f"## `simloader {name}`", "", "```text", each.format_help().rstrip(),
+                  "```"]
+    return "\n".join(parts) + "\n"
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, Any]:
+    """The command line's parser, and its subcommands' (`main`, `reference`)."""
     parser = ArgumentParser(prog="simloader", description=__doc__)
     parser.add_argument("--version", action="version", version=f"simloader {simloader.__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
@@ -516,6 +545,14 @@ def main(argv: list[str] | None = None) -> None:
         for action in each._actions:
             if action.help is None and action.option_strings:
                 action.help = OPTION_HELP.get(action.option_strings[0], action.dest)
+    return parser, sub
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser, sub = build_parser()
+    if argv is None and sys.argv[1:] == ["--reference"]:  # docs/cli.md
+        print(reference(), end="")
+        return
     args = parser.parse_args(argv)
     sub_parser = sub.choices[args.command]
     option = getattr(args, "model_option", None)

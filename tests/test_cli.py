@@ -347,3 +347,10 @@ def test_ctrl_c_is_one_line_exit_130_and_the_store_stays_readable(tmp_path):
     assert "Traceback" not in err and err.strip().count("\n") == 0, err
     assert err.startswith("simloader write: interrupted; the store at") and "resumes" in err
     assert len(simloader.StoredDataset(out)) >= 64  # what was committed is there, readable
+
+
+def test_the_reference_page_is_made_from_the_parser_and_current():
+    import pathlib
+    page = pathlib.Path(__file__).parents[1] / "docs" / "cli.md"
+    assert page.read_text() == cli.reference(), (
+        "docs/cli.md is stale: python -m simloader.cli --reference > docs/cli.md")
