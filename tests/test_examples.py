@@ -21,3 +21,10 @@ def test_example_quick(path, tmp_path, checkout_env):
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-4000:]
     if "--out" in args:
         assert (tmp_path / "plot.png").stat().st_size > 10_000
+
+
+def test_every_example_is_shown_in_the_docs():
+    page = (pathlib.Path(__file__).parents[1] / "docs" / "examples.md").read_text()
+    for path in EXAMPLES:
+        assert f"```{{literalinclude}} ../examples/{path.name}" in page, (
+            f"docs/examples.md does not show {path.name}: add its section under 'The scripts'")
