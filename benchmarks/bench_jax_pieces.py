@@ -128,7 +128,7 @@ def main() -> None:
               f"{s_per_step['simloader function'] / s:.3f}"]
              for name, s in s_per_step.items()])
         verdict = s_per_step["simloader delivered"]
-        sections.append(f"### {w} on {jax.devices()[0].device_kind}\n\n{table}\n\n"
+        sections.append(f"## {w} on {jax.devices()[0].device_kind}\n\n{table}\n\n"
                         f"simloader delivered / raw: {raw / verdict:.3f} (target {TARGET}); "
                         f"{nbatches} batches per repetition, {args.repeats} repetitions; "
                         f"built and compiled in {built:.0f} s")

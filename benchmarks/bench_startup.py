@@ -387,7 +387,7 @@ def table(engine: str, w: common.Workload, runs: dict[tuple[str, str], list[dict
             rows.append([label, *phases, fmt([r["total"] for r in ok], spread=True),
                          fmt([r["after_torch"] for r in ok], spread=True),
                          fmt([r["wall"] for r in ok]), counts, ratio_s, target_s])
-    title = f"### {engine}: {w} (seconds from the process start; warm: median (min-max))"
+    title = f"## {engine}: {w} (seconds from the process start; warm: median (min-max))"
     return title + "\n\n" + common.markdown_table(headers, rows)
 
 

@@ -27,6 +27,34 @@ extensions = [
 source_suffix = {".md": "markdown"}
 root_doc = "index"
 exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
+
+
+def _results_pages() -> None:
+    """A page of the site for every results file a page links (`results/NAME.md`): the
+    file itself, included, its plots beside it, so that the figures the docs cite read as
+    pages instead of downloading raw Markdown. Made at every build into docs/results/
+    (git-ignored), listed by speed.md's hidden toctree."""
+    import pathlib
+    import re
+    docs = pathlib.Path(__file__).parent
+    results = docs.parent / "benchmarks" / "results"
+    out = docs / "results"
+    out.mkdir(exist_ok=True)
+    cited = {m for page in docs.glob("*.md")
+             for m in re.findall(r"\]\(results/([^)#]+\.md)\)", page.read_text())}
+    for name in sorted(cited):
+        if not (results / name).is_file():
+            continue  # the build's link check names it
+        text = (f"```{{include}} ../../benchmarks/results/{name}\n:relative-images:\n```\n")
+        page = out / name
+        if not page.is_file() or page.read_text() != text:
+            page.write_text(text)
+    for page in out.glob("*.md"):  # a page no longer cited
+        if page.name not in cited:
+            page.unlink()
+
+
+_results_pages()
 myst_enable_extensions = ["colon_fence"]
 myst_heading_anchors = 3
 
