@@ -164,7 +164,6 @@ def relative_links(path):
     return out
 
 
-@pytest.mark.parametrize("path", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
 def _exists(page, target):
     """A link's target exists; `results/NAME.md` of a docs page is the page the build makes of
     `benchmarks/results/NAME.md` (docs/conf.py), there whether the site was built or not."""
@@ -173,6 +172,7 @@ def _exists(page, target):
     return (page.parent / target).exists()
 
 
+@pytest.mark.parametrize("path", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
 def test_relative_links_point_to_files(path):
     missing = [t for t in relative_links(path) if not _exists(path, t)]
     assert not missing, f"{path.relative_to(ROOT)} links to missing files: {missing}"
