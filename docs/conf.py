@@ -96,6 +96,7 @@ except ImportError:
     html_theme = "alabaster"
 html_title = f"simloader {release}"
 html_static_path = ["_static"]
+html_css_files = ["custom.css"]
 html_logo = "_static/logo.svg"
 html_favicon = "_static/favicon.svg"
 # No repository link: the project's URL is not written anywhere in the repository yet; the
