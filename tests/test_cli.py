@@ -273,7 +273,13 @@ def test_write_says_what_it_wrote_and_nothing_when_the_store_was_complete(capsys
     out = str(tmp_path / "s.zarr")
     argv = ["write", "--out", out, "--backend", "cpu", "--nbatch", "4", "--nstep", "5"]
     cli.main(argv + ["--batches", "2"])
-    assert "wrote 2 x 4 trajectories of 5 steps" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "wrote 2 x 4 trajectories of 5 steps" in said
+    kept = re.search(r"kept: [\d.,]+ MB on disk for 40 steps, ([\d,]+) bytes per step", said)
+    assert kept, said
+    import os
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(out) for f in fs)
+    assert int(kept.group(1).replace(",", "")) == round(size / 40)
     cli.main(argv + ["--batches", "3"])
     said = capsys.readouterr().out
     assert "wrote 1 of the 3 x 4 trajectories" in said and "held the other 2" in said, said
