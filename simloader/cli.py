@@ -342,9 +342,10 @@ def warmup(args: argparse.Namespace) -> None:
                                   nstep=args.nstep, control=simloader.controls.Uniform(),
                                   num_batches=1)
     print(ds.describe().splitlines()[-1])
-    if ds.config.backend == "cpu":
-        print("nothing to warm: the CPU engine compiles nothing (MuJoCo's C library runs as "
-              "it is); the GPU engines, mjx and warp, are the ones to warm")
+    if ds.config.backend not in backends.on_devices():
+        print(f"nothing to warm: the {ds.config.backend} engine compiles nothing (MuJoCo's C "
+              f"library runs as it is); the GPU engines, {', '.join(backends.on_devices())}, "
+              f"are the ones to warm")
         return
     next(iter(ds))
     print(f"warm: compiled in {ds.stats.get('compile_s', 0.0):.1f} s, first batch after "

@@ -307,7 +307,7 @@ def test_write_asks_for_episodes_with_terminate(capsys, tmp_path):
 def test_warmup_of_the_cpu_engine_says_there_is_nothing_to_warm(capsys):
     cli.main(["warmup", "--nbatch", "4", "--nstep", "2"])
     out = capsys.readouterr().out
-    assert "nothing to warm: the CPU engine compiles nothing" in out, out
+    assert "nothing to warm: the cpu engine compiles nothing" in out, out
 
 
 def test_video_of_a_store_needs_no_model_and_takes_out_as_write_does(capsys, tmp_path):

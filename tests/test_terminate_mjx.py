@@ -111,7 +111,8 @@ def test_a_fresh_episode_is_mujocos_physics_within_float32(mjx_batch):
     assert checked >= 4
 
 
-@pytest.mark.parametrize("backend", ["mjx", "warp"])
+# MJX's in the slow runs (24 s of compilation on 2 cores: the suite's time)
+@pytest.mark.parametrize("backend", [pytest.param("mjx", marks=pytest.mark.slow), "warp"])
 def test_a_walker_falls_by_its_own_kinematics(backend, request):
     if backend == "warp":  # its CPU kernels where no GPU is
         pytest.importorskip("mujoco_warp")
@@ -168,6 +169,7 @@ def test_episodes_run_across_batches_and_resume_exactly(backend, request):
                                        equal_nan=True)
 
 
+@pytest.mark.slow  # 21 s of MJX compilation on 2 cores; the CPU and Warp engines' run in the suite
 def test_a_policy_sees_the_fresh_states():
     from test_terminate import check_closed_loop
     check_closed_loop("mjx")
