@@ -239,23 +239,14 @@ def write(args: argparse.Namespace) -> None:
     print(f"simloader {simloader.__version__}: {said}")
     if report is not None:  # where the time went, and what bounded the run
         print(f"write: {report}")
-    kept = stored_bytes(str(path))
+    from simloader.store.reader import bytes_on_disk
+    kept = bytes_on_disk(str(path))
     steps = args.batches * args.nbatch * args.nstep
     print(f"kept: {kept / 1e6:,.1f} MB on disk for {steps:,} steps, {kept / steps:,.0f} bytes "
           f"per step")
     hint = formats.read_hint(args.format, path)
     if hint:
         print(hint)
-
-
-def stored_bytes(path: str) -> int:
-    """The bytes of every file below `path` (links not followed)."""
-    total = 0
-    for folder, _, files in os.walk(path):
-        for name in files:
-            with contextlib.suppress(OSError):
-                total += os.lstat(os.path.join(folder, name)).st_size
-    return total
 
 
 def randomized_columns(model: mujoco.MjModel, specs: list[str]) -> dict:

@@ -370,3 +370,14 @@ def test_a_store_root_without_its_fingerprint_is_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match=r"lacks \['fingerprint'\] in its root's 'simloader' "
                                          r"attribute .*zarr.json was edited or damaged"):
         simloader.write(plain(), path, batches=2, progress=False)
+
+
+def test_describe_says_what_the_store_keeps_on_disk(tmp_path):
+    path = simloader.write(plain(), tmp_path / "d.zarr", batches=2, progress=False)
+    stored = simloader.StoredDataset(path)
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
+    steps = len(stored) * stored.info["nstep"]
+    line = stored.describe().splitlines()[0]
+    assert line == (f"kept: {len(stored)} trajectories of {stored.info['nstep']} steps in 2 "
+                    f"committed batch slots, {size / 1e6:,.1f} MB on disk, "
+                    f"{size / steps:,.0f} bytes per step"), line

@@ -22,7 +22,7 @@ from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedS
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.folder import StoreFolder
-from simloader.store.frames import item_index
+from simloader.store.frames import item_index, steps_and_frames
 from simloader.store.shards import StoredArray
 from simloader.store.transitions import Transitions
 from simloader.store.windows import Episodes, Windows
@@ -139,10 +139,17 @@ class StoredDataset(torch.utils.data.Dataset):
         return len(self.slots) * self.nbatch
 
     def describe(self) -> str:
-        """What the stored batches hold (the writer's dataset's `describe()`: which columns
-        of each key mean what), and a known fault of the simulator it was written under."""
+        """What the store keeps on disk (its first line: bytes per stored step), what the
+        stored batches hold (the writer's dataset's `describe()`: which columns of each key
+        mean what), and a known fault of the simulator it was written under."""
         said, faulted = self.info["describe"], self.known_fault
-        return said if faulted is None or "known fault" in said else f"{said}\n{faulted}"
+        steps = len(self) * steps_and_frames(self)[0]
+        size = bytes_on_disk(self.path)
+        kept = (f"kept: {len(self)} trajectories of {steps_and_frames(self)[0]} steps in "
+                f"{len(self.slots)} committed batch slots, {size / 1e6:,.1f} MB on disk, "
+                f"{size / max(steps, 1):,.0f} bytes per step")
+        said = said if faulted is None or "known fault" in said else f"{said}\n{faulted}"
+        return f"{kept}\n{said}"
 
     @functools.cached_property
     def _arrays(self) -> dict[str, StoredArray]:
@@ -280,3 +287,15 @@ class StoredDataset(torch.utils.data.Dataset):
             out[name] = value[row] if value.ndim and value.shape[0] == self.nbatch \
                 else value.expand(self.nbatch)[row]
         return nested({n: v.detach().cpu().clone() for n, v in out.items()})
+
+
+def bytes_on_disk(path: str) -> int:
+    """The bytes of every file below `path` (links not followed)."""
+    total = 0
+    for folder, _, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(folder, name)).st_size
+            except OSError:  # removed meanwhile (a writer's temporary file)
+                pass
+    return total
