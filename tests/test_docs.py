@@ -181,3 +181,65 @@ def test_relative_links_point_to_files(path):
 def test_the_link_check_sees_links():
     assert "docs/speed.md" in relative_links(ROOT / "README.md")
     assert any(t.endswith(".png") for t in relative_links(ROOT / "docs" / "speed.md"))
+
+
+# -- the shell blocks ----------------------------------------------------------------------
+
+def bash_commands(path):
+    """(page:line, command) of every command of a page's ```bash blocks (continuation lines
+    joined, `&&` chains split, comments dropped)."""
+    out, block, start = [], None, 0
+    lines = path.read_text().splitlines()
+    for number, line in enumerate(lines, 1):
+        if block is None:
+            if line.rstrip() == "```bash":
+                block, start = [], number
+            continue
+        if line.rstrip() == "```":
+            text = "\n".join(block).replace("\\\n", " ")
+            for k, command in enumerate(text.splitlines()):
+                command = command.split("  #")[0].strip()
+                if command and not command.startswith("#"):
+                    out += [(f"{path.name}:{start + k + 1}", part.strip())
+                            for part in command.split("&&")]
+            block = None
+        else:
+            block.append(line)
+    return out
+
+
+COMMANDS = [c for path in PAGES for c in bash_commands(path)]
+# what a test cannot run here, and why: everything else is run
+NOT_HERE = {
+    "python3 -m pip": "installs (this machine reaches no index; CI installs as the README says)",
+    "pip install": "installs (as above)",
+    "python3 -m venv": "makes a virtual environment (the suite runs in one already)",
+    ". .venv/bin/activate": "activates it (as above)",
+    "python3 -m pytest": "runs the suite (it is the suite)",
+    "sphinx-build": "builds the docs (test_the_docs_build_offline_without_warnings does)",
+    "torchrun": "needs GPUs (test_ddp_example_under_torchrun runs it on CPU ranks)",
+}
+# the small sizes the commands run at here (their full sizes take minutes on 2 cores)
+SMALL = {"quickstart": ["--backend", "cpu", "--nbatch", "8", "--nstep", "5", "--batches", "2"]}
+
+
+RUN = [(w, c) for w, c in COMMANDS if not c.startswith(tuple(NOT_HERE))]
+
+
+@pytest.mark.parametrize("where, command", RUN, ids=[w for w, _ in RUN])
+def test_shell_command_runs_as_written(where, command, capsys, monkeypatch):
+    import shlex
+    from simloader import cli
+    argv = shlex.split(command)
+    monkeypatch.chdir(ROOT)
+    cli.main(argv[1:] + SMALL.get(argv[1], []))
+    assert capsys.readouterr().out.strip(), f"{where}: {command!r} printed nothing"
+
+
+def test_every_shell_command_is_run_or_says_why_not():
+    """A new command in a page's bash block is run by the test above (a `simloader`
+    command), or its kind is in NOT_HERE with the reason."""
+    assert any(c == "simloader quickstart" for _, c in RUN)
+    assert any(c.startswith("simloader info") for _, c in RUN)
+    other = [(w, c) for w, c in RUN if not c.startswith("simloader ")]
+    assert not other, f"shell commands the docs test neither runs nor explains: {other}"
