@@ -74,12 +74,13 @@ class StreamTags:
         return {"episode": self.episode.tolist(), "fresh": self.fresh.tolist()}
 
 
-def trajectory_ids(batch: Mapping[str, torch.Tensor],
-                   nframes: Optional[int] = None) -> torch.Tensor:
+def trajectory_ids(batch: Mapping[str, torch.Tensor], nframes: Optional[int] = None,
+                   initial: bool = False) -> torch.Tensor:
     """(nbatch, nframes) int64: the id of the trajectory (episode of a stream) each frame
     belongs to, `episode << STREAM_BITS | stream`, unique across the batches, workers, ranks
     and resets of one run; a continued episode keeps its id from batch to batch. `nframes`:
-    the batch's frames, where it has neither `first` nor `state` to count them from."""
+    the batch's frames, where it has neither `first` nor `state` to count them from.
+    `initial`: (nbatch, 1 + nframes), the `initial_state`'s id first."""
     missing = [k for k in KEYS if k not in batch]
     if missing:
         raise KeyError(f"batch: expected the stream keys {list(KEYS)} that SimDataset and "
@@ -93,6 +94,8 @@ def trajectory_ids(batch: Mapping[str, torch.Tensor],
     frames = episode[:, None].expand(-1, nframes)
     if "first" in batch:
         frames = frames + batch["first"].cumsum(1)
+    if initial:
+        frames = torch.cat([episode[:, None], frames], 1)
     return (frames << STREAM_BITS) | stream[:, None]
 
 

@@ -99,21 +99,18 @@ def to_tensordict(batch: Mapping[str, Any],
     nxt["terminated"] = terminated[:, skip:, None]
     nxt["truncated"] = truncated[:, skip:, None]
     nxt["done"] = nxt["terminated"] | nxt["truncated"]
-    out["is_init"] = (torch.cat([batch[streams.INITIAL_FIRST][:, None], first[:, :-1]], 1)
-                      if lead else first[:, :-1])[..., None]
+    # per frame from the initial state on (column 0): row t's observation is column t + skip
+    firsts = torch.cat([batch[streams.INITIAL_FIRST][:, None], first], 1)
+    out["is_init"] = firsts[:, skip:-1, None]
     flagged = torch.zeros(nbatch, dtype=torch.bool, device=device)
     for key in PER_TRAJECTORY_FLAGS:
         if key in batch:
             flagged = flagged | batch[key].to(torch.bool)
     mask = ~first[:, skip:] & ~flagged[:, None]
-    ids = streams.trajectory_ids(batch, nframes)
-    if lead:
-        start = (batch[streams.EPISODE] << streams.STREAM_BITS) | batch[streams.STREAM]
-        own = torch.cat([start[:, None], ids[:, :-1]], 1)
-    else:
-        own = ids[:, :-1]
+    ids = streams.trajectory_ids(batch, nframes, initial=True)
+    own, after = ids[:, skip:-1], ids[:, 1 + skip:]  # the observation's, the next frame's
     # a row that is no physics step gets an id no trajectory has: -1 - the next frame's
-    out["collector"] = {"traj_ids": torch.where(mask, own, -1 - ids[:, skip:]), "mask": mask}
+    out["collector"] = {"traj_ids": torch.where(mask, own, -1 - after), "mask": mask}
     version = batch.get(simloader_policy.VERSION)
     if version is not None:
         out["policy_version"] = version.reshape(-1, 1).expand(nbatch, n)

@@ -79,8 +79,6 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
     if isinstance(source, (str, os.PathLike)):
         from simloader.store.reader import StoredDataset
         source = StoredDataset(source)
-    if model is None:
-        model = _kept_model(source)
     items, nbatch, config = _items(source, rows, model)
     bad = [r for r in rows if not -nbatch <= r < nbatch]
     if bad:
@@ -101,7 +99,9 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
     if key is not None:
         frames = _recorded_frames(items[key], shown)
     else:
-        mj_model, model_of = _renderer_models(model, config, items)
+        # a store without model= renders with the model it kept (read only to render)
+        mj_model, model_of = _renderer_models(
+            _kept_model(source) if model is None else model, config, items)
         frames = _rendered_frames(mj_model, model_of, states, shown, camera, size)
     # where episodes end (`first`): the shown frame of each row that is, or follows since the
     # last shown one, a fresh start, framed in MARK
@@ -160,8 +160,6 @@ def _items(source: Any, rows: list[int], model: Any) -> tuple[dict[str, np.ndarr
     if isinstance(source, SimDataset):
         config = source.config
         source = next(iter(source))
-    if isinstance(source, (str, os.PathLike)):
-        source = StoredDataset(source)
     if isinstance(source, StoredDataset):
         n = len(source)
         picked = [r for r in rows if -n <= r < n]

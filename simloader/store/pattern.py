@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
@@ -44,6 +44,12 @@ class FramePattern(torch.utils.data.Dataset):
         self.drop_flagged = diverged == "drop"
         self.every = int(stored.info["record_every"])
         self.will_need = False  # read whole shards (set by `loader` for block orders)
+        # a trajectory's initial state leads it where every key asked has one
+        self.initial = keys == ("state",)
+
+    # (blocks, block) -> None: the shard files of the blocks of items starting at `blocks`,
+    # read into the page cache in the background (`order.BlockOrder`); None: none read ahead
+    read_ahead: Optional[Callable[[np.ndarray, int], None]] = None
 
     @functools.cached_property
     def table(self) -> FrameTable:
@@ -51,8 +57,17 @@ class FramePattern(torch.utils.data.Dataset):
         provenance and the `first` marks of every slot)."""
         kept = (np.flatnonzero(~self.stored.flagged()) if self.drop_flagged else
                 np.arange(len(self.stored)))
-        # a trajectory's initial state leads it where every key asked has one
-        return stream_frames.build(self.stored, kept, initial=self.keys == ("state",))
+        return stream_frames.build(self.stored, kept, initial=self.initial)
+
+    def slot_order(self, positions: np.ndarray) -> Optional[np.ndarray]:
+        """The stable order that lays `positions` out by the batch slot of their trajectory,
+        or None where they are so already. A continued stream runs across slots: in stream
+        order the items of one block of a quasi-random epoch would read a slot each, and the
+        table of open shards would thrash."""
+        slots = self.table.trajectory[positions] // self.stored.nbatch
+        if not len(slots) or (slots[1:] >= slots[:-1]).all():
+            return None
+        return np.argsort(slots, kind="stable")
 
     def read(self, positions: np.ndarray, limit: Optional[np.ndarray] = None
              ) -> dict[str, torch.Tensor]:
@@ -150,12 +165,6 @@ class FramePattern(torch.utils.data.Dataset):
         """
         if shuffle is not None:
             order = "random" if shuffle else "sequential"
-        reads_ahead = type(self).read_ahead is not FramePattern.read_ahead
         return orders.pattern_loader(self, len(self), batch_size, order, self.block, window,
                                      drop_last, seed, len(self.keys) + 2, kwargs,
-                                     ahead=self.read_ahead if reads_ahead else None)
-
-    def read_ahead(self, blocks: np.ndarray, block: int) -> None:
-        """The shard files of the blocks of items starting at `blocks`, read into the page
-        cache in the background (see `order.BlockOrder`), where a pattern does (this one
-        reads none ahead)."""
+                                     ahead=self.read_ahead)

@@ -63,21 +63,19 @@ class Transitions(FramePattern):
             raise DamagedStore(f"{stored.layouts['control'].file}: shape "
                                f"{stored.metas['control']['shape']}, expected {nstep} control "
                                f"rows per trajectory (nstep in the store's root)")
-        self.first = 0 if keys == ("state",) else 1  # frame 0's predecessor is stored
+        self.first = 0 if self.initial else 1  # frame 0's predecessor is stored
         self.per = self.nframes - self.first
 
     @functools.cached_property
     def targets(self) -> np.ndarray:
         """Each transition's target (its `s_t+1`) as a position of the frame table: every
         stored frame that is no fresh start and whose predecessor is in its own trajectory
-        (its frame before, or for `state` its initial state), in slot order. Made at the
-        first use (the table reads the flags and `first` marks of every slot)."""
+        (its frame before, or for `state` its initial state), in slot order (`slot_order`).
+        Made at the first use (the table reads the flags and `first` marks of every slot)."""
         table = self.table
         positions = np.flatnonzero(~table.first & (table.frame >= self.first))
-        slots = table.trajectory[positions] // self.stored.nbatch
-        if len(slots) and (slots[1:] < slots[:-1]).any():  # a continued store's streams
-            positions = positions[np.argsort(slots, kind="stable")]
-        return positions
+        order = self.slot_order(positions)
+        return positions if order is None else positions[order]
 
     def locate(self, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(stored trajectory, target frame) of transitions `ks` (in range)."""

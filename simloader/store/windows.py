@@ -53,9 +53,7 @@ class Windows(FramePattern):
     @functools.cached_property
     def _starts(self) -> tuple[np.ndarray, Optional[np.ndarray]]:
         """Each window's first position, and under "pad" one past its episode's end; in the
-        store's slot order (a continued stream runs across slots: in stream order, the
-        windows of one block of a quasi-random epoch would read a slot each, and the table
-        of open shards would thrash)."""
+        store's slot order (`slot_order`)."""
         table, length = self.table, self.length
         if self.ends == "cross":
             first, end = table.segments()
@@ -65,9 +63,8 @@ class Windows(FramePattern):
         offsets = np.r_[0, np.cumsum(room)[:-1]].astype(np.int64)
         starts = np.repeat(first, room) + (np.arange(int(room.sum())) - np.repeat(offsets, room))
         limits = np.repeat(end, room) if self.ends == "pad" else None
-        slot_of = table.trajectory[starts] // self.stored.nbatch
-        if len(slot_of) and (slot_of[1:] < slot_of[:-1]).any():
-            order = np.argsort(slot_of, kind="stable")
+        order = self.slot_order(starts)
+        if order is not None:
             starts = starts[order]
             limits = None if limits is None else limits[order]
         return starts.astype(np.int64), limits

@@ -52,13 +52,14 @@ class StoredRenderer:
             raise ValueError(f"device: backend='warp' renders on a CUDA device, got {device!r}")
         if self.device.index is None:
             self.device = torch.device("cuda", torch.cuda.current_device())
-        self.columns = {name: layout.component_columns(model, layout.FULLPHYSICS, spec)
-                        for name, spec in (("qpos", S.mjSTATE_QPOS),
-                                           ("mocap_pos", S.mjSTATE_MOCAP_POS),
-                                           ("mocap_quat", S.mjSTATE_MOCAP_QUAT))}
-        # the columns of each field, on the device once (not a host-to-device copy a batch)
+        # the state's columns of each field a picture needs (the model has), on the device
+        # once (not a host-to-device copy a batch)
+        columns = {name: layout.component_columns(model, layout.FULLPHYSICS, spec)
+                   for name, spec in (("qpos", S.mjSTATE_QPOS),
+                                      ("mocap_pos", S.mjSTATE_MOCAP_POS),
+                                      ("mocap_quat", S.mjSTATE_MOCAP_QUAT))}
         self.column_index = {name: torch.as_tensor(cols, dtype=torch.int64, device=self.device)
-                             for name, cols in self.columns.items() if len(cols)}
+                             for name, cols in columns.items() if len(cols)}
         # render contexts by world count, the latest CONTEXTS: a render call draws every world
         # of its context, so a batch of 1,024 frames drawn in one grown to 16,384 for another
         # loader cost 16 times its own frames (a loader's batches are one size, but its
@@ -83,7 +84,7 @@ class StoredRenderer:
             cameras = warp_cameras.Cameras(config, self.images, m, d, wdevice)
         context = types.SimpleNamespace(
             m=m, d=d, cameras=cameras,
-            fields={name: wp.to_torch(getattr(d, name)) for name in self.columns},
+            fields={name: wp.to_torch(getattr(d, name)) for name in self.column_index},
             frame=torch.zeros(1, dtype=torch.int64, device=self.device))
         # its arrays were filled on Warp's own stream; the renders run on torch's
         wp.synchronize_device(wdevice)
