@@ -39,18 +39,26 @@ def _results_pages() -> None:
     docs = pathlib.Path(__file__).parent
     results = docs.parent / "benchmarks" / "results"
     out = docs / "results"
+    if out.is_symlink():
+        raise RuntimeError(f"{out} is a link: the build makes its pages there, in the docs")
     out.mkdir(exist_ok=True)
     cited = {m for page in docs.glob("*.md")
              for m in re.findall(r"\]\(results/([^)#]+\.md)\)", page.read_text())}
+
+    def made(name: str) -> str:  # a page as the build makes it, of results file `name`
+        return f"```{{include}} ../../benchmarks/results/{name}\n:relative-images:\n```\n"
+
     for name in sorted(cited):
         if not (results / name).is_file():
             continue  # the build's link check names it
-        text = (f"```{{include}} ../../benchmarks/results/{name}\n:relative-images:\n```\n")
         page = out / name
-        if not page.is_file() or page.read_text() != text:
-            page.write_text(text)
-    for page in out.glob("*.md"):  # a page no longer cited
-        if page.name not in cited:
+        if page.is_symlink():
+            raise RuntimeError(f"{page} is a link: the build makes that page itself")
+        if not page.is_file() or page.read_text() != made(name):
+            page.write_text(made(name))
+    for page in out.glob("*.md"):  # a page the build made that is no longer cited; no other
+        if page.name not in cited and not page.is_symlink() and page.read_text() == made(
+                page.name):
             page.unlink()
 
 

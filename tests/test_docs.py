@@ -243,3 +243,32 @@ def test_every_shell_command_is_run_or_says_why_not():
     assert any(c.startswith("simloader info") for _, c in RUN)
     other = [(w, c) for w, c in RUN if not c.startswith("simloader ")]
     assert not other, f"shell commands the docs test neither runs nor explains: {other}"
+
+
+def test_the_results_pages_touch_only_what_the_build_made(tmp_path):
+    """docs/conf.py makes a page per cited results file in docs/results/ and removes the
+    pages it made that nothing cites any more: never a file of someone else there, never
+    through a link."""
+    import runpy
+    import shutil
+    docs = tmp_path / "docs"
+    (tmp_path / "benchmarks" / "results").mkdir(parents=True)
+    (tmp_path / "benchmarks" / "results" / "x.md").write_text("# x\n")
+    docs.mkdir()
+    shutil.copy(ROOT / "docs" / "conf.py", docs / "conf.py")
+    (docs / "page.md").write_text("see [x](results/x.md)\n")
+    (docs / "results").mkdir()
+    mine = docs / "results" / "mine.md"
+    mine.write_text("# my own notes\n")
+    old = docs / "results" / "old.md"
+    old.write_text("```{include} ../../benchmarks/results/old.md\n:relative-images:\n```\n")
+    runpy.run_path(str(docs / "conf.py"))
+    assert (docs / "results" / "x.md").read_text().startswith("```{include} ../../benchmarks")
+    assert mine.read_text() == "# my own notes\n" and not old.exists()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (docs / "results" / "x.md").unlink()
+    (docs / "results" / "x.md").symlink_to(elsewhere / "target.md")
+    with pytest.raises(RuntimeError, match="is a link"):
+        runpy.run_path(str(docs / "conf.py"))
+    assert not (elsewhere / "target.md").exists()
