@@ -87,6 +87,27 @@ def test_auto_without_a_gpu_weighs_the_cpu_engine_against_mjx_on_jax_cpu(monkeyp
     assert auto.choose("auto", False, probe("cartpole", 4096)).backend == "mjx"
 
 
+def test_an_endless_stream_counts_start_up_against_its_first_minute(monkeypatch):
+    monkeypatch.delenv("SIMLOADER_WARP_ON_CPU", raising=False)
+    import torch
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is here")
+    pytest.importorskip("mujoco.mjx")
+    monkeypatch.setattr(auto.threads, "available_cpus", lambda: 2)
+    # the cart-pole's step as timed on a quiet 2-core machine (timed live, a busy machine
+    # would move the crossing)
+    monkeypatch.setattr(auto, "cpu_step_seconds", lambda model: 1.6e-6)
+    # 64 cart-poles: MJX on JAX's CPU estimated a few % faster in the steady state, which
+    # would not repay its compilation (8-9 s on the 2-core machine) within a minute
+    monkeypatch.setattr(auto, "FIRST_MINUTE_S", 1e12)  # forever
+    forever = auto.choose("auto", False, probe("cartpole", 64))
+    assert forever.backend == "mjx", forever.reason  # the rule before: start-up never counted
+    monkeypatch.setattr(auto, "FIRST_MINUTE_S", 60.0)
+    minute = auto.choose("auto", False, probe("cartpole", 64))
+    assert minute.backend == "cpu", minute.reason
+    assert "over an endless stream's first 60 s with a first run's start-up" in minute.reason
+
+
 def everything_runs(monkeypatch):
     """`auto` as on a GPU machine with both GPU engines (the rule alone is tested: no engine
     is built here)."""
