@@ -164,6 +164,19 @@ def test_a_reserved_task_name_is_refused_before_anything_is_written(tmp_path):
     assert not path.exists()
 
 
+def test_task_names_with_slashes_are_one_folder_each_never_one_inside_another(tmp_path):
+    # "params/x" once made tasks/params/x, inside task "params"'s store: refused half-made
+    # in one order, a store inside a store in the other
+    for names in (("params/x", "params"), ("params", "params/x"), ("camera/a/b", "camera")):
+        path = tmp_path / f"mix{len(os.listdir(tmp_path))}.zarr"
+        mixture = simloader.Mixture({names[0]: tiny(), names[1]: tiny(seed=4)})
+        simloader.write(mixture, path, batches=4, progress=False)
+        assert sorted(os.listdir(path / "tasks")) == sorted(
+            n.replace("/", "%2F") for n in names + ("zarr.json",))
+        read = simloader.StoredDataset(path)
+        assert len(read) == 8 and {int(read[i]["task"]) for i in range(8)} <= {0, 1}
+
+
 # --------------------------------------------------------------------------- rough edges
 
 def test_a_hard_linked_lock_is_refused_and_the_file_it_shares_kept(tmp_path):
@@ -220,6 +233,49 @@ def test_a_path_near_the_systems_limit_is_written_whole(tmp_path, monkeypatch):
     monkeypatch.chdir(deep)  # only relative paths work past PATH_MAX
     path = simloader.write(tiny(), "s" * 100, batches=2, progress=False)
     assert len(simloader.StoredDataset(path)) == 4
+
+
+def test_a_replace_that_stops_part_way_says_so_and_a_second_replace_finishes_it(
+        tmp_path, monkeypatch):
+    """A replace that cannot empty one of the store's folders (read-only, seen as a non-root
+    user) stops part-way: it says so (not "nothing was changed"), readers and resuming
+    writers are told, and replace=True again finishes it."""
+    from simloader.store.folder import StoreFolder
+    from simloader.store.writer import StoreMismatch
+    path = str(tmp_path / "s.zarr")
+    simloader.write(tiny(), path, batches=1, progress=False)
+    remove_tree = StoreFolder.remove_tree
+
+    def refused(self, name):
+        if name == "state":
+            raise PermissionError(13, "Permission denied", self.where(name))
+        return remove_tree(self, name)
+
+    monkeypatch.setattr(StoreFolder, "remove_tree", refused)
+    with pytest.raises(OSError, match=r"the replace stopped part-way, so the store there is no "
+                                      r"longer readable: write with replace=True again") as e:
+        simloader.write(tiny(seed=9), path, batches=2, progress=False, replace=True)
+    assert "nothing was changed" not in str(e.value)
+    monkeypatch.setattr(StoreFolder, "remove_tree", remove_tree)
+    with pytest.raises(DamagedStore, match=r"a replace=True of the store .* stopped part-way"):
+        simloader.StoredDataset(path)
+    with pytest.raises(StoreMismatch, match=r"stopped part-way .* write with replace=True"):
+        simloader.write(tiny(), path, batches=1, progress=False)
+    simloader.write(tiny(seed=9), path, batches=2, progress=False, replace=True)
+    again = simloader.StoredDataset(path)
+    fresh = next(iter(tiny(seed=9)))
+    assert len(again) == 4 and torch.equal(again[0]["state"], fresh["state"][0])
+
+
+def test_a_write_that_fails_before_any_store_says_none_was_written(tmp_path):
+    open(tmp_path / "file", "w").close()
+    os.symlink(tmp_path / "nowhere", tmp_path / "dangling")
+    for parent in ("file", "dangling"):
+        with pytest.raises(OSError, match=r"no store was written there") as e:
+            simloader.write(tiny(), str(tmp_path / parent / "x.zarr"), batches=1,
+                            progress=False)
+        assert "stays readable" not in str(e.value)
+    assert sorted(os.listdir(tmp_path)) == ["dangling", "file"]
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")

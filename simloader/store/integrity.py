@@ -17,7 +17,7 @@ from typing import Any, Optional
 import numpy as np
 
 from simloader.store.folder import StoreFolder
-from simloader.store.ownership import LEFTOVER, own_names
+from simloader.store.ownership import LEFTOVER, REPLACING, own_names, replacing
 from simloader.store.zarr_format import (ATTRIBUTE, CHECKSUM, FORMAT, WRITTEN, DamagedStore,
                                          batch_key, crc_of, recorded)
 from simloader.store.shards import ArrayLayout
@@ -126,6 +126,8 @@ def root_info(folder: StoreFolder) -> dict:
         raise ValueError(f"path: {root!r} is not a simloader store (no zarr.json with a "
                          f"{ATTRIBUTE!r} attribute)")
     info = meta["attributes"][ATTRIBUTE]
+    if isinstance(info, dict) and info.get(REPLACING):
+        raise DamagedStore(replacing(root))
     version = info.get("format") if isinstance(info, dict) else info
     if version != FORMAT:
         raise ValueError(f"path: store format {version!r}, this simloader reads format "

@@ -28,7 +28,7 @@ from simloader.store.provenance import (StoreMismatch, differences, fingerprint,
 from simloader.store.frames import item_index, key_kinds, transition_indices
 from simloader.batch import flat, nested
 from simloader.store.reader import OPENERS, StoredDataset
-from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, store_path
+from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, store_part
 
 KIND = "mixture"
 TASKS = "tasks"  # the group of the members' stores
@@ -130,7 +130,7 @@ def write_mixture(mixture: Any, path: str, *, batches: int, num_workers: int, pr
 
 def task_name(name: str) -> str:
     """Task `name`'s store, relative to the mixture store's root."""
-    return f"{TASKS}/{store_path(name)}"
+    return f"{TASKS}/{store_part(name)}"
 
 
 def _check_names(mixture: Any) -> None:
@@ -138,7 +138,7 @@ def _check_names(mixture: Any) -> None:
     be the group's own metadata, or a killed writer's leftover, is refused before anything
     is written."""
     for name in mixture.names:
-        folder = store_path(name)
+        folder = store_part(name)
         if folder == "zarr.json" or ownership.LEFTOVER.search(folder):
             raise ValueError(f"datasets: the task name {name!r} is reserved in a mixture's "
                              f"store (tasks/{folder} is the group's own file); rename the "
@@ -184,7 +184,7 @@ def _members(mixture: Any, folder: StoreFolder, recorded: Any) -> dict[str, dict
 
 
 def member_refusal(path: str, name: str, what: str, found: Any, recorded: Any) -> str:
-    return (f"the mixture store at {path!r}: its task {name!r} ({TASKS}/{store_path(name)}) "
+    return (f"the mixture store at {path!r}: its task {name!r} ({TASKS}/{store_part(name)}) "
             f"has {what} {found!r}, but the mixture recorded {recorded!r}: it is not the "
             f"store the mixture wrote (copied or replaced from another dataset?). Put the "
             f"task's own store back, or write the mixture again to a new path")

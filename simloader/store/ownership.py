@@ -36,7 +36,8 @@ from typing import Optional
 from simloader.atomic import PARTIAL
 from simloader.store.folder import StoreFolder
 from simloader.store.lock import FILE as LOCK
-from simloader.store.zarr_format import ATTRIBUTE, CHECKSUM, DamagedStore
+from simloader.store.provenance import new_identity
+from simloader.store.zarr_format import ATTRIBUTE, CHECKSUM, FORMAT, DamagedStore
 
 ROOT = "zarr.json"
 _CREATION = frozenset({LOCK, "provenance"})  # what a creation makes before its root
@@ -265,25 +266,55 @@ def own_entries(folder: StoreFolder) -> list[tuple[str, str]]:
             if name != LOCK and (name == ROOT or LEFTOVER.search(name) or name in own)]
 
 
+# the root attribute's key that marks a replace under way (see `clear`)
+REPLACING = "replacing"
+
+
 def clear(folder: StoreFolder) -> None:
     """`replace=True`: removes the store's own entries (never following a link; the lock,
-    which the caller holds, and entries the store did not make stay). The root goes first:
-    a store half removed is not a store, and readers opened before say it was replaced."""
-    for name, kind in sorted(own_entries(folder), key=lambda e: e[0] != ROOT):
+    which the caller holds, and entries the store did not make stay).
+
+    The root is first rewritten (atomically) as a mark of a replace under way, with an
+    identity of its own: readers opened before say the store was replaced, a new reader and
+    a resuming write are told that a replace stopped part-way, and a replace that fails
+    midway (a folder it may not empty, a full disk) leaves a store `replace=True` recognizes
+    and finishes. The mark goes last."""
+    folder.write_json(ROOT, {"zarr_format": 3, "node_type": "group", "attributes": {
+        ATTRIBUTE: {"format": FORMAT, REPLACING: True, "id": new_identity()}}}, durable=True)
+    for name, kind in own_entries(folder):
+        if name == ROOT:
+            continue
         if kind == "folder":
             folder.remove_tree(name)
         else:
             folder.unlink(name)
+    folder.unlink(ROOT)
     folder.sync([""])
 
 
-def os_error_message(number: Optional[int]) -> str:
-    """What a failed write (of error number `number`) left, said truly: a folder that cannot
-    be written holds what it held; a full disk or another failure leaves the committed
-    slots."""
-    if number in (errno.EROFS, errno.EACCES, errno.EPERM):
+def replacing(path: str) -> str:
+    """What a store whose replace stopped part-way is told, for readers and writers."""
+    return (f"path: a replace=True of the store at {path!r} stopped part-way (some of its "
+            f"arrays are removed): write with replace=True again to finish it, or remove the "
+            f"folder")
+
+
+def os_error_message(number: Optional[int], stage: str = "writing") -> str:
+    """What a failed write (of error number `number`) left, said truly, by `stage`: "opening"
+    (before the store's root was written or a replace began: nothing of a store was
+    changed), "replacing" (`clear` under way, or done and no new root written yet), else
+    "writing" (the committed slots stay)."""
+    if number in (errno.EROFS, errno.EACCES, errno.EPERM) and stage == "opening":
         return "simloader cannot write there; nothing was changed by this write"
+    if stage == "replacing":
+        return ("the replace stopped part-way, so the store there is no longer readable: "
+                "write with replace=True again to finish it")
     if number == errno.ENAMETOOLONG:
         return "a name is longer than the file system allows; nothing was written under it"
+    if stage == "opening":
+        return "no store was written there"
+    if number in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return ("simloader cannot write there; the store stays readable with the batches "
+                "completed so far")
     return ("the store stays readable with the batches completed so far, and calling write "
             "again resumes after them")

@@ -42,6 +42,8 @@ def _open_for_writing(folder: StoreFolder, dataset: Any, batches: int, ranks: in
         if not isinstance(stored, dict) or stored.get("format") != FORMAT:
             raise StoreMismatch(f"{path!r} is not a simloader store of format {FORMAT} "
                                 f"(its root has no {ATTRIBUTE!r} attribute of that format)")
+        if stored.get(ownership.REPLACING):
+            raise StoreMismatch(ownership.replacing(path))
         missing = [k for k in ("fingerprint", "versions", "batches", "describe")
                    if k not in stored]
         if missing:
@@ -240,6 +242,7 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
     workers = max(1, num_workers)
     folder: Optional[StoreFolder] = None
     held: Optional[lock.WriterLock] = None
+    stage = "opening"  # what a failure leaves: `ownership.os_error_message`
     try:
         if rank[0] == 0:
             try:
@@ -255,9 +258,11 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
                 if found.links:
                     ownership.refuse_links(folder, found.links)
                 if replace:
+                    stage = "replacing"
                     ownership.clear(folder)
                 info = _open_for_writing(folder, dataset, batches, rank[1], workers,
                                          create=True, identity=identity)
+                stage = "writing"
                 _restore_metadata(folder, dataset.config.nbatch)
                 integrity.remove_partial(folder, found)  # no writer runs now
             except Exception as e:
@@ -268,6 +273,7 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
             folder = StoreFolder(path)
             lock.check_joined(folder, job, rank[0])
             info = _open_for_writing(folder, dataset, batches, rank[1], workers, create=False)
+            stage = "writing"
         batches = info["batches"]
         total = slots_of(rank[0], rank[1], batches)
         mine = [i * rank[1] + rank[0] for i in range(total)]
@@ -293,7 +299,7 @@ def write_zarr(dataset: Any, path: str, *, batches: int, num_workers: int, progr
     except OSError as e:
         number, reason, filename = _os_error(e)
         raise OSError(number, f"write: {reason} while writing the store at {path!r}; "
-                              f"{ownership.os_error_message(number)}", filename) from e
+                              f"{ownership.os_error_message(number, stage)}", filename) from e
     finally:
         if held is not None:
             held.release()

@@ -169,6 +169,12 @@ def batch_key(path: str, meta: Mapping[str, Any]) -> str:
     return key if isinstance(key, str) else "/".join(unquote(p) for p in path.split("/"))
 
 
+def store_part(name: str) -> str:
+    """The folder name of `name` as one part, whatever it holds ("/" included): a mixture's
+    task name, so that no task's store lies inside another's."""
+    return _encode_part(name, name)
+
+
 def _encode_part(part: str, key: str) -> str:
     if not part:
         raise ValueError(f"batch key {key!r}: an empty name cannot be stored")
