@@ -184,7 +184,8 @@ class SimDataset(torch.utils.data.IterableDataset):
         """Where the model came from, which columns of state, control and sensors mean what (by
         object name), the recorded keys with the named parts `Batch.view` finds in them, what
         simulates, and the known faults of that simulator the model meets
-        (`simloader.known_faults`; each also warned once at construction, `KnownFaultWarning`)."""
+        (`simloader.known_faults`; each also warned once at construction, `KnownFaultWarning`);
+        once batches were delivered in this process, where their time went (`time_spent`)."""
         c = self.config
         text = (layout.describe(c.model, c.control_spec, self.source)
                 + f"\nrecorded keys (nbatch, nframes={c.nframes}, ...), every "
@@ -204,7 +205,20 @@ class SimDataset(torch.utils.data.IterableDataset):
             else ""
         return text + (f"\nsimulated by: backend={c.backend!r} ({c.options.simulated_by()}; "
                        f"chosen: {c.backend_reason}{where}{exact})") + "".join(
-            "\n" + line for line in known_faults.described(c.pool, c.backend))
+            "\n" + line for line in known_faults.described(c.pool, c.backend)) + \
+            self.time_spent()
+
+    def time_spent(self) -> str:
+        """A line saying where this process's iterators spent their time (`stats`: DataLoader
+        workers count their own); "" before a first batch."""
+        s = self.stats
+        if not s["batches"]:
+            return ""
+        seconds = [f"{s['simulate_s']:.2f} s simulating ({s['steps_per_s'] / 1e6:.3g}M "
+                   f"steps/s)"] + [f"{s[k]:.2f} s {k.removesuffix('_s').replace('_', ' ')}"
+                                   for k in ("compile_s", "trace_s") if s.get(k)]
+        return (f"\nso far in this process: {s['batches']} batches, {s['steps']:,} steps, "
+                f"{s['diverged']} diverged trajectories; {', '.join(seconds)}")
 
     def __len__(self) -> int:
         if self.config.num_batches is None:

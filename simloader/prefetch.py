@@ -103,7 +103,12 @@ class Prefetcher:
             yield item
 
     def close(self) -> None:
-        """Stops the producer after its current item and waits for it."""
+        """Stops the producer after its current item and waits for it. Once closed, a second
+        close returns at once without touching any module: the generator that owns this
+        prefetcher may be finalized after interpreter teardown emptied them (`_stop_all`
+        closed it before)."""
+        if self._produce is None:
+            return
         self._stop.set()
         if threading.current_thread() is self._thread:
             # the consumer's generator was dropped and finalized by a garbage collection that

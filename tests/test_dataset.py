@@ -308,3 +308,14 @@ def test_a_prefetcher_closed_from_its_own_producer_thread_stops_without_error():
     assert closed.wait(5) and got == [0]  # closed while making item 1: the stream ends
     prefetcher.close()
     assert not prefetcher._thread.is_alive()
+
+
+def test_describe_says_where_the_time_went_once_batches_were_delivered():
+    ds = simloader.SimDataset("cartpole", backend="cpu", nbatch=8, nstep=10, num_batches=3,
+                              control=simloader.controls.Uniform())
+    assert "so far" not in ds.describe()
+    for _ in ds:
+        pass
+    last = ds.describe().splitlines()[-1]
+    assert last.startswith("so far in this process: 3 batches, 240 steps, 0 diverged "
+                           "trajectories; ") and " s simulating (" in last, last
