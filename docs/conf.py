@@ -20,13 +20,16 @@ version = release
 extensions = [
     "myst_parser",
     "sphinx.ext.autodoc",
+    "sphinx.ext.autosummary",  # one page per public object (api.md's tables)
     "sphinx.ext.napoleon",
     "sphinx.ext.viewcode",  # "[source]" links to highlighted source pages, built offline
     "sphinx_copybutton",
 ]
-source_suffix = {".md": "markdown"}
+source_suffix = {".md": "markdown", ".rst": "restructuredtext"}  # .rst: autosummary's pages
 root_doc = "index"
-exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "_templates"]
+templates_path = ["_templates"]
+autosummary_generate = True  # into docs/generated/, at every build (git-ignored)
 
 
 def _results_pages() -> None:
