@@ -100,12 +100,32 @@ def test_an_endless_stream_counts_start_up_against_its_first_minute(monkeypatch)
     # 64 cart-poles: MJX on JAX's CPU estimated a few % faster in the steady state, which
     # would not repay its compilation (8-9 s on the 2-core machine) within a minute
     monkeypatch.setattr(auto, "FIRST_MINUTE_S", 1e12)  # forever
+    monkeypatch.setattr(auto, "NEAR_TIE", 1.0)  # no ties
     forever = auto.choose("auto", False, probe("cartpole", 64))
     assert forever.backend == "mjx", forever.reason  # the rule before: start-up never counted
     monkeypatch.setattr(auto, "FIRST_MINUTE_S", 60.0)
     minute = auto.choose("auto", False, probe("cartpole", 64))
+    assert minute.backend == "cpu", minute.reason  # a minute alone decides it
+    monkeypatch.setattr(auto, "NEAR_TIE", 0.9)
+    minute = auto.choose("auto", False, probe("cartpole", 64))
     assert minute.backend == "cpu", minute.reason
     assert "over an endless stream's first 60 s with a first run's start-up" in minute.reason
+    # 256 cart-poles: MJX ahead by more than the rule's error (measured 1.5x): compiled
+    assert auto.choose("auto", False, probe("cartpole", 256)).backend == "mjx"
+
+
+def test_a_near_tie_goes_to_the_engine_that_starts_first(monkeypatch):
+    everything_runs(monkeypatch)
+    monkeypatch.setattr(auto.threads, "available_cpus", lambda: 16)
+    monkeypatch.setattr(auto, "cpu_step_seconds", lambda model: 3.0e-6)  # H200's cart-pole
+    rates = {}
+    for name in ("cpu", "mjx", "warp"):
+        engine = type(backends.engine(name))
+        monkeypatch.setattr(engine, "estimate", lambda self, job, n=name: rates[n])
+    rates.update(cpu=1.0e6, mjx=1.05e6, warp=0.5e6)  # MJX 5% ahead after its start-up
+    assert auto.choose("auto", False, probe("cartpole", 512)).backend == "cpu"
+    rates.update(mjx=1.3e6)  # clearly ahead
+    assert auto.choose("auto", False, probe("cartpole", 512)).backend == "mjx"
 
 
 def everything_runs(monkeypatch):
