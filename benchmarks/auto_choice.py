@@ -64,11 +64,6 @@ def measure(model, record, nbatch, nstep, engine, args) -> tuple[float, float]:
     return statistics.median(rates), startup
 
 
-def first_minute(rate: float, startup: float) -> float:
-    """Steps delivered in an endless stream's first minute, start-up included."""
-    return rate * max(0.0, auto.FIRST_MINUTE_S - startup)
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -108,7 +103,7 @@ def main() -> None:
             print(f"{name} nbatch={nbatch} {engine}: {measured.get(engine, 0) / 1e6:.3f}M "
                   f"steps/s, start-up {startup.get(engine, 0):.1f} s "
                   f"({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
-        minute = {e: first_minute(measured[e], startup[e]) for e in measured}
+        minute = {e: auto.first_minute_steps(measured[e], startup[e]) for e in measured}
         fastest = max(measured, key=measured.get)
         best = max(minute, key=minute.get)
         job = Job(step_s=step_s, nbatch=nbatch, contacts=contacts, cores=cores, policy=False,

@@ -11,7 +11,6 @@ do not import torch and MuJoCo before they are needed.
 
 from __future__ import annotations
 
-import importlib as _importlib
 import importlib.util
 from typing import TYPE_CHECKING
 
@@ -48,10 +47,10 @@ def __getattr__(name: str) -> object:
     if where is None:
         # a submodule (`simloader.store.formats`, `simloader.backends`): as reachable as when
         # this package imported everything up front
-        if not name.startswith("_") and _importlib.util.find_spec(f"simloader.{name}"):
-            return _importlib.import_module(f"simloader.{name}")
+        if not name.startswith("_") and importlib.util.find_spec(f"simloader.{name}"):
+            return importlib.import_module(f"simloader.{name}")
         raise AttributeError(f"module 'simloader' has no attribute {name!r}")
-    module = _importlib.import_module(where)
+    module = importlib.import_module(where)
     value = module if where == f"simloader.{name}" else getattr(module, name)
     globals()[name] = value  # later lookups skip this function
     return value

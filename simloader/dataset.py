@@ -214,9 +214,11 @@ class SimDataset(torch.utils.data.IterableDataset):
         s = self.stats
         if not s["batches"]:
             return ""
+        # and the engine's own seconds (MJX: compile_s, trace_s), by their names
         seconds = [f"{s['simulate_s']:.2f} s simulating ({s['steps_per_s'] / 1e6:.3g}M "
-                   f"steps/s)"] + [f"{s[k]:.2f} s {k.removesuffix('_s').replace('_', ' ')}"
-                                   for k in ("compile_s", "trace_s") if s.get(k)]
+                   f"steps/s)"] + [f"{v:.2f} s {k.removesuffix('_s').replace('_', ' ')}"
+                                   for k, v in self._stats.own.items()
+                                   if k.endswith("_s") and v]
         return (f"\nso far in this process: {s['batches']} batches, {s['steps']:,} steps, "
                 f"{s['diverged']} diverged trajectories; {', '.join(seconds)}")
 

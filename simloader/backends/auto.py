@@ -51,6 +51,12 @@ FIRST_MINUTE_S = 60.0
 NEAR_TIE = 0.9
 
 
+def first_minute_steps(rate: float, startup_s: float) -> float:
+    """The steps an engine of steady `rate` steps/s delivers in an endless stream's first
+    minute (`FIRST_MINUTE_S`) when it takes `startup_s` seconds to start."""
+    return rate * max(0.0, FIRST_MINUTE_S - startup_s)
+
+
 @dataclasses.dataclass(frozen=True)
 class Choice:
     """The engine a dataset runs, and why (`describe()` says it)."""
@@ -164,7 +170,7 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
         # an endless stream: the steps of its first minute, start-up included. Counting
         # start-up against forever sent 64 x 100 cart-poles to a 9 s MJX compilation on a
         # 2-core machine for a 2% faster steady state (benchmarks/results/auto_choice-*)
-        rates = {name: rate * max(0.0, FIRST_MINUTE_S - startup[name]) / FIRST_MINUTE_S
+        rates = {name: first_minute_steps(rate, startup[name]) / FIRST_MINUTE_S
                  for name, rate in rates.items()}
     if not rates:
         raise ValueError(f"backend: no engine that runs here can simulate this dataset "
