@@ -52,7 +52,9 @@ def measure(model, record, nbatch, nstep, engine, args) -> tuple[float, float]:
     """(steps/s, start-up seconds) of `engine` through simloader: the median of `--repeats`
     timed passes, and construction to the first batch in hand (a cold MJX compilation)."""
     w = bench.Workload("m", nbatch, nstep)
-    options = {"compilation_cache": tempfile.mkdtemp()} if engine == "mjx" else {}
+    # one empty cache for the run (JAX takes the first directory it is given): every row
+    # compiles a program of its own, so each MJX start-up is a first run's
+    options = {"compilation_cache": args.cache} if engine == "mjx" else {}
     start = time.perf_counter()
     sim = bench.SimloaderMeasure(model, w, engine, seed=0, record=record, **options)
     startup = time.perf_counter() - start
@@ -77,6 +79,13 @@ def main() -> None:
                    help="default: every engine that runs here (MJX on the CPU included)")
     common.add_output_options(p)
     args = p.parse_args()
+    # JAX's compilation cache for the run's MJX rows, empty at the start, removed at the end
+    with tempfile.TemporaryDirectory(prefix="auto-choice-jax-") as args.cache:
+        compare(args)
+
+
+def compare(args: argparse.Namespace) -> None:
+    """Every row: auto's choice, each engine measured, the tables and the plot."""
     can = auto.candidates()
     engines = args.engines or ["cpu", "warp", "mjx"]
     engines = [e for e in engines if not can.get(e) or (e == "mjx" and "JAX has no GPU"
