@@ -139,6 +139,8 @@ def stream_dataset(args: argparse.Namespace) -> simloader.SimDataset:
                                     randomize=randomize or None,
                                     initial_state=simloader.initial.Perturbed(),
                                     terminate=getattr(args, "terminate", None) or None,
+                                    record_kinematics=getattr(args, "record_kinematics",
+                                                              "before_step"),
                                     num_batches=args.batches, seed=args.seed,
                                     # all cores: nothing here trains alongside the simulation
                                     nthread=threads.available_cpus(), **record)
@@ -438,6 +440,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
     wr.add_argument("--seed", type=int, default=0)
     wr.add_argument("--record", default="",
                     help="names to record, comma-separated (default: state,sensordata)")
+    wr.add_argument("--record-kinematics", choices=("before_step", "frame"),
+                    default="before_step",
+                    help="what derived fields (xpos, sensordata, ...) describe: the state "
+                         "before the step, as mj_step leaves them, or the frame itself, as "
+                         "mj_forward computes them (a forward pass per frame)")
     wr.add_argument("--control", type=spec_option(cli_specs.parse_control, "--control"),
                     default=None, metavar="SPEC",
                     help="the control generator of simloader.controls, by name with keyword "

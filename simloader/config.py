@@ -36,6 +36,11 @@ class Settings:
       initial: how each batch's initial states are made.
       observations: what each batch records (`record=`), in the order given.
       record_every: frames are recorded after every `record_every`-th step.
+      record_kinematics: "before_step" (the derived fields as `mj_step` leaves them) or
+        "frame" (as `mj_forward` computes them at the frame's own state).
+      frame_stage: with "frame", the forward stage (`mjtStage`) an engine computes at every
+        recorded frame so that its records describe the frame (`records.frame_stage`); None:
+        none (the default, or records that derive nothing).
       continue_episodes: batches continue the previous batch's trajectories.
       num_batches: batches per rank in total, or None for endless.
       seed: root of all randomness.
@@ -78,6 +83,8 @@ class Settings:
     policy_noise: Optional[controls.ControlPlan] = None
     deterministic: bool = False
     terminate: Optional[terminate_rules.Episodes] = None
+    record_kinematics: str = "before_step"
+    frame_stage: Optional[int] = None
 
     @property
     def pool(self) -> tuple[mujoco.MjModel, ...]:
@@ -248,16 +255,23 @@ def _torch_dtype(dtype: Any) -> Optional[torch.dtype]:
     return out  # the GPU engines say what float64 means for them (their check_options)
 
 
-def _record(model: mujoco.MjModel, record: Any, record_every: Any,
-            nstep: int) -> tuple[tuple[observe.Observation, ...], int]:
-    """The observations `record` names and the validated `record_every`."""
+def _record(model: mujoco.MjModel, record: Any, record_every: Any, nstep: int,
+            kinematics: Any) -> tuple[tuple[observe.Observation, ...], int, Optional[int]]:
+    """The observations `record` names, the validated `record_every`, and the forward stage
+    `record_kinematics` asks at every frame (None: none)."""
     observations = observe.parse(model, record)
     record_every = _int("record_every", record_every, 1)
     if nstep % record_every:
         raise ValueError(f"record_every: nstep={nstep} must be a multiple of record_every, got "
                          f"record_every={record_every} (frame j holds the values after step "
                          f"(j + 1) * record_every)")
-    return observations, record_every
+    if not isinstance(kinematics, str) or kinematics not in observe.KINEMATICS:
+        raise ValueError(f"record_kinematics: expected one of {observe.KINEMATICS} (the "
+                         f"derived fields of the state before the step, as mj_step leaves "
+                         f"them, or those of the frame itself, as mj_forward computes them), "
+                         f"got {kinematics!r}")
+    stage = observe.frame_stage(model, observations) if kinematics == "frame" else None
+    return observations, record_every, stage
 
 
 def _policy(policy: Any, noise: Any, control: Any, model: mujoco.MjModel, control_spec: int,
@@ -343,7 +357,8 @@ def validate(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec:
              initial_state: Any, randomize: Any, continue_episodes: Any, num_batches: Any,
              seed: Any, device: Any, dtype: Any, nthread: Any, prefetch: Any, record: Any,
              record_every: Any, policy: Any = None, policy_noise: Any = None,
-             deterministic: Any = False, sim_device: Any = None, terminate: Any = None
+             deterministic: Any = False, sim_device: Any = None, terminate: Any = None,
+             record_kinematics: Any = "before_step"
              ) -> tuple[Settings, Optional[tuple[Settings, ...]]]:
     """Validates `SimDataset`'s arguments (see its docstring), engine-free and in one pass,
     into `Settings`; with `sim_device`, also one `Settings` per simulation device (each its
@@ -354,7 +369,7 @@ def validate(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec:
                      num_batches=num_batches, seed=seed, dtype=dtype, nthread=nthread,
                      prefetch=prefetch, record=record, record_every=record_every,
                      policy=policy, policy_noise=policy_noise, deterministic=deterministic,
-                     terminate=terminate)
+                     terminate=terminate, record_kinematics=record_kinematics)
     whole = _settings(model, nbatch=nbatch, control=control, initial_state=initial_state,
                       randomize=randomize, device=_torch_device(device), **arguments)
     target, simulated_on = sim_devices(sim_device, whole.device)
@@ -380,7 +395,7 @@ def _settings(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec
               initial_state: Any, randomize: Any, continue_episodes: Any, num_batches: Any,
               seed: Any, device: Optional[torch.device], dtype: Any, nthread: Any,
               prefetch: Any, record: Any, record_every: Any, policy: Any, policy_noise: Any,
-              deterministic: Any, terminate: Any) -> Settings:
+              deterministic: Any, terminate: Any, record_kinematics: Any) -> Settings:
     """The arguments of one batch (or one simulation device's part of it), validated."""
     nbatch = _int("nbatch", nbatch, 1)
     nstep = _int("nstep", nstep, 1)
@@ -410,7 +425,8 @@ def _settings(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec
         base = models_[0]
     elif variants is not None:
         base = variants[0]
-    observations, record_every = _record(base, record, record_every, nstep)
+    observations, record_every, stage = _record(base, record, record_every, nstep,
+                                                record_kinematics)
     deterministic = _deterministic(deterministic)
     plan = controls.ControlPlan(base, control_spec, control, nbatch, nstep, models_)
     init = initial.InitialPlan(base, initial_state, nbatch, models_)
@@ -424,4 +440,5 @@ def _settings(model: Any, *, nbatch: Any, nstep: Any, control: Any, control_spec
         num_batches=num_batches, seed=seed, device=device,
         dtype=_torch_dtype(dtype), nthread=nthread, prefetch=prefetch,
         torch_threads=torch.get_num_threads(), policy=policy, policy_noise=noise,
-        deterministic=deterministic, terminate=terminate_rules.parse(base, terminate))
+        deterministic=deterministic, terminate=terminate_rules.parse(base, terminate),
+        record_kinematics=record_kinematics, frame_stage=stage)

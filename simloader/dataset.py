@@ -80,6 +80,14 @@ class SimDataset(torch.utils.data.IterableDataset):
       record_every: record after every k-th step: frame j holds the values after step
         (j + 1) * k; `nstep` must be a multiple of k. `control` still holds every step's row.
         A `simloader.Camera` in `record` renders images ("camera/NAME/rgb", ...).
+      record_kinematics: what the derived fields of a frame ("xpos", "sensordata",
+        "site_xpos", "actuator_force", ...) describe. "before_step" (default): as `mj_step`
+        leaves them, the state the step started from (the state and images describe the
+        frame itself). "frame": what `mj_forward` computes at the frame's own state (its
+        inputs and warmstart as the step left them), by a forward pass after the step: the
+        position and velocity stages, or all of mj_forward when a record needs the
+        acceleration stage (`simloader.records.ACC_FIELDS`, acceleration sensors). The
+        physics is the same either way. A policy then sees the frame's values too.
       policy: closed loop (instead of `control`): a callable, typically a `torch.nn.Module`
         on the dataset's device, called once per step, before the step, under
         `torch.no_grad()`, with a dict of the current observations (tensors `nbatch x ...`,
@@ -139,7 +147,8 @@ class SimDataset(torch.utils.data.IterableDataset):
                  record: Sequence[str] = observe.DEFAULT, record_every: int = 1,
                  policy: Any = None, policy_noise: Any = None,
                  deterministic: Optional[bool] = None, sim_device: Any = None,
-                 terminate: Any = None, **backend_options: Any):
+                 terminate: Any = None, record_kinematics: str = "before_step",
+                 **backend_options: Any):
         super().__init__()
         # what it was made with, for `reseeded`
         self._arguments = {**{k: v for k, v in locals().items()
@@ -152,7 +161,8 @@ class SimDataset(torch.utils.data.IterableDataset):
             continue_episodes=continue_episodes, num_batches=num_batches, seed=seed,
             device=device, dtype=dtype, nthread=nthread, prefetch=prefetch, record=record,
             record_every=record_every, policy=policy, policy_noise=policy_noise,
-            deterministic=deterministic, sim_device=sim_device, terminate=terminate)
+            deterministic=deterministic, sim_device=sim_device, terminate=terminate,
+            record_kinematics=record_kinematics)
         self.engine: binding.BoundEngine = binding.bind(backend, backend_options, settings,
                                                         parts)
         self.config: SimConfig = self.engine.config

@@ -96,6 +96,9 @@ def fingerprint(config: SimConfig) -> dict[str, Any]:
             "time_limit": config.terminate.time_limit,
             "check": _describe(config.terminate.check)}}),
         "backend_options": {k: _describe(v) for k, v in sorted(_options(config.options).items())},
+        # absent by default, so that the fingerprints of streams saved before it stay
+        **({} if getattr(config, "record_kinematics", "before_step") == "before_step" else
+           {"record_kinematics": config.record_kinematics}),
     }
 
 

@@ -376,6 +376,8 @@ def _pad_plan(names: tuple[str, ...], datasets: tuple[SimDataset, ...]
             refuse("nstep", name, c0.nstep, c.nstep)
         if c.record_every != c0.record_every:
             refuse("record_every", name, c0.record_every, c.record_every)
+        if c.record_kinematics != c0.record_kinematics:
+            refuse("record_kinematics", name, c0.record_kinematics, c.record_kinematics)
         device = _member_device(ds)
         if device is not None and device0 is not None and device != device0:
             refuse("device", name, device0, device)

@@ -55,6 +55,22 @@ _LAZY = {
 }
 F64 = np.dtype(np.float64)
 
+# `record_kinematics=`: "before_step" (default): the derived fields as `mj_step` leaves them,
+# those of the state before the step; "frame": what `mj_forward` computes at the frame's own
+# state (its inputs and warmstart as the step left them)
+KINEMATICS = ("before_step", "frame")
+# the MjData fields computed in the acceleration stage (mj_fwdActuation, mj_fwdAcceleration,
+# mj_fwdConstraint, mj_rnePostConstraint): the frame's value of one of these needs a whole
+# mj_forward; every other derived field needs the position and velocity stages only
+# (tests/test_record_kinematics.py checks every recordable field against mj_forward)
+ACC_FIELDS = frozenset({
+    "actuator_force", "qfrc_actuator", "act_dot", "qfrc_smooth", "qacc_smooth",
+    "qfrc_constraint", "qacc", "efc_force", "efc_state", "efc_b", "cacc", "cfrc_int",
+    "cfrc_ext", "solver", "solver_niter", "solver_nnz", "solver_fwdinv", "qfrc_inverse"})
+# the implicit-damping factor the integrator computes after mj_forward: it belongs to the step
+# that made the frame in either mode (mj_forward does not compute it)
+INTEGRATOR_FIELDS = frozenset({"qH", "qHDiagInv"})
+
 Shape = tuple[int, ...]
 
 
@@ -309,6 +325,28 @@ def camera_images(model: mujoco.MjModel, camera: Camera) -> tuple[CameraImage, .
         key = f"{CAMERA_PREFIX}{name}/{kind}"
         out.append(CameraImage(key, shape, dtype, (), camera, cam, kind))
     return tuple(out)
+
+
+def frame_stage(model: mujoco.MjModel, records: Sequence[Record]) -> Optional[int]:
+    """The forward stage (`mjtStage`) that makes every record of `records` describe the frame's
+    own state (`record_kinematics="frame"`): mjSTAGE_VEL, or mjSTAGE_ACC where a record needs
+    an acceleration-stage value (`ACC_FIELDS`, or a sensor MuJoCo computes there); None when
+    the records are state components and images only, which need no forward at all."""
+    stage = int(mujoco.mjtStage.mjSTAGE_NONE)
+    vel, acc = int(mujoco.mjtStage.mjSTAGE_VEL), int(mujoco.mjtStage.mjSTAGE_ACC)
+    for r in records:
+        for name, _ in r.made_of:
+            if name in layout.STATE_FIELDS or name in INTEGRATOR_FIELDS:
+                continue
+            if name == "sensordata":
+                ids = (range(model.nsensor) if not isinstance(r, Sensor) else
+                       [i for i in range(model.nsensor)
+                        if model.sensor_adr[i] == r.columns[0]])
+                need = max((int(model.sensor_needstage[i]) for i in ids), default=vel)
+                stage = max(stage, vel, min(need, acc))
+            else:
+                stage = max(stage, acc if name in ACC_FIELDS else vel)
+    return None if stage == int(mujoco.mjtStage.mjSTAGE_NONE) else stage
 
 
 def recordable_fields() -> tuple[str, ...]:

@@ -304,6 +304,24 @@ def test_write_asks_for_episodes_with_terminate(capsys, tmp_path):
     assert "--terminate: unknown name 'above'" in err and "below, tilted" in err
 
 
+def test_write_records_the_frames_own_kinematics_when_asked(tmp_path):
+    import mujoco
+    import numpy as np
+    import simloader
+    out = str(tmp_path / "k.zarr")
+    cli.main(["write", "--out", out, "--backend", "cpu", "--nbatch", "2", "--nstep", "5",
+              "--batches", "1", "--record", "state,xpos", "--record-kinematics", "frame",
+              "--quiet"])
+    item = simloader.StoredDataset(out)[1]
+    model = simloader.SimDataset("cartpole", backend="cpu", nbatch=1, nstep=1).model
+    data = mujoco.MjData(model)
+    for t in range(5):
+        mujoco.mj_setState(model, data, item["state"][t].numpy(),
+                           mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        mujoco.mj_forward(model, data)
+        np.testing.assert_array_equal(item["xpos"][t].numpy(), data.xpos)
+
+
 def test_warmup_of_the_cpu_engine_says_there_is_nothing_to_warm(capsys):
     cli.main(["warmup", "--nbatch", "4", "--nstep", "2"])
     out = capsys.readouterr().out

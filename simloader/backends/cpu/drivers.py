@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, Optional
 
+import mujoco
 import numpy as np
 import torch
 from mujoco import batch as mj_batch
@@ -30,6 +31,9 @@ class OpenLoop:
     def __init__(self, config: Any, batch: mj_batch.Batch):
         self.config, self.batch = config, batch
         self.episodes: Optional[Any] = None  # `episodes.Episodes` with terminate=, set by the backend
+        # record_kinematics="frame": the frame's step is `Batch.step` with the forward stages
+        # at the new state, and the frame is read from the sources MuJoCo keeps current
+        self.live = LiveSources(batch, config) if config.frame_stage is not None else None
 
     def prepare(self, seed: np.random.SeedSequence, defaults: np.ndarray, control: np.ndarray,
                 low: np.ndarray, high: np.ndarray) -> Run:
@@ -61,10 +65,12 @@ class OpenLoop:
         With `record_every=k > 1`, each frame is `k - 1` steps recording nothing and one step
         recording into a one-frame buffer, copied into its frame: the state rows (warmstart
         included) carry the trajectory from call to call, so the steps are those of one call.
+        With `record_kinematics="frame"`, the frame's step is `Batch.step` computing the
+        forward stages at the new state (`frame_stage`), read from the live sources.
         """
         c, k, batch = self.config, self.config.record_every, self.batch
         items = tuple(out)
-        if k == 1 and self.episodes is None:
+        if k == 1 and self.episodes is None and self.live is None:
             batch.rollout(c.nstep, control, control_spec=c.control_spec, record=items, out=out)
             return
         if control is not None:
@@ -78,15 +84,22 @@ class OpenLoop:
             if k > 1:
                 batch.rollout(k - 1, None if u is None else u[:, :-1],
                               control_spec=c.control_spec, record=())
-            batch.rollout(1, None if u is None else u[:, -1:],
-                          control_spec=c.control_spec, record=items, out=frame)
+            if self.live is None:
+                batch.rollout(1, None if u is None else u[:, -1:],
+                              control_spec=c.control_spec, record=items, out=frame)
+            else:
+                if u is not None:  # as rollout applies a row: its components into the state
+                    batch.state[:, self.live.control_columns] = u[:, -1]
+                batch.step(stage=c.frame_stage)
+                self.live.record(frame, 0)
             if episodes is not None:
                 episodes.after_frame(reset, frame, j)
             for s, a in out.items():
                 a[:, j] = frame[s][:, 0]
 
     def close(self) -> None:
-        self.batch = None  # it keeps MuJoCo's native batch (and its threads) alive
+        # they keep MuJoCo's native batch (and its threads) alive
+        self.batch = self.live = None
 
 
 class ClosedLoop:
@@ -134,6 +147,8 @@ class ClosedLoop:
         bad = np.zeros(c.nbatch, dtype=bool)
         episodes = self.episodes
         held = np.zeros(0, dtype=np.intp)  # with terminate=: the rows whose frame is fresh
+        stage = (int(mujoco.mjtStage.mjSTAGE_NONE) if c.frame_stage is None
+                 else c.frame_stage)
 
         def step(rows: torch.Tensor, t: int) -> dict[str, torch.Tensor]:
             nonlocal held
@@ -149,7 +164,9 @@ class ClosedLoop:
             if len(held):  # a fresh frame's inputs are mj_resetData's, not the policy's
                 b.state[np.ix_(held, live.control_columns)] = \
                     episodes.reset_to[:, live.control_columns]
-            b.step()
+            # record_kinematics="frame": the stages at the new state, for every step's
+            # observations and frames (mjSTAGE_NONE: none)
+            b.step(stage=stage)
             if rules.frame_due(t, k):
                 frame = rules.frame_index(t, k)
                 live.record(out, frame)

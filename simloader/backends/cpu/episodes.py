@@ -102,8 +102,11 @@ class Episodes:
         fields = {}
         if "qpos" in self.rules.reads:
             fields["qpos"] = batch.state[:, self.qpos_columns]
-        if self.rules.kinematic:  # kinematics of the frame's own state, not the step's start
-            batch.forward(stage=mujoco.mjtStage.mjSTAGE_POS)
+        # kinematics of the frame's own state, not the step's start (with
+        # record_kinematics="frame" the step computed them already)
+        if self.rules.kinematic:
+            if c.frame_stage is None:
+                batch.forward(stage=mujoco.mjtStage.mjSTAGE_POS)
             fields.update(self.kinematics)
         like = np.zeros(c.nbatch, dtype=bool)
         terminated = self.rules.terminated(np, fields, like)

@@ -126,7 +126,7 @@ def functions(P: Any, noise_drivers: tuple) -> tuple[Callable, Callable, Callabl
         d, unstable = P.restart_unstable(m, d)
         if E is not None:  # held at the fresh state, derived fields the step's there
             d = P.hold(d, e["held"], e["at"])
-        obs = mjx_observe.frame(P.observations, P.model_axes, m, d)
+        obs = mjx_observe.frame(P.observations, P.model_axes, m, d, P.frame_stage)
         diverged = loop["diverged"] | unstable | bad
         finite = P.finite(obs)
         if finite is not None:

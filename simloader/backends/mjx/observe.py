@@ -12,8 +12,10 @@ from collections.abc import Callable, Sequence
 from typing import Any, Optional
 
 import jax
+import mujoco
 import numpy as np
 from simloader import records
+from simloader.backends.mjx.runtime import mjx
 
 # kind -> reading(record, m, d) -> record.shape, where MJX's data differ
 READINGS: dict[type, Callable[[records.Record, Any, Any], Any]] = {}
@@ -32,12 +34,28 @@ def value(o: records.Record, m: Any, d: Any) -> Any:
 
 
 def frame(observations: Sequence[records.Record], model_axes: Any, m: Any,
-          d: Any) -> dict[str, Any]:
+          d: Any, stage: Optional[int] = None) -> dict[str, Any]:
     """One frame of every observation, `{key: (nbatch, *shape)}`, from the batched `mjx.Data`
     `d` and its `mjx.Model` `m` (batched along `model_axes`); pure, for the scan body, whose
-    stacked outputs are then `(nframes, nbatch, *shape)`."""
-    return jax.vmap(lambda m, d: {o.key: value(o, m, d) for o in observations
-                                  if not o.rendered}, (model_axes, 0))(m, d)
+    stacked outputs are then `(nframes, nbatch, *shape)`. With `stage` (an `mjtStage`,
+    `record_kinematics="frame"`), read after the forward stages up to it at `d`'s state
+    (`at_stage`); the data the loop carries on stay as the step left them."""
+    def one(m, d):
+        d = at_stage(m, d, stage)
+        return {o.key: value(o, m, d) for o in observations if not o.rendered}
+    return jax.vmap(one, (model_axes, 0))(m, d)
+
+
+def at_stage(m: Any, d: Any, stage: Optional[int]) -> Any:
+    """One trajectory's data with the forward stages up to `stage` computed at its state:
+    `mjx.forward` for mjSTAGE_ACC; for mjSTAGE_VEL the position and velocity stages and their
+    sensors, as mj_step1 computes them; `d` itself for None."""
+    if stage is None:
+        return d
+    if stage >= int(mujoco.mjtStage.mjSTAGE_ACC):
+        return mjx.forward(m, d)
+    d = mjx.sensor_pos(m, mjx.fwd_position(m, d))
+    return mjx.sensor_vel(m, mjx.fwd_velocity(m, d))
 
 
 def field(d: Any, name: str) -> Any:

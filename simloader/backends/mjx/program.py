@@ -83,6 +83,9 @@ class Pieces:
         self.nbatch, self.nstep, self.control_spec = c.nbatch, c.nstep, c.control_spec
         self.drivers = c.control.drivers
         self.observations, self.every, self.nframes = c.observations, c.record_every, c.nframes
+        # record_kinematics="frame": the forward stage computed at each frame before it is
+        # read (None: the frame as the step left it)
+        self.frame_stage = c.frame_stage
         self.unchecked = [o for o in c.observations
                           if o.floating and not set(o.fields()) <= rules.RESTARTED]
         # control=None leaves inputs alone; a policy always sets them
@@ -355,7 +358,7 @@ def batch_function(pieces: Pieces) -> Callable:
             else:
                 inner, _ = jax.lax.scan(advance, inner, us, length=every)
             d, diverged = inner[:2]
-            frame = mjx_observe.frame(P.observations, P.model_axes, m, d)
+            frame = mjx_observe.frame(P.observations, P.model_axes, m, d, P.frame_stage)
             finite = P.finite(frame)
             diverged = diverged if finite is None else diverged | ~finite
             if E is None:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import gc
 import weakref
 from typing import Any, Optional
 
@@ -33,7 +32,7 @@ import numpy as np
 import torch
 
 from simloader import rules
-from simloader.backends.warp import cameras, drivers, fused, model_arrays, runtime
+from simloader.backends.warp import cameras, drivers, fused, graphs, model_arrays, runtime
 from simloader.backends.warp import episodes as warp_episodes
 from simloader.backends.warp import observe as warp_observe
 from simloader.backends.warp.options import WarpOptions
@@ -119,7 +118,7 @@ class WarpSimulation:
             self.stream = torch.cuda.Stream(device) if self.gpu else None
             self.warp_stream = self.wp.stream_from_torch(self.stream) if self.gpu else None
             self._buffers()
-            self.graph = self.warp_graph = None
+            self.graph: Optional[graphs.Captured] = None
             if self.gpu:
                 # what Warp queued so far went on its own stream, which the engine's does not
                 # wait on (`queued`): finished before the engine's first step
@@ -136,9 +135,8 @@ class WarpSimulation:
         afterwards)."""
         with runtime.WARP_LOCK:
             if self.graph is not None:
-                self.stream.synchronize()
-                self.graph.reset()
-                self.graph = self.warp_graph = None
+                self.graph.release()
+                self.graph = None
 
     # -- construction ----------------------------------------------------------------------
 
@@ -199,31 +197,11 @@ class WarpSimulation:
             {o.key: (o, self.frames[o.key]) for o in self.observations}, c.record_every)
         self.by_torch = [o for o in self.observations if o.key in self.after_step.rest]
 
-    def _capture(self) -> Any:
-        """`_step` as one CUDA graph, after a first eager run on the capture stream (loads
-        MuJoCo Warp's kernels and torch's; everything it changes is reset per batch)."""
-        stream = self.stream
-        stream.wait_stream(torch.cuda.current_stream(self.device))
-        graph = torch.cuda.CUDAGraph()
-        for capturing in (False, True):
-            with self._capturing(graph) if capturing else self.queued():
-                self._step(capturing)
-        torch.cuda.current_stream(self.device).wait_stream(stream)
-        return graph
-
-    @contextlib.contextmanager
-    def _capturing(self, graph: Any):
-        """torch capturing `graph` on the engine's stream, in thread-local mode, with garbage
-        collection paused (a collection inside the capture could free device memory), under
-        `runtime.WARP_LOCK` (the constructor's)."""
-        collecting = gc.isenabled()
-        gc.disable()
-        try:
-            with torch.cuda.graph(graph, stream=self.stream, capture_error_mode="thread_local"):
-                yield
-        finally:
-            if collecting:
-                gc.enable()
+    def _capture(self) -> graphs.Captured:
+        """`_step` as one CUDA graph on the engine's stream (`graphs.Captured`: after a first
+        eager run; everything it changes is reset per batch), under `runtime.WARP_LOCK` (the
+        constructor's)."""
+        return graphs.Captured(self.wp, self._step, self.device, self.stream, self.warp_stream)
 
     # -- per batch -------------------------------------------------------------------------
 
@@ -355,59 +333,55 @@ class WarpSimulation:
             episodes.external(episodes.rules.checked(obs, frame, c.nbatch), frame)
         return self.obs
 
-    def _step(self, capturing: bool = False) -> None:
+    def _step(self) -> None:
         """Everything between two control rows, on the row of step `t` (the driver's
         `row()`: the open loop's, or the policy's with noise, the bad-control check and
         MuJoCo's clamp), the inputs, MuJoCo Warp's step, the divergence check and restart,
         the observations (views of Warp's arrays where they can be; cameras rendered) and
         their frames. Device tensors only, so that one graph serves every step."""
         c = self.config
-        with self._warp_capture(capturing):
-            bad = self.loop.row(self.t, self.low, self.high)
-            if bad is not None:
-                self.diverged |= bad
-            if self.episodes is not None:  # fresh frames start; their inputs are mj_resetData's
-                self.episodes.begin(self.wt)
-            self.set_inputs.launch(self.wt)
-            self.mjw.step(self.m, self.d)
-            # the divergence check and restart, held frames at their fresh state, the frames
-            # of the records that are columns of an array
-            self.after_step.launch(self.wt)
-            frame = (rules.frame_index(self.t, c.record_every)
-                     if self.by_torch or self.cameras is not None else None)
-            for o in self.by_torch:
-                self.frames[o.key].index_copy_(1, frame, warp_observe.value(o, self.views)[:, None])
-            obs = {}
-            if self.read_obs:
-                obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
-                if self.cameras is not None or (
-                        self.episodes is not None and self.episodes.kinematics is not None):
-                    # rendering, and body rules, bring the poses to the state: the policy (or
-                    # a callable terminate=) sees what mj_step left in the fields the
-                    # observations view (poses of the step's start), as without them
-                    obs = {k: v.clone() for k, v in obs.items()}
-            if self.cameras is not None:
-                # images go straight into their frames; the policy gets this step's
-                obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
-            if self.episodes is not None:  # the frame's flags; at its end, the resets
-                self.episodes.after_step(self.wt)
+        bad = self.loop.row(self.t, self.low, self.high)
+        if bad is not None:
+            self.diverged |= bad
+        if self.episodes is not None:  # fresh frames start; their inputs are mj_resetData's
+            self.episodes.begin(self.wt)
+        self.set_inputs.launch(self.wt)
+        self.mjw.step(self.m, self.d)
+        # the divergence check and restart, held frames at their fresh state, the frames
+        # of the records that are columns of an array
+        self.after_step.launch(self.wt, then=self._frame_stage)
+        frame = (rules.frame_index(self.t, c.record_every)
+                 if self.by_torch or self.cameras is not None else None)
+        for o in self.by_torch:
+            self.frames[o.key].index_copy_(1, frame, warp_observe.value(o, self.views)[:, None])
+        obs = {}
+        if self.read_obs:
+            obs = {o.key: warp_observe.value(o, self.views) for o in self.observations}
+            if self.cameras is not None or (
+                    self.episodes is not None and self.episodes.kinematics is not None):
+                # rendering, and body rules, bring the poses to the state: the policy (or
+                # a callable terminate=) sees what mj_step left in the fields the
+                # observations view (poses of the step's start), as without them
+                obs = {k: v.clone() for k, v in obs.items()}
+        if self.cameras is not None:
+            # images go straight into their frames; the policy gets this step's
+            obs.update(self.cameras.render(self.frames, frame, want=self.loop.observes))
+        if self.episodes is not None:  # the frame's flags; at its end, the resets
+            self.episodes.after_step(self.wt)
         self.t += 1
         self.obs = obs
 
-    @contextlib.contextmanager
-    def _warp_capture(self, capturing: bool):
-        """While torch captures its graph, MuJoCo Warp's launches are registered as an
-        external capture on the same stream, which keeps what Warp allocates inside."""
-        if not capturing:
-            yield
+    def _frame_stage(self) -> None:
+        """record_kinematics="frame": the forward stages at the state the step left (held
+        worlds at their fresh state, restarted ones at theirs), before the frames read it:
+        MuJoCo Warp's `forward` where a record needs the acceleration stage, else its `step1`
+        (positions, velocities and their sensors, as mj_step1). The next step computes its
+        own; none at all by default (`frame_stage` None)."""
+        stage = self.config.frame_stage
+        if stage is None:
             return
-        wp = self.wp
-        with wp.ScopedStream(self.warp_stream, sync_enter=False):
-            wp.capture_begin(stream=self.warp_stream, external=True, force_module_load=False)
-            try:
-                yield
-            finally:
-                # kept as long as the engine: Warp's graph object owns what Warp allocated
-                # during the capture, which torch's graph reads and writes at every replay
-                # (dropped, that memory is freed and reused: illegal accesses, seen on an H200)
-                self.warp_graph = wp.capture_end(stream=self.warp_stream)
+        if stage >= int(mujoco.mjtStage.mjSTAGE_ACC):
+            self.mjw.forward(self.m, self.d)
+        else:
+            self.mjw.step1(self.m, self.d)
+

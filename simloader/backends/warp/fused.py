@@ -204,11 +204,15 @@ class AfterStep:
             elif run[2]:  # a record of no column writes nothing
                 self.columns.append(run)
 
-    def launch(self, t: Any) -> None:
-        """After step `t` (its (1,) int64 Warp array)."""
+    def launch(self, t: Any, then: Any = None) -> None:
+        """After step `t` (its (1,) int64 Warp array). `then`, called between the world's
+        restart and hold and the frames of the column records: what brings the data to the
+        frame's state (`record_kinematics="frame"`)."""
         n = self.diverged.shape[0]
         wp.launch(_after_step, dim=n, inputs=[t, self.every, *self.arrays, self.diverged,
                                               *self.hold, self.state])
+        if then is not None:
+            then()
         for source, start, width, frames in self.columns:
             wp.launch(_columns, dim=(n, width), inputs=[t, self.every, source, start, frames])
 
