@@ -69,7 +69,8 @@ class _Schedule:
 
 
 class Mixture(torch.utils.data.IterableDataset):
-    """Batches of several `SimDataset`s in one stream, each member's share following `weights`.
+    """Batches of several `SimDataset` members in one stream, each member's share following
+    `weights`.
 
     Every item is one member's batch, exactly as that member would deliver it alone
     (bit-identical on the CPU engine), plus `"task"`: a scalar int64 tensor, the member's

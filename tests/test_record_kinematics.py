@@ -103,7 +103,7 @@ def field_of(data, model, name):
 
 
 def frames_of(batch):
-    return {k: v.numpy() for k, v in batch.items() if isinstance(v, torch.Tensor)}
+    return {k: v.cpu().numpy() for k, v in batch.items() if isinstance(v, torch.Tensor)}
 
 
 def check_frames(model, b, names, every=1, atol=0.0):
