@@ -33,6 +33,7 @@ _WHERE = {
     "load_model": "simloader.models",
     "named_models": "simloader.models",
     "observe": "simloader.observe",
+    "open_store": "simloader.store",
     "policy": "simloader.policy",
     "randomize": "simloader.randomize",
     "video": "simloader.videos",
@@ -67,7 +68,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see
     from simloader.known_faults import KnownFaultWarning
     from simloader.mixture import Mixture
     from simloader.observe import Camera
-    from simloader.store import StoredDataset, write
+    from simloader.store import StoredDataset, open_store, write
     from simloader.videos import video
     from simloader.models import (builtin_models, builtin_path, describe, load_model,
                                   named_models)

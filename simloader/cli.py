@@ -268,7 +268,7 @@ def info(args: argparse.Namespace) -> None:
     if args.model and os.path.isfile(os.path.join(args.model, "zarr.json")):
         # a store (one dataset's, or a mixture's of several tasks): what it holds
         with from_arguments():
-            stored = simloader.StoredDataset(args.model)
+            stored = simloader.open_store(args.model)
         print(f"the store at {args.model} ({len(stored)} trajectories):")
         print(stored.describe())
         return

@@ -299,6 +299,19 @@ class SimDataset(torch.utils.data.IterableDataset):
                                        tags)
             yield batch
 
+    def batches_at(self, indices: Iterable[int], shard: Optional[sharding.Shard] = None
+                   ) -> Iterator[tuple[int, Batch]]:
+        """(index, batch) for each global batch index of `indices`, as a shard (default: the
+        calling process's) streams it, simulated `prefetch` batches ahead: the producer the
+        store calls (`write` fills the slots it chose; `regenerate` replays a stream up to a
+        stored batch). The indices need not follow the shard's own order."""
+        stream = self.stream(self.make_backend(shard), indices)
+        try:
+            for index, batch, _ in stream:
+                yield index, batch
+        finally:  # closed with it: the prefetch thread and the backend end now
+            stream.close()
+
     def stream(self, backend: Backend, indices: Iterable[int]) -> Iterator[tuple]:
         """(index, batch, what the backend produced) for each global batch index, simulated
         `prefetch` batches ahead in a thread; closes the backend at the end. For `write` and

@@ -21,6 +21,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import copy
+import dataclasses
 import importlib
 import os
 import subprocess
@@ -352,29 +353,44 @@ def integration_rows(model: mujoco.MjModel, states: np.ndarray) -> np.ndarray:
     return rows
 
 
-def model_of(config: Any, params: dict[str, np.ndarray]) -> Callable[[int], mujoco.MjModel]:
-    """`model_of(i)`: trajectory i's model as it ran, from the configuration and the batch's
-    `params` ({key: (nbatch, ...)} NumPy arrays: "variant", randomized values), for render
-    threads: each thread writes the randomized values into a copy of its own."""
-    c = config
-    if c.models is not None:
-        return lambda i: c.models[i]
-    if c.variants is not None:
-        variant = np.asarray(params["variant"])
-        return lambda i: c.variants[int(variant[i])]
-    if c.randomization is None:
-        return lambda i: c.model
-    plan, local = c.randomization, threading.local()
+@dataclasses.dataclass(frozen=True)
+class ModelPool:
+    """The models a batch's trajectories ran on: one `model`, or one per batch row (`models`),
+    or `variants` (picked per trajectory by `params["variant"]`), or `model` with the
+    `randomization` plan's values (in `params`) written in. A `SimDataset`'s configuration
+    (`of`), or what a store kept of it."""
 
-    def model(i: int) -> mujoco.MjModel:
-        if not hasattr(local, "model"):  # each render thread writes its own copy
-            local.model, local.data = copy.copy(c.model), None
-        m = local.model
-        for r in plan.resolved:
-            if not r.field.startswith("opt."):  # options change nothing a camera sees
-                dr._field_array(m, r.field).reshape(-1)[r.elements] = params[r.param.key][i]
-        if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
-            local.data = local.data or mujoco.MjData(m)
-            mujoco.mj_setConst(m, local.data)
-        return m
-    return model
+    model: mujoco.MjModel
+    models: Optional[Sequence[mujoco.MjModel]] = None
+    variants: Optional[Sequence[mujoco.MjModel]] = None
+    randomization: Any = None
+
+    @classmethod
+    def of(cls, config: Any) -> "ModelPool":
+        return cls(config.model, config.models, config.variants, config.randomization)
+
+    def model_of(self, params: dict[str, np.ndarray]) -> Callable[[int], mujoco.MjModel]:
+        """`model_of(i)`: trajectory i's model as it ran, from the batch's `params` ({key:
+        (nbatch, ...)} NumPy arrays: "variant", randomized values), for render threads:
+        each thread writes the randomized values into a copy of its own."""
+        if self.models is not None:
+            return lambda i: self.models[i]
+        if self.variants is not None:
+            variant = np.asarray(params["variant"])
+            return lambda i: self.variants[int(variant[i])]
+        if self.randomization is None:
+            return lambda i: self.model
+        plan, base, local = self.randomization, self.model, threading.local()
+
+        def model(i: int) -> mujoco.MjModel:
+            if not hasattr(local, "model"):  # each render thread writes its own copy
+                local.model, local.data = copy.copy(base), None
+            m = local.model
+            for r in plan.resolved:
+                if not r.field.startswith("opt."):  # options change nothing a camera sees
+                    dr._field_array(m, r.field).reshape(-1)[r.elements] = params[r.param.key][i]
+            if plan.setconst:  # what MuJoCo derives from them (tracking cameras' offsets)
+                local.data = local.data or mujoco.MjData(m)
+                mujoco.mj_setConst(m, local.data)
+            return m
+        return model

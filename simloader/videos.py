@@ -77,8 +77,8 @@ def video(source: Any, path: Union[str, os.PathLike], *, model: Any = None,
         raise ValueError(f"lossless: only an MP4 can be lossless, got path {str(path)!r}")
     rows = _rows(rows)
     if isinstance(source, (str, os.PathLike)):
-        from simloader.store.reader import StoredDataset
-        source = StoredDataset(source)
+        from simloader.store import open_store
+        source = open_store(source)
     items, nbatch, config = _items(source, rows, model)
     bad = [r for r in rows if not -nbatch <= r < nbatch]
     if bad:
@@ -220,7 +220,7 @@ def _renderer_models(model: Any, config: Any, items: dict):
         if config.models is not None:  # a model list: entry r is batch row r's model
             rows = items["_row"]
             return config.model, lambda i: config.models[int(rows[i])]
-        return config.model, render.model_of(config, params)
+        return config.model, render.ModelPool.of(config).model_of(params)
     if model is None:
         raise ValueError("model: rendering states needs the model that made them, and this "
                          "source keeps none to render each trajectory with (a batch, or a "

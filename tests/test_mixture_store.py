@@ -28,8 +28,14 @@ def mixture(**kwargs):
 def test_a_written_mixture_holds_the_batches_the_mixture_delivered(tmp_path):
     mix = mixture(weights=[1, 2], seed=3)
     path = simloader.write(mix, tmp_path / "m.zarr", batches=8, progress=False)
-    stored = simloader.StoredDataset(path)
+    stored = simloader.open_store(path)
     assert isinstance(stored, mixture_store.StoredMixture)
+    # one explicit opener picks the kind; StoredDataset opens one stream's store only
+    assert "__new__" not in vars(simloader.StoredDataset)
+    with pytest.raises(ValueError, match=r"holds a mixture's store .* simloader.open_store"):
+        simloader.StoredDataset(path)
+    task = simloader.open_store(os.path.join(path, "tasks", "cartpole"))
+    assert type(task) is simloader.StoredDataset and len(task) == len(stored.tasks["cartpole"])
     delivered = {0: [], 1: []}
     for _, batch in zip(range(8), mixture(weights=[1, 2], seed=3)):
         delivered[int(batch["task"])].append(batch)
@@ -55,7 +61,7 @@ def test_a_written_mixture_holds_the_batches_the_mixture_delivered(tmp_path):
 
 def test_transitions_mix_the_tasks_padded_with_masks(tmp_path):
     path = simloader.write(mixture(seed=1), tmp_path / "t.zarr", batches=6, progress=False)
-    stored = simloader.StoredDataset(path)
+    stored = simloader.open_store(path)
     transitions = stored.transitions()
     parts = [stored.tasks[n].transitions() for n in ("cartpole", "humanoid")]
     assert len(transitions) == sum(len(p) for p in parts)
@@ -98,7 +104,7 @@ def test_transitions_mix_the_tasks_padded_with_masks(tmp_path):
 
 def test_a_padded_mixtures_store_pads_its_items(tmp_path):
     path = simloader.write(mixture(pad=True), tmp_path / "p.zarr", batches=2, progress=False)
-    stored = simloader.StoredDataset(path)
+    stored = simloader.open_store(path)
     assert stored.pad
     items = [stored[i] for i in range(len(stored))]
     assert {tuple(it["state"].shape) for it in items} == {(6, 56)}
@@ -109,7 +115,7 @@ def test_a_padded_mixtures_store_pads_its_items(tmp_path):
     streamed = next(iter(mixture(pad=True)))
     assert streamed["mask/state"].shape[1:] == cart[0]["mask/state"].shape
     # keys= keeps to the keys asked for
-    only = simloader.StoredDataset(path, keys=["control"])[0]
+    only = simloader.open_store(path, keys=["control"])[0]
     assert set(only) == {"control", "mask/control", "task"}
     batch = torch.utils.data.default_collate(items)  # one DataLoader batch of both tasks
     assert batch["state"].shape == (len(items), 6, 56)
@@ -118,9 +124,9 @@ def test_a_padded_mixtures_store_pads_its_items(tmp_path):
 def test_writing_again_extends_and_another_mixture_is_refused(tmp_path):
     path = str(tmp_path / "e.zarr")
     simloader.write(mixture(seed=4), path, batches=3, progress=False)
-    small = len(simloader.StoredDataset(path))
+    small = len(simloader.open_store(path))
     simloader.write(mixture(seed=4), path, batches=7, progress=False)
-    big = simloader.StoredDataset(path)
+    big = simloader.open_store(path)
     counts = mixture_store.counts(mixture(seed=4), 7)
     assert big.info["counts"] == counts and len(big) == 4 * counts[0] + 2 * counts[1] > small
     with pytest.raises(ValueError, match=r"another mixture.*seed: stored 4, given 5"):
@@ -146,7 +152,7 @@ def test_writing_again_extends_and_another_mixture_is_refused(tmp_path):
 def test_a_mixture_stores_transitions_loader_resumes_mid_epoch(tmp_path):
     pytest.importorskip("torchdata")
     path = simloader.write(mixture(seed=2), tmp_path / "r.zarr", batches=6, progress=False)
-    transitions = simloader.StoredDataset(path).transitions()
+    transitions = simloader.open_store(path).transitions()
     loader = transitions.loader(16, seed=5)
     it = iter(loader)
     for _ in range(3):

@@ -122,7 +122,7 @@ def test_a_mixture_member_swapped_for_another_store_is_refused(tmp_path):
     path = str(tmp_path / "mix.zarr")
     mixture = simloader.Mixture({"a": tiny(), "b": tiny(seed=4)})
     simloader.write(mixture, path, batches=6, progress=False)
-    simloader.StoredDataset(path)  # as written: read
+    simloader.open_store(path)  # as written: read
     other = str(tmp_path / "other.zarr")
     simloader.write(tiny(seed=4), other, batches=2, progress=False)  # b's very configuration
     member = os.path.join(path, "tasks", "b")
@@ -130,9 +130,9 @@ def test_a_mixture_member_swapped_for_another_store_is_refused(tmp_path):
     shutil.copytree(other, member)
     with pytest.raises(DamagedStore, match=r"task 'b' \(tasks/b\) has identity .* but the "
                                            r"mixture recorded"):
-        simloader.StoredDataset(path)
+        simloader.open_store(path)
     with pytest.raises(DamagedStore, match=r"task 'b'"):
-        simloader.StoredDataset(path, verify=True)
+        simloader.open_store(path, verify=True)
     with pytest.raises(ValueError, match=r"task 'b' \(tasks/b\) has identity"):
         simloader.write(mixture, path, batches=7, progress=False)
 
@@ -153,7 +153,7 @@ def test_a_mixture_member_of_another_configuration_is_refused_at_read(tmp_path):
     shutil.rmtree(os.path.dirname(root))
     shutil.copytree(theirs, os.path.dirname(root))
     with pytest.raises(DamagedStore, match=r"task 'b' \(tasks/b\) has fingerprint"):
-        simloader.StoredDataset(path)
+        simloader.open_store(path)
 
 
 def test_a_reserved_task_name_is_refused_before_anything_is_written(tmp_path):
@@ -173,7 +173,7 @@ def test_task_names_with_slashes_are_one_folder_each_never_one_inside_another(tm
         simloader.write(mixture, path, batches=4, progress=False)
         assert sorted(os.listdir(path / "tasks")) == sorted(
             n.replace("/", "%2F") for n in names + ("zarr.json",))
-        read = simloader.StoredDataset(path)
+        read = simloader.open_store(path)
         assert len(read) == 8 and {int(read[i]["task"]) for i in range(8)} <= {0, 1}
 
 

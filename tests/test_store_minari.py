@@ -128,7 +128,7 @@ def test_simloader_write_format_minari(tmp_path, monkeypatch):
     assert [bool(e.truncations[-1]) for e in episodes] == [True, True, False] * 2
     meta = dataset.storage.metadata["simloader"]
     assert meta["fingerprint"]["nstep"] == NSTEP and meta["versions"]["mujoco"]
-    first = next(iter(ds.stream(ds.make_backend(), [0])))[1]
+    first = next(ds.batches_at([0]))[1]
     np.testing.assert_array_equal(episodes[1].observations[1:], first["state"][1].numpy())
     with pytest.raises(ValueError, match="format: 'minari' stores the recorded 'state'"):
         simloader.write(simloader.SimDataset("cartpole", backend="cpu", nbatch=2, nstep=3,
@@ -248,8 +248,7 @@ def test_resume_drops_unrecorded_episodes_and_restores_truncated_metadata(tmp_pa
 
     with pytest.raises(KeyboardInterrupt):
         store_minari._write(
-            ({k: v.numpy() for k, v in b.items()} for _, b, _ in
-             ds.stream(ds.make_backend(), range(4))),
+            ({k: v.numpy() for k, v in b.items()} for _, b in ds.batches_at(range(4))),
             "cut-v0", str(path), total_episodes=4 * KILL_NBATCH,
             observation_key="state", metadata=provenance(ds, 4), progress=interrupt, done=0,
             first_index=0, create=True, keep_partial=True)
@@ -493,7 +492,7 @@ def test_episodes_hold_their_randomized_values_and_actions_their_control_limits(
     dataset = minari.load_dataset("masses-v0")
     assert dataset.action_space == gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float64)
     want = [b["params"]["body_mass"][i].numpy()
-            for _, b, _ in ds.stream(ds.make_backend(), range(2)) for i in range(3)]
+            for _, b in ds.batches_at(range(2)) for i in range(3)]
     episodes = list(dataset.iterate_episodes())
     assert len(episodes) == 6
     for ep, mass in zip(episodes, want):

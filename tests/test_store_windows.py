@@ -245,7 +245,7 @@ def test_a_mixture_stores_windows_carry_their_task(tmp_path):
     mixture = simloader.Mixture({"a": cartpole(nbatch=2, nstep=8),
                                  "b": cartpole(nbatch=2, nstep=8, seed=9)})
     path = simloader.write(mixture, tmp_path / "m.zarr", batches=6, progress=False)
-    stored = simloader.StoredDataset(path)
+    stored = simloader.open_store(path)
     windows = stored.windows(5)
     assert len(windows) == sum(len(t.windows(5)) for t in stored.tasks.values())
     batch = windows.gather(np.arange(len(windows)))
@@ -319,7 +319,7 @@ def test_a_padded_mixture_stores_windows_are_padded_per_column(tmp_path):
                                 nstep=8, nthread=1)
     mixture = simloader.Mixture({"a": cartpole(nbatch=2, nstep=8), "b": wide}, pad=True)
     path = simloader.write(mixture, tmp_path / "p.zarr", batches=3, progress=False)
-    windows = simloader.StoredDataset(path).windows(4)
+    windows = simloader.open_store(path).windows(4)
     batch = windows.gather(np.arange(len(windows)))
     narrow = batch["task"] == 0
     assert batch["state"].shape[1:] == (4, 7) and batch["mask/state"].shape[1:] == (7,)

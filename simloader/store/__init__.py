@@ -20,6 +20,7 @@ read them back, and the regeneration of any stored trajectory from its provenanc
     mixture_store.py    a Mixture in a store: one store per task under tasks/, read back as one
                         dataset with "task"
     reader.py           `StoredDataset`, `Transitions`, `StoredDataset.regenerate`
+    (here)              `open_store`: the explicit opener, a mixture's store or one stream's
     minari.py           `write(format="minari")`: a Minari dataset instead; `write_minari`, `status`
     minari_episodes.py  a batch's trajectories as Minari episodes, the action space
     minari_folder.py    a Minari dataset's directory: what is there, its lock, what killed
@@ -29,6 +30,8 @@ read them back, and the regeneration of any stored trajectory from its provenanc
                         resuming, the assembly of main_data.hdf5
 """
 
+import os
+
 from simloader.store.zarr_format import DamagedStore
 from simloader.store.folder import StoreChanged
 from simloader.store.lock import StoreLocked
@@ -37,5 +40,17 @@ from simloader.store.reader import StoredDataset
 from simloader.store.transitions import Transitions
 from simloader.store.front import write
 
+from simloader.store.mixture_store import StoredMixture, mixture_root
+
 __all__ = ["DamagedStore", "StoreChanged", "StoreLocked", "StoreReplaced", "StoredDataset",
-           "Transitions", "write"]
+           "StoredMixture", "Transitions", "open_store", "write"]
+
+
+def open_store(path, **kwargs):
+    """The store at `path` read back, whichever kind `simloader.write` made there: a
+    `StoredMixture` for a mixture's store (one store per task, read as one dataset with
+    `"task"`), else a `StoredDataset`. `kwargs` are theirs (`keys`, `verify`, `cameras`,
+    `backend`, `device`, `model`)."""
+    if mixture_root(os.fspath(path)) is not None:
+        return StoredMixture(path, **kwargs)
+    return StoredDataset(path, **kwargs)

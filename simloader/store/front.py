@@ -49,7 +49,7 @@ def write(dataset: Any, path: str | os.PathLike, *, batches: int, format: str = 
 
     `dataset` may be a `simloader.Mixture`: each task's batches (those the mixture yields with
     `num_workers=0`) go into a store of their own under `path/tasks/`, and
-    `StoredDataset(path)` reads them back as one dataset with `"task"` (see
+    `simloader.open_store(path)` reads them back as one dataset with `"task"` (see
     `simloader.store.mixture_store`).
 
     `format="minari"`: a Minari dataset (see `simloader.store.minari`), named after the last

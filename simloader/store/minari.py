@@ -419,8 +419,7 @@ def _write_locked(dataset: Any, path: str, dataset_id: str, dataset_dir: str, ba
 
     def numpy_batches() -> Iterator[dict[str, Any]]:
         # the stream's batches from the first one not yet written, as format="zarr" stores them
-        for _, batch, _ in dataset.stream(dataset.make_backend(), range(done // c.nbatch,
-                                                                         batches)):
+        for _, batch in dataset.batches_at(range(done // c.nbatch, batches)):
             out: dict[str, Any] = {k: v.detach().cpu().numpy() for k, v in batch.items()
                                    if k in ("initial_state", "state", "control", "diverged",
                                             *EPISODE_FLAGS)}

@@ -27,10 +27,11 @@ from simloader.store.provenance import (StoreMismatch, differences, fingerprint,
                                         fingerprint_digest, new_identity, versions)
 from simloader.store.frames import item_index, key_kinds, transition_indices
 from simloader.batch import flat, nested
-from simloader.store.reader import OPENERS, StoredDataset
-from simloader.store.zarr_format import ATTRIBUTE, FORMAT, DamagedStore, store_part
+from simloader.store.reader import StoredDataset
+from simloader.store.zarr_format import (ATTRIBUTE, FORMAT, MIXTURE_KIND, DamagedStore,
+                                         store_part)
 
-KIND = "mixture"
+KIND = MIXTURE_KIND
 TASKS = "tasks"  # the group of the members' stores
 
 
@@ -519,5 +520,3 @@ class TaskBatches(torch.utils.data.Sampler):
             progress[1] += 1
             yield per_task[k][b] + self.starts[k]
 
-
-OPENERS[KIND] = (lambda path: mixture_root(path) is not None, StoredMixture)

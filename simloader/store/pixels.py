@@ -17,7 +17,6 @@ are made per process and thread at the first read, so DataLoader workers render 
 
 from __future__ import annotations
 
-import types
 import zlib
 from collections.abc import Sequence
 from typing import Any, Optional
@@ -158,11 +157,10 @@ class StoredCameras:
                                                       for t in trajectories])
                         for k in self.params})
         # the pool: the model; one model per batch row; or the base model, then each variant
-        config = types.SimpleNamespace(
-            model=self.pool[0], randomization=self.plan,
+        return render.ModelPool(
+            self.pool[0], randomization=self.plan,
             models=[self.pool[int(r)] for r in rows] if self.kind == "models" else None,
-            variants=self.pool[1:] if self.kind == "variants" else None)
-        return render.model_of(config, params)
+            variants=self.pool[1:] if self.kind == "variants" else None).model_of(params)
 
 
 def pool_of(config: Any) -> tuple[str, list[mujoco.MjModel]]:

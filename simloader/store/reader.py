@@ -8,17 +8,17 @@ import functools
 import os
 import warnings
 from collections.abc import Iterable, Sequence
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
 
 from simloader import known_faults, sharding
 from simloader.layout import did_you_mean
-from simloader.store import integrity
+from simloader.store import integrity, ownership
 from simloader.batch import flat, nested
-from simloader.store.zarr_format import (CHECKSUM, PROVENANCE, WRITTEN, DamagedStore,
-                                         batch_key)
+from simloader.store.zarr_format import (CHECKSUM, MIXTURE_KIND, PROVENANCE, WRITTEN,
+                                         DamagedStore, batch_key)
 from simloader.store.provenance import differences, fingerprint
 from simloader.store import shards
 from simloader.store.folder import StoreFolder
@@ -26,11 +26,6 @@ from simloader.store.frames import item_index, steps_and_frames
 from simloader.store.shards import StoredArray
 from simloader.store.transitions import Transitions
 from simloader.store.windows import Episodes, Windows
-
-
-# kinds of stores that read as another dataset than `StoredDataset`: {kind: (is_kind(path),
-# opener(path, *args, **kwargs))}, filled by their modules (`mixture_store`)
-OPENERS: dict[str, tuple[Callable[[str], bool], Callable[..., Any]]] = {}
 
 
 class StoredDataset(torch.utils.data.Dataset):
@@ -77,15 +72,6 @@ class StoredDataset(torch.utils.data.Dataset):
             from simloader.store import pixels
             self.cameras = pixels.StoredCameras(self, cameras, backend, device, model)
 
-    def __new__(cls, path: Any = None, *args: Any, **kwargs: Any) -> Any:
-        # a store of another kind (a mixture's store of stores: `mixture_store`) reads as
-        # the dataset its kind registered in `OPENERS`
-        if cls is StoredDataset and isinstance(path, (str, os.PathLike)):
-            for kind, (is_kind, opener) in OPENERS.items():
-                if is_kind(os.fspath(path)):
-                    return opener(path, *args, **kwargs)
-        return super().__new__(cls)
-
     def _open(self, path: str | os.PathLike, keys: Optional[Sequence[str]],
               verify: bool) -> None:
         self.path = os.fspath(path)
@@ -101,6 +87,13 @@ class StoredDataset(torch.utils.data.Dataset):
             raise ValueError(f"path: {self.path!r} is a file, not a store folder (simloader."
                              f"write makes a folder: a zarr v3 group)")
         self.folder = folder = StoreFolder(self.path)
+        kept = ownership.root_attribute(folder)
+        if isinstance(kept, dict) and kept.get("kind") == MIXTURE_KIND:
+            folder.close()
+            raise ValueError(f"path: {self.path!r} holds a mixture's store (one store per task "
+                             f"under tasks/), not one stream's; open it with "
+                             f"simloader.open_store(path), which reads every task's "
+                             f"trajectories as one dataset with \"task\" (a StoredMixture)")
         self.store = store = integrity.Store(folder)
         self.info = store.info
         # the identity it was opened with, confirmed whenever a shard is opened
@@ -277,7 +270,7 @@ class StoredDataset(torch.utils.data.Dataset):
         shard = sharding.Shard(rank=rank, world_size=rank + 1, worker=index % workers,
                                num_workers=workers)
         batch = None
-        for _, batch, _ in dataset.stream(dataset.make_backend(shard), indices):
+        for _, batch in dataset.batches_at(indices, shard):
             pass
         flat_batch = flat(batch)
         row = where["row"]

@@ -180,14 +180,14 @@ class _Writer(torch.utils.data.IterableDataset):
             return
         stages = pipeline.Stages()
         slots: Optional[pipeline.SlotPipeline] = None
-        batches = ds.stream(ds.make_backend(shard), todo)
+        batches = ds.batches_at(todo, shard)
         try:
             while True:
                 with stages.timed("simulate"):
                     got = next(batches, None)
                 if got is None:
                     break
-                index, batch, _ = got
+                index, batch = got
                 slot = index * shard.world_size + shard.rank
                 if done[slot]:
                     continue

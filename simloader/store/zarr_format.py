@@ -54,6 +54,9 @@ from simloader.batch import flat
 
 FORMAT = 1  # of the `simloader` attribute and the layout below it
 ATTRIBUTE = "simloader"
+# the root attribute's "kind" of a mixture's store (one store per task under tasks/), which
+# `simloader.open_store` opens as a `StoredMixture`
+MIXTURE_KIND = "mixture"
 PROVENANCE = ("rank", "batch", "row", "num_workers")
 _COMPRESS_MIN_BYTES = 4096
 _IMAGE_CHUNK_BYTES = 1 << 20  # camera frames per chunk: a block of about 1 MiB

@@ -187,8 +187,8 @@ class CpuBackend(Backend):
     def _model_of(self):
         """Trajectory i's model as it ran this batch, for the render threads (which run while
         the next batch redraws variants and randomized values: a snapshot of them)."""
-        return cpu_render.model_of(self.config, {k: v.copy() for k, v in
-                                                 self.trajectories.params.items()})
+        return cpu_render.ModelPool.of(self.config).model_of(
+            {k: v.copy() for k, v in self.trajectories.params.items()})
 
     def _ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(nbatch, ncontrol) each: the range each trajectory's controls are clamped to."""

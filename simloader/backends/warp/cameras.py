@@ -11,7 +11,7 @@ recomputes every pose from the state, so the physics is unchanged.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any, Optional
 
 import mujoco
@@ -44,26 +44,26 @@ class Cameras:
     """The cameras of an engine: MuJoCo Warp's render context and torch views of its images.
 
     Args:
-      config: the engine's configuration (read here only).
+      model: the MuJoCo model rendered; nworld: its worlds.
+      randomized: the model fields randomized per world (cam_fovy among them: each world's
+        rays are computed at each render, not once).
       images: the camera images `record` asks for.
       m, d: the engine's MuJoCo Warp model and data (a render brings the data's poses to its
         state).
       wdevice: Warp's name of the engine's device.
     """
 
-    def __init__(self, config: Any, images: Sequence[observe.CameraImage], m: Any, d: Any,
-                 wdevice: str):
+    def __init__(self, model: mujoco.MjModel, nworld: int, randomized: Collection[str],
+                 images: Sequence[observe.CameraImage], m: Any, d: Any, wdevice: str):
         import mujoco_warp as mjw
         self.mjw, self.wp, self.m, self.d = mjw, runtime.warp(), m, d
         self.images = tuple(images)
-        c = config
         cams = sorted({o.camera_id for o in images})
         asked = {cam: {o.kind for o in images if o.camera_id == cam} for cam in cams}
         size = {o.camera_id: (o.camera.width, o.camera.height) for o in images}
-        randomized = {r.field for r in c.randomization.resolved} if c.randomization else set()
         with self.wp.ScopedDevice(wdevice):
             self.context = mjw.create_render_context(
-                mjm=c.model, nworld=c.nbatch, cam_active=cams,
+                mjm=model, nworld=nworld, cam_active=cams,
                 cam_res=[size[cam] for cam in cams],
                 render_rgb=["rgb" in asked[cam] for cam in cams],
                 render_depth=["depth" in asked[cam] for cam in cams],
@@ -71,8 +71,8 @@ class Cameras:
                 use_precomputed_rays="cam_fovy" not in randomized)
         L = mujoco.mjtCamLight
         com = (L.mjCAMLIGHT_TRACKCOM, L.mjCAMLIGHT_TARGETBODYCOM)
-        self.needs_com = bool(np.isin(c.model.cam_mode, com).any()
-                              or np.isin(c.model.light_mode, com).any())
+        self.needs_com = bool(np.isin(model.cam_mode, com).any()
+                              or np.isin(model.light_mode, com).any())
         wp = self.wp
         buffers = {"rgb": wp.to_torch(self.context.rgb_data).view(torch.int32),
                    "depth": wp.to_torch(self.context.depth_data),

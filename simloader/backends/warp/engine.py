@@ -174,7 +174,10 @@ class WarpSimulation:
             self.frames[o.key] = torch.empty((c.nbatch, c.nframes, *value.shape[1:]),
                                              dtype=value.dtype, device=value.device)
         images = [o for o in c.observations if o.rendered]
-        self.cameras = (cameras.Cameras(c, images, self.m, self.d, self.wdevice) if images
+        randomized = ({r.field for r in c.randomization.resolved} if c.randomization
+                      else set())
+        self.cameras = (cameras.Cameras(c.model, c.nbatch, randomized, images, self.m, self.d,
+                                        self.wdevice) if images
                         else None)
         if self.cameras is not None:
             self.frames.update(self.cameras.frames(c.nbatch, c.nframes))

@@ -11,7 +11,7 @@ replay and a copy out, not dozens of kernel launches from Python.
 from __future__ import annotations
 
 import collections
-import types
+import dataclasses
 from typing import Any, Callable
 
 import mujoco
@@ -24,6 +24,23 @@ from simloader.backends.warp import graphs, runtime
 
 S = mujoco.mjtState
 CONTEXTS = 2  # render contexts kept, by world count (a loader's batch size and its last one)
+
+
+@dataclasses.dataclass
+class _Context:
+    """One world count's MuJoCo Warp model, data and cameras; the torch views of the data's
+    fields a draw writes; the captured draw's input states and output images, its graph, and
+    the torch stream it last ran on."""
+
+    m: Any
+    d: Any
+    cameras: Any
+    fields: dict
+    frame: torch.Tensor
+    states: torch.Tensor
+    images: dict
+    graph: Any = None
+    stream: Any = None
 
 
 class StoredRenderer:
@@ -71,10 +88,10 @@ class StoredRenderer:
         # of its context, so a batch of 1,024 frames drawn in one grown to 16,384 for another
         # loader cost 16 times its own frames (a loader's batches are one size, but its
         # last one, and two loaders of different batch sizes may take turns)
-        self.contexts: collections.OrderedDict[tuple, types.SimpleNamespace] = \
+        self.contexts: collections.OrderedDict[tuple, "_Context"] = \
             collections.OrderedDict()
 
-    def _context(self, nworld: int, dtype: torch.dtype) -> types.SimpleNamespace:
+    def _context(self, nworld: int, dtype: torch.dtype) -> "_Context":
         """A model, data and render context of exactly `nworld` worlds for states of `dtype`,
         with the draw (`_draw`) captured as one CUDA graph over its own input and image
         buffers, made at its first use and kept while among the latest `CONTEXTS` used.
@@ -88,15 +105,14 @@ class StoredRenderer:
         wdevice = runtime.warp_device(self.device)
         m = mjw.put_model(self.model)
         d = mjw.make_data(self.model, nworld=nworld)
-        config = types.SimpleNamespace(model=self.model, nbatch=nworld, randomization=None)
-        cameras = warp_cameras.Cameras(config, self.images, m, d, wdevice)
-        context = types.SimpleNamespace(
+        cameras = warp_cameras.Cameras(self.model, nworld, (), self.images, m, d, wdevice)
+        context = _Context(
             m=m, d=d, cameras=cameras,
             fields={name: wp.to_torch(getattr(d, name)) for name in self.column_index},
             frame=torch.zeros(1, dtype=torch.int64, device=self.device),
             states=torch.as_tensor(self.reference, dtype=dtype, device=self.device
                                    ).expand(nworld, -1).contiguous(),
-            images=cameras.frames(nworld, 1), stream=None)
+            images=cameras.frames(nworld, 1))
         # its arrays were filled on Warp's own stream; the graph runs on torch's
         wp.synchronize_device(wdevice)
         stream = torch.cuda.Stream(self.device)
@@ -107,7 +123,7 @@ class StoredRenderer:
             self.contexts.popitem(last=False)[1].graph.release()
         return context
 
-    def _draw(self, context: types.SimpleNamespace) -> None:
+    def _draw(self, context: "_Context") -> None:
         """The states in `context.states` into the worlds (positions and mocap poses), then
         every camera drawn as the engine draws after a step, into `context.images`: device
         work only, captured once per context."""
