@@ -20,6 +20,7 @@ import time
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import common  # noqa: E402
+import mujoco  # noqa: E402
 import torch  # noqa: E402
 from simloader.tools import bench  # noqa: E402
 
@@ -54,7 +55,11 @@ def main() -> None:
                 "raw MuJoCo Warp, worlds reset every batch": bench.RawWarp.matching(
                     model, w, args.seed, options)}
         fresh = raws["raw MuJoCo Warp, worlds reset every batch"]
-        initial = [part.clone() for part in fresh.parts]
+        # the model's initial state, as mj_resetData leaves it: time 0, qpos0, rest
+        data = mujoco.MjData(model)
+        initial = [torch.as_tensor(value, dtype=part.dtype, device=part.device).reshape(1, -1)
+                   .expand_as(part) for part, value in
+                   zip(fresh.parts, (data.time, data.qpos, data.qvel, data.act))]
         nbatches = common.batches_for(args, max(s.first_s for s in sims.values()) / 10)
         nacon: dict[str, list[int]] = {name: [] for name in raws}
 
