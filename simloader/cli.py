@@ -284,6 +284,9 @@ def info(args: argparse.Namespace) -> None:
             randomized = simloader.layout.describe_params(randomized_columns(model,
                                                                              args.randomize))
     print(description)
+    print("engines:")
+    for line in simloader.backends.acceptance(model):
+        print("  " + line)
     # no engine is chosen here: the faults of every engine, each naming its own
     for line in known_faults.described([model], None):
         print(line)

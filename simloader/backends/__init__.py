@@ -129,6 +129,22 @@ def spelled(backend: Any, options: dict[str, Any]) -> tuple[str, dict[str, Any],
     return new, options, impl == "auto"
 
 
+def acceptance(model: Any) -> list[str]:
+    """One line per registered engine: whether it simulates `model` ("accepts"), or why not
+    ("refuses: ..." naming the feature and the objects; "cannot run here: ..."), for
+    `simloader info`. An engine that cannot run here is not asked about the model."""
+    lines = []
+    for name in ENGINES:
+        entry = engine(name)
+        why = entry.missing()
+        if why is not None:
+            lines.append(f"{name}: cannot run here ({why})")
+            continue
+        refusal = entry.refuses_model(model)
+        lines.append(f"{name}: accepts" if refusal is None else f"{name}: refuses: {refusal}")
+    return lines
+
+
 def on_devices() -> tuple[str, ...]:
     """The registered engines that simulate on a device of their own (a GPU: those
     `sim_device=` may place; `simloader warmup` compiles them)."""

@@ -142,6 +142,11 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
                 refusal = engines[name].refuses_determinism(probe.model)
                 if refusal is not None:
                     why[name] = f"deterministic=True: {refusal}"
+    for name in engines:  # an engine that cannot simulate the model is passed over
+        if not why[name]:
+            refusal = engines[name].refuses_model(probe.model)
+            if refusal is not None:
+                why[name] = f"refuses this model: {refusal}"
     cameras = any(isinstance(o, observe.CameraImage) for o in probe.observations)
     running = [name for name in engines if not why[name]]
     if not running:
@@ -189,5 +194,7 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
     length = (f", over an endless stream's first {FIRST_MINUTE_S:.0f} s with a first run's "
               f"start-up" if steps is None else
               f", over this stream's {steps / 1e6:.3g}M steps with a first run's start-up")
+    passed = "; ".join(f"{n}: {w}" for n, w in why.items() if w.startswith("refuses"))
     return Choice(best, f"auto: estimated steps/s for nbatch={probe.nbatch} on {cores} "
-                        f"cores{gpu}{length}: {said} (rule in simloader/backends/auto.py)")
+                        f"cores{gpu}{length}: {said} (rule in simloader/backends/auto.py)"
+                        + (f"; passed over: {passed}" if passed else ""))

@@ -18,7 +18,8 @@ from collections.abc import Iterable
 from typing import Any, Optional
 
 from simloader import layout, sharding
-from simloader.backends import all_options, auto, engine, engine_options, prepare, spelled
+from simloader.backends import (ENGINES, all_options, auto, engine, engine_options, prepare,
+                                spelled)
 from simloader.backends.base import Backend, Stats
 from simloader.backends.contract import Engine
 from simloader.config import Settings, SimConfig
@@ -72,6 +73,14 @@ def check_keywords(options: dict[str, Any], own: Iterable[str]) -> None:
         raise TypeError(f"SimDataset: unexpected keyword argument(s) {unknown}: {said}")
 
 
+def accepting(model: Any, refused_by: str) -> str:
+    """Which other engines simulate `model` here, as advice ("use backend='cpu'")."""
+    names = [name for name in ENGINES if name != refused_by
+             and engine(name).missing() is None and engine(name).refuses_model(model) is None]
+    return ("use " + " or ".join(f"backend={n!r}" for n in names) + ", which simulate"
+            + ("s" if len(names) == 1 else "") + " it") if names else "no engine here does"
+
+
 def bind(backend: Any, options: dict[str, Any], settings: Settings,
          parts: Optional[tuple[Settings, ...]] = None) -> BoundEngine:
     """The engine for `settings` (see the module's docstring).
@@ -85,6 +94,11 @@ def bind(backend: Any, options: dict[str, Any], settings: Settings,
     prepare(name, options)
     choice = auto.choose(name, gpu_only or parts is not None, settings)
     entry = engine(choice.backend)
+    if choice.reason == "asked":
+        refusal = entry.refuses_model(settings.model)
+        if refusal is not None:
+            raise ValueError(f"backend: {choice.backend!r} cannot simulate this model: "
+                             f"{refusal}; {accepting(settings.model, choice.backend)}")
     if settings.deterministic:
         refusal = entry.refuses_determinism(settings.model)
         if refusal is not None:

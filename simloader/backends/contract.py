@@ -97,6 +97,12 @@ class Engine(Protocol):
         """Why `sim_device=` cannot name devices for it (it simulates on no torch device of
         its own), or None where it can."""
 
+    def refuses_model(self, model: Any) -> Optional[str]:
+        """Why it cannot simulate `model`, naming the feature and the objects (geoms, bodies)
+        that use it, or None when it can. Asked by `auto` before it chooses (an engine that
+        refuses is passed over, and `describe()` says why), by an engine asked by name before
+        it builds anything, and by `simloader info`; no runtime is started for it."""
+
     def refuses_determinism(self, model: Any) -> Optional[str]:
         """Why it cannot give bit-identical batches for `model` from the same seed (with what
         to use instead), or None when it can. A question, asked for `deterministic=True`
@@ -154,6 +160,9 @@ class EngineEntry:
         `device`. `randomized`: trajectories have models of their own. Raises ValueError
         naming what it cannot render; this default renders nothing."""
         raise ValueError(f"backend={self.name!r} does not render stored states")
+
+    def refuses_model(self, model: Any) -> Optional[str]:
+        return None
 
     def refuses_determinism(self, model: Any) -> Optional[str]:
         return (f"backend={self.name!r} does not promise bit-identical batches; "

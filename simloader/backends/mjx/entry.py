@@ -104,6 +104,14 @@ class MjxEngine(EngineEntry):
     def refuses_sim_device(self) -> Optional[str]:
         return None  # its GPUs: each part of a batch on its own
 
+    def refuses_model(self, model: Any) -> Optional[str]:
+        """Collisions MJX does not implement (by geom pair), frictionless contacts under the
+        elliptic cone, state it does not simulate (`support.refusal`)."""
+        if not installed():
+            return None  # `missing` says why it cannot run at all
+        from simloader.backends.mjx import support
+        return support.refusal(model)
+
     def refuses_determinism(self, model: Any) -> Optional[str]:
         """XLA's deterministic GPU ops, which `check_options` sets before JAX starts
         (1.25-1.7x slower on an H200, benchmarks/results/determinism-*): refused, saying how,

@@ -29,8 +29,17 @@ def put_model(model: mujoco.MjModel, device: jax.Device) -> Any:
 
 
 def make_data(model: mujoco.MjModel, device: jax.Device) -> Any:
-    """One trajectory's mjx.Data as `make_data` leaves it."""
-    return mjx.make_data(model, device=device, impl="jax")
+    """One trajectory's mjx.Data as `make_data` leaves it.
+
+    Raises:
+      ValueError: MJX cannot make data for the model (a feature `support.refusal` does not
+        name; MJX's own words), not its bare NotImplementedError.
+    """
+    try:
+        return mjx.make_data(model, device=device, impl="jax")
+    except NotImplementedError as e:
+        raise ValueError(f"model: MJX does not support a feature of this model: {e}; use "
+                         f"backend='cpu'") from None
 
 
 def put_models(config: SimConfig, device: jax.Device) -> tuple[Any, Any]:

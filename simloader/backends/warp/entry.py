@@ -55,6 +55,20 @@ class WarpEngine(EngineEntry):
     def refuses_sim_device(self) -> Optional[str]:
         return None  # its GPUs: each part of a batch on its own
 
+    def refuses_model(self, model: Any) -> Optional[str]:
+        """State the Warp engine does not simulate, and what MuJoCo Warp's `put_model`
+        refuses (its arrays made on Warp's CPU device: no kernel compiled)."""
+        from simloader.backends.warp import runtime
+        if runtime.missing() is not None:
+            return None  # `missing` says why it cannot run at all
+        from simloader.backends.warp import model_arrays, options as warp_options
+        try:
+            warp_options.check_simulated("model", model)
+            model_arrays.put("model", model)
+        except ValueError as e:
+            return str(e).removeprefix("model: ")
+        return None
+
     def refuses_determinism(self, model: Any) -> Optional[str]:
         """Only models whose steps no GPU atomics can reorder (`warp/determinism.py`)."""
         from simloader.backends.warp import determinism

@@ -95,7 +95,7 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
              [f"randomize: variant[{i}]" for i in range(len(models))])
     puts = []
     for name, model in zip(names, models):
-        _check_simulated(name, model)
+        check_simulated(name, model)
         puts.append(model_arrays.put(name, model))
     pooled = set(_differing(puts, names))
     randomized = _randomized(config, puts[0]) if config.randomization is not None else set()
@@ -131,7 +131,7 @@ def _positive(name: str, value: Any) -> Optional[int]:
     return int(value)
 
 
-def _check_simulated(name: str, model: mujoco.MjModel) -> None:
+def check_simulated(name: str, model: mujoco.MjModel) -> None:
     """Refuses a model with state the Warp engine does not simulate (`_UNSIMULATED`)."""
     for bit, what, size in _UNSIMULATED:
         if mujoco.mj_stateSize(model, int(bit)):
