@@ -155,6 +155,21 @@ def _scene(renderer: mujoco.Renderer, model: mujoco.MjModel, data: mujoco.MjData
                            renderer.scene)
 
 
+def _key(o: observe.CameraImage) -> tuple[int, int, bool]:
+    """The renderer an image is drawn by: its size, and whether it multisamples."""
+    return o.camera.height, o.camera.width, bool(o.camera.multisample)
+
+
+def _quality(model: mujoco.MjModel, multisample: bool) -> mujoco.MjModel:
+    """The model a renderer is made from: `model`, or without multisampling a copy with no
+    offscreen samples (read when the renderer's GL context is made)."""
+    if multisample:
+        return model
+    plain = copy.copy(model)
+    plain.vis.quality.offsamples = 0
+    return plain
+
+
 class Renderers:
     """The renderers of one thread (one per image size), made in it and used only there.
 
@@ -169,8 +184,8 @@ class Renderers:
         _GL_PID = os.getpid()
         self.images = tuple(images)
         with _swapped_gl(gl_platform()[0]):
-            self.renderers = {size: mujoco.Renderer(model, *size) for size in
-                              sorted({(o.camera.height, o.camera.width) for o in images})}
+            self.renderers = {key: mujoco.Renderer(_quality(model, key[2]), *key[:2])
+                              for key in sorted({_key(o) for o in images})}
         self.data = mujoco.MjData(model)
         self.option = mujoco.MjvOption()
 
@@ -185,8 +200,9 @@ class Renderers:
                 mujoco.mj_setState(model, data, states[i, j], mujoco.mjtState.mjSTATE_INTEGRATION)
                 mujoco.mj_forward(model, data)
                 for o in self.images:
-                    r = self.renderers[(o.camera.height, o.camera.width)]
+                    r = self.renderers[_key(o)]
                     _scene(r, model, data, o.camera_id, option)
+                    r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = o.camera.shadows
                     target = out[o.key][i, j]
                     if o.kind == "rgb":
                         r.render(out=target)

@@ -207,3 +207,37 @@ def test_fork_after_rendering_is_refused_not_hung(fresh_python):
     fork, = fresh_python(LOADER_SCRIPT, [(("fork", "render-first"), None)], timeout=120)
     assert fork.startswith("refused:"), fork
     assert "multiprocessing_context" in fork and "spawn" in fork and "num_workers=0" in fork
+
+
+def test_shadows_and_multisampling_can_be_switched_off_and_equal_a_plain_renderer_so_made():
+    """`Camera(shadows=False, multisample=False)` on a MuJoCo Menagerie scene (the Go1 of
+    tests/robots: 4096-pixel shadow maps, multisampling): every image equals a plain
+    `mujoco.Renderer` made from the model without offscreen samples, its scene's shadow flag
+    off; the default still draws both."""
+    import copy
+    import pathlib
+    path = pathlib.Path(__file__).parent / "robots" / "unitree_go1" / "scene.xml"
+    model = mujoco.MjModel.from_xml_path(str(path))
+    plain_cam = simloader.Camera(-1, height=32, width=32, shadows=False, multisample=False)
+    ds = simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=2, num_batches=1,
+                              record=("state", plain_cam))
+    batch = next(iter(ds))
+    plain = copy.copy(model)
+    plain.vis.quality.offsamples = 0
+    data = mujoco.MjData(model)
+    with cpu_render._swapped_gl(cpu_render.gl_platform()[0]):
+        renderer, default = mujoco.Renderer(plain, 32, 32), mujoco.Renderer(model, 32, 32)
+    with renderer, default:
+        for i in range(2):
+            for t in range(2):
+                mujoco.mj_setState(model, data, batch["state"][i, t].numpy(),
+                                   mujoco.mjtState.mjSTATE_FULLPHYSICS)
+                mujoco.mj_forward(model, data)
+                renderer.update_scene(data, -1)
+                renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+                np.testing.assert_array_equal(batch["camera/free/rgb"][i, t].numpy(),
+                                              renderer.render())
+        default.update_scene(data, -1)  # the default draws both: other pixels
+        assert not np.array_equal(batch["camera/free/rgb"][1, 1].numpy(), default.render())
+    with pytest.raises(TypeError, match="Camera: shadows must be a bool"):
+        simloader.Camera(-1, shadows="no")
