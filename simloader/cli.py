@@ -327,6 +327,15 @@ def bench(args: argparse.Namespace) -> None:
         print(f"plot saved to {plot}")
 
 
+def check(args: argparse.Namespace) -> None:
+    """How far an engine's physics is from MuJoCo C's for the model (`simloader.accuracy`)."""
+    from simloader import accuracy
+    with from_arguments():
+        model = simloader.load_model(args.model) if args.model else DEFAULT_MODEL
+        print(accuracy.check(model, args.backend, nbatch=args.nbatch, nstep=args.nstep,
+                             seed=args.seed))
+
+
 def warmup(args: argparse.Namespace) -> None:
     """Simulates one batch of the configuration, which fills the persistent caches (JAX's
     compiled batch function for these sizes; MuJoCo Warp's kernels for this model, which take
@@ -525,6 +534,16 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
                    help="trajectories per batch, as the training run will use them")
     w.add_argument("--nstep", type=int, default=200, help="steps per batch, as in training")
     w.set_defaults(run=warmup)
+
+    c = sub.add_parser("check", help="how far an engine's physics is from MuJoCo C's for a "
+                                     "model (largest differences in positions, velocities)")
+    add_model_argument(c)
+    c.add_argument("--backend", default="auto", choices=BACKEND_CHOICES, metavar="BACKEND",
+                   help="the engine to check: cpu, mjx, warp or auto (default)")
+    c.add_argument("--nbatch", type=positive_int, default=16, help="trajectories")
+    c.add_argument("--nstep", type=positive_int, default=50, help="steps per trajectory")
+    c.add_argument("--seed", type=int, default=0, help="of the random controls")
+    c.set_defaults(run=check)
 
     v = sub.add_parser("video", help="write an MP4 or GIF of trajectories of a store or a model",
                        description="Write an MP4 (or GIF) of trajectories side by side: of a "
