@@ -1,7 +1,8 @@
 """The `simloader` command line: `quickstart` (stream batches, print throughput), `write`
 (simulate into a store), `info` (what the columns mean), `bench` (simloader next to the raw
 simulators), `warmup` (compile ahead of time: JAX's persistent compilation cache and MuJoCo
-Warp's kernel cache) and `video` (trajectories of a store or a model, side by side)."""
+Warp's kernel cache), `check` (an engine's physics against MuJoCo C's) and `video`
+(trajectories of a store or a model, side by side)."""
 
 from __future__ import annotations
 
