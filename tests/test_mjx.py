@@ -346,8 +346,8 @@ IMPLICIT_XML = """
 
 @pytest.mark.parametrize("kwargs, error, message", [
     (dict(model=DELAYED_XML), ValueError,
-     "model: MJX does not support actuator and sensor delays (nhistory=8); use "
-     "backend='cpu'"),
+     "backend: 'mjx' cannot simulate this model: MJX does not simulate actuator and sensor "
+     "delays (nhistory=8); use backend='cpu', which simulates it"),
     (dict(model=IMPLICIT_XML), ValueError,
      "model: MJX does not support a feature of this model: mjtIntegrator.mjINT_IMPLICIT; use "
      "backend='cpu'"),

@@ -87,9 +87,7 @@ def test_auto_passes_over_a_refusing_engine_and_mjx_by_name_says_who_simulates_i
     pytest.importorskip("mujoco.mjx")
     model = load("unitree_go2")  # MJX: cylinder-box collisions, condim 1 under elliptic
     ds = simloader.SimDataset(model, nbatch=4, nstep=2, num_batches=2)
-    assert ds.config.backend == "cpu"
-    assert "mjx: refuses this model: MJX does not simulate cylinder-box collisions" in \
-        ds.config.backend_reason
+    assert ds.config.backend == "cpu"  # the CPU engine wins here: MJX is not even asked
     with pytest.raises(ValueError, match=r"backend: 'mjx' cannot simulate this model: .*"
                                          r"cylinder-box collisions .* use backend='cpu'"):
         simloader.SimDataset(model, backend="mjx", nbatch=4, nstep=2)
@@ -102,3 +100,16 @@ def test_auto_passes_over_a_refusing_engine_and_mjx_by_name_says_who_simulates_i
     assert "engines:\n  cpu: accepts\n  mjx: refuses: MJX does not simulate cylinder-box" in out
     cli.main(["info", str(ROBOTS_DIR / "franka_emika_panda" / "scene.xml")])
     assert "  mjx: accepts" in capsys.readouterr().out
+
+
+def test_auto_asks_the_engine_it_would_choose_and_passes_it_over_when_it_refuses():
+    """A contact-free model MJX would win on this machine (a pendulum, 8192 trajectories of an
+    endless stream) but cannot simulate (an actuator delay): auto passes MJX over, says why,
+    and takes the CPU engine. A model the CPU engine wins is never put to MJX (no JAX)."""
+    pytest.importorskip("mujoco.mjx")
+    delayed = """<mujoco><worldbody><body><joint name="j"/><geom size=".1"/></body>
+    </worldbody><actuator><motor joint="j" delay="0.02" nsample="3"/></actuator></mujoco>"""
+    ds = simloader.SimDataset(delayed, nbatch=8192, nstep=100)
+    assert ds.config.backend == "cpu"
+    assert ("passed over: mjx: refuses this model: MJX does not simulate actuator and sensor "
+            "delays") in ds.config.backend_reason

@@ -142,11 +142,6 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
                 refusal = engines[name].refuses_determinism(probe.model)
                 if refusal is not None:
                     why[name] = f"deterministic=True: {refusal}"
-    for name in engines:  # an engine that cannot simulate the model is passed over
-        if not why[name]:
-            refusal = engines[name].refuses_model(probe.model)
-            if refusal is not None:
-                why[name] = f"refuses this model: {refusal}"
     cameras = any(isinstance(o, observe.CameraImage) for o in probe.observations)
     running = [name for name in engines if not why[name]]
     if not running:
@@ -186,15 +181,28 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
     near = {name for name, rate in rates.items() if rate >= NEAR_TIE * top}
     order = sorted(rates, key=lambda n: (n not in near, startup[n] if n in near else 0.0,
                                          -rates[n]))
+    passed: dict[str, str] = {}
     for best in order:
+        # an engine that cannot simulate the model is passed over: asked only of the engine
+        # about to be chosen (MJX's answer imports JAX, which a CPU choice never needs)
+        refusal = engines[best].refuses_model(probe.model)
+        if refusal is not None:
+            passed[best] = f"refuses this model: {refusal}"
+            continue
         if not engines[best].confirm():  # may start the runtime (JAX asked for its GPUs)
             break
+    if best in passed:  # the last one refused too: the best of those that did not
+        left = [name for name in order if name not in passed]
+        if not left:
+            raise ValueError("backend: every engine that runs here refuses this model ("
+                             + "; ".join(f"{n}: {w}" for n, w in passed.items()) + ")")
+        best = left[0]
     said = ", ".join(f"{name} ~{rates[name] / 1e6:.2g}M" for name in order)
     gpu = " and this GPU" if backends.gpu_visible() else ""
     length = (f", over an endless stream's first {FIRST_MINUTE_S:.0f} s with a first run's "
               f"start-up" if steps is None else
               f", over this stream's {steps / 1e6:.3g}M steps with a first run's start-up")
-    passed = "; ".join(f"{n}: {w}" for n, w in why.items() if w.startswith("refuses"))
+    over = "; ".join(f"{n}: {w}" for n, w in passed.items())
     return Choice(best, f"auto: estimated steps/s for nbatch={probe.nbatch} on {cores} "
                         f"cores{gpu}{length}: {said} (rule in simloader/backends/auto.py)"
-                        + (f"; passed over: {passed}" if passed else ""))
+                        + (f"; passed over: {over}" if over else ""))

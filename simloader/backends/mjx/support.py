@@ -56,6 +56,7 @@ def refusal(model: mujoco.MjModel) -> Optional[str]:
     for bit, what, size in gpu_state.GPU_UNSIMULATED:
         if mujoco.mj_stateSize(model, int(bit)):
             said.append(f"{what} ({size}={mujoco.mj_stateSize(model, int(bit))})")
+    from simloader.backends.mjx import runtime  # noqa: F401 - MJX imported quietly, once
     from mujoco.mjx._src import collision_driver
     missing: dict[tuple[str, str], list[str]] = collections.defaultdict(list)
     margins: list[str] = []
