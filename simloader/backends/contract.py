@@ -100,8 +100,9 @@ class Engine(Protocol):
     def refuses_model(self, model: Any) -> Optional[str]:
         """Why it cannot simulate `model`, naming the feature and the objects (geoms, bodies)
         that use it, or None when it can. Asked by `auto` of the engine it is about to choose
-        (one that refuses is passed over, and `backend_reason` says why), by an engine asked by name before
-        it builds anything, and by `simloader info`; no runtime is started for it."""
+        (one that refuses is passed over, and `backend_reason` says why), of an engine asked
+        by name before it builds anything, and by `simloader info`; no runtime is started
+        for it."""
 
     def refuses_determinism(self, model: Any) -> Optional[str]:
         """Why it cannot give bit-identical batches for `model` from the same seed (with what

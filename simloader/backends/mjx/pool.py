@@ -20,7 +20,6 @@ S = mujoco.mjtState
 # The mjSTATE_FULLPHYSICS components MJX simulates. The others must be empty (checked at
 # construction), so this spec's layout is FULLPHYSICS's, column for column.
 PHYSICS = int(S.mjSTATE_TIME | S.mjSTATE_QPOS | S.mjSTATE_QVEL | S.mjSTATE_ACT)
-_UNSIMULATED = gpu_state.GPU_UNSIMULATED
 
 
 def put_model(model: mujoco.MjModel, device: jax.Device) -> Any:
@@ -61,11 +60,10 @@ def put_models(config: SimConfig, device: jax.Device) -> tuple[Any, Any]:
     host = device if len(models) == 1 else jax.local_devices(backend="cpu")[0]
     puts = []
     for name, model in zip(names, models):
-        for bit, what, size in _UNSIMULATED:
-            if mujoco.mj_stateSize(model, int(bit)):
-                raise ValueError(f"{name}: MJX does not support {what} ({size}="
-                                 f"{mujoco.mj_stateSize(model, int(bit))}); use "
-                                 f"backend='cpu'")
+        unsimulated = gpu_state.unsimulated(model)
+        if unsimulated:
+            raise ValueError(f"{name}: MJX does not support {unsimulated[0]}; use "
+                             f"backend='cpu'")
         try:
             puts.append(put_model(model, host))
         except NotImplementedError as e:

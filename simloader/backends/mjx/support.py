@@ -1,6 +1,6 @@
 """Whether MJX (its XLA implementation) can simulate a model, said by feature and by object:
-asked by `backend="auto"` before it chooses (`MjxEngine.refuses_model`), by an explicit
-`backend="mjx"` before anything is compiled, and by `simloader info`.
+asked by `backend="auto"` of MJX when it is about to choose it (`MjxEngine.refuses_model`), by
+an explicit `backend="mjx"` before anything is compiled, and by `simloader info`.
 
 MJX's own `put_model` refuses what it cannot simulate by geom *types* ("(mjGEOM_CYLINDER,
 mjGEOM_BOX) collisions not implemented"), and its `make_data` raised a bare
@@ -49,13 +49,17 @@ def condim(model: mujoco.MjModel, g1: int, g2: int, pair: int) -> int:
     return int(max(model.geom_condim[g1], model.geom_condim[g2]))
 
 
+def _listed(pairs: list[str]) -> str:
+    """"n geom pairs: the first SHOWN of them and k more"."""
+    more = f" and {len(pairs) - SHOWN} more" if len(pairs) > SHOWN else ""
+    return (f"{len(pairs)} geom pair{'s' if len(pairs) > 1 else ''}: "
+            f"{', '.join(pairs[:SHOWN])}{more}")
+
+
 def refusal(model: mujoco.MjModel) -> Optional[str]:
     """Why MJX cannot simulate `model`, naming the feature and the objects that use it, or
     None where these checks find nothing (`put_model` may still refuse a rarer feature)."""
-    said = []
-    for bit, what, size in gpu_state.GPU_UNSIMULATED:
-        if mujoco.mj_stateSize(model, int(bit)):
-            said.append(f"{what} ({size}={mujoco.mj_stateSize(model, int(bit))})")
+    said = gpu_state.unsimulated(model)
     from simloader.backends.mjx import runtime  # noqa: F401 - MJX imported quietly, once
     from mujoco.mjx._src import collision_driver
     missing: dict[tuple[str, str], list[str]] = collections.defaultdict(list)
@@ -75,19 +79,12 @@ def refusal(model: mujoco.MjModel) -> Optional[str]:
             if margin:
                 margins.append(pair)
     for (k1, k2), pairs in missing.items():
-        shown = ", ".join(pairs[:SHOWN]) + (f" and {len(pairs) - SHOWN} more"
-                                            if len(pairs) > SHOWN else "")
-        said.append(f"{k1}-{k2} collisions ({len(pairs)} geom pair"
-                    f"{'s' if len(pairs) > 1 else ''}: {shown})")
+        said.append(f"{k1}-{k2} collisions ({_listed(pairs)})")
     if margins:
-        said.append(f"a margin on mesh or height-field collisions ({len(margins)} geom "
-                    f"pairs: {', '.join(margins[:SHOWN])})")
+        said.append(f"a margin on mesh or height-field collisions ({_listed(margins)})")
     if model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC and single:
         said.append(f"frictionless contacts (condim=1) under the elliptic friction cone "
-                    f"({len(single)} geom pair{'s' if len(single) > 1 else ''}: "
-                    f"{', '.join(single[:SHOWN])}"
-                    f"{f' and {len(single) - SHOWN} more' if len(single) > SHOWN else ''}; "
-                    f"<option cone=\"pyramidal\"/> or condim=3 avoids it)")
+                    f"({_listed(single)}; <option cone=\"pyramidal\"/> or condim=3 avoids it)")
     if not said:
         return None
     return "MJX does not simulate " + "; ".join(said)

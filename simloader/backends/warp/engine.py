@@ -387,4 +387,3 @@ class WarpSimulation:
             self.mjw.forward(self.m, self.d)
         else:
             self.mjw.step1(self.m, self.d)
-

@@ -22,9 +22,8 @@ from simloader.backends.warp import cameras, model_arrays, runtime
 from simloader.config import SimConfig
 
 S = mujoco.mjtState
-# The mjSTATE_FULLPHYSICS components the engine simulates. The others must be empty (checked
-# here), so that a FULLPHYSICS row is time, qpos, qvel, act.
-_UNSIMULATED = gpu_state.GPU_UNSIMULATED
+# The mjSTATE_FULLPHYSICS components the engine simulates (time, qpos, qvel, act): the others
+# must be empty (`check_simulated`, over `gpu_state.GPU_UNSIMULATED`)
 # MuJoCo Warp's OverflowType bits: the solver stopping at its iteration limits (which MuJoCo C's
 # does silently) is counted; every other bit means a buffer overflowed and something (contacts,
 # constraint rows, collision detail) was dropped
@@ -132,11 +131,11 @@ def _positive(name: str, value: Any) -> Optional[int]:
 
 
 def check_simulated(name: str, model: mujoco.MjModel) -> None:
-    """Refuses a model with state the Warp engine does not simulate (`_UNSIMULATED`)."""
-    for bit, what, size in _UNSIMULATED:
-        if mujoco.mj_stateSize(model, int(bit)):
-            raise ValueError(f"{name}: the Warp engine does not simulate {what} ({size}="
-                             f"{mujoco.mj_stateSize(model, int(bit))}); use backend='cpu'")
+    """Refuses a model with state the Warp engine does not simulate (`gpu_state`)."""
+    unsimulated = gpu_state.unsimulated(model)
+    if unsimulated:
+        raise ValueError(f"{name}: the Warp engine does not simulate {unsimulated[0]}; use "
+                         f"backend='cpu'")
 
 
 def _differing(puts: list, names: list[str]) -> list[str]:
