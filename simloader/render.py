@@ -171,7 +171,8 @@ def _quality(model: mujoco.MjModel, multisample: bool) -> mujoco.MjModel:
 
 
 class Renderers:
-    """The renderers of one thread (one per image size), made in it and used only there.
+    """The renderers of one thread (one per image size and multisampling), made in it and used
+    only there.
 
     Args:
       model: the batch's model (renderers are made from it: sizes, meshes, textures).
