@@ -28,7 +28,7 @@ import common
 from common import markdown_table
 
 from simloader import terminate as T
-from simloader.tools import bench
+from simloader import bench
 
 
 @dataclasses.dataclass(frozen=True)

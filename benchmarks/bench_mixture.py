@@ -39,7 +39,7 @@ from common import markdown_table
 
 import simloader
 from simloader import controls
-from simloader.tools import bench
+from simloader import bench
 
 MEMBERS = [bench.Workload("cartpole", 8192, 200), bench.Workload("humanoid", 4096, 100)]
 QUICK = [bench.Workload("cartpole", 64, 50), bench.Workload("humanoid", 16, 20)]

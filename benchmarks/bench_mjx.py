@@ -13,7 +13,7 @@ raw `mujoco.rollout` and simloader's rollout backend on all cores (bench_rollout
 `--backend` picks simloader's GPU engine (`mjx`, `warp` or `auto`); the raw baseline runs the
 engine simloader resolved. On
 `warp` that is simloader's Warp engine, the public `mujoco_warp` from torch (not MJX's vendored
-Warp through JAX): the raw rows are `simloader.tools.bench.RawWarp`, one captured step graph replayed
+Warp through JAX): the raw rows are `simloader.bench.RawWarp`, one captured step graph replayed
 with the same work (controls in, state and sensors out every step) and with no controls at all
 (the upper bound, MuJoCo Warp's own `testspeed` setting), with simloader's buffer sizes.
 benchmarks/bench_warp.py has more Warp rows (policy, pixels, startup).
@@ -49,7 +49,7 @@ import mujoco  # noqa: E402
 import bench_rollout  # noqa: E402
 import common  # noqa: E402
 import simloader  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", n, 1000) for n in (1024, 8192, 65536)] + \
     [common.Workload("humanoid", n, 200) for n in (4096, 16384)]

@@ -26,7 +26,7 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 import closed_loop_baselines as baselines  # noqa: E402
 import common  # noqa: E402
 import simloader  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("humanoid", 8192, 200), common.Workload("cartpole", 4096, 200)]
 QUICK = [common.Workload("cartpole", 8, 10)]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import closed_loop_baselines as baselines
 import common
-from simloader.tools import bench
+from simloader import bench
 
 DEFAULT = [common.Workload("cartpole", 4096, 200), common.Workload("humanoid", 1024, 100)]
 QUICK = [common.Workload("cartpole", 64, 20)]

@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 
 import common  # noqa: E402
 import simloader  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 from simloader import randomize as dr  # noqa: E402
 
 BACKENDS = ("cpu", "mjx")

@@ -18,7 +18,7 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 from collections.abc import Callable  # noqa: E402
 
 import common  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("humanoid", 8192, 200)]
 QUICK = [common.Workload("cartpole", 32, 10)]

@@ -14,49 +14,14 @@ import os
 # the raw renderers are plain mujoco.Renderer: MuJoCo reads its GL platform at import
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import concurrent.futures  # noqa: E402
-import threading  # noqa: E402
 import time  # noqa: E402
 
 import common  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", 512, 50)]
 QUICK = [common.Workload("cartpole", 8, 4)]
 VIEWS = {"cartpole": "fixed", "humanoid": "side"}
-
-
-class RawRenderers:
-    """`nthread` threads, each with its own mujoco.Renderer, rendering (nbatch, nframes) FULLPHYSICS
-    states into one uint8 array."""
-
-    def __init__(self, model: mujoco.MjModel, camera: str, size: int, nthread: int):
-        self.model, self.camera, self.size, self.nthread = model, camera, size, nthread
-        self.local = threading.local()
-        self.pool = concurrent.futures.ThreadPoolExecutor(nthread)
-
-    def _rows(self, rows, states, out):
-        local = self.local
-        if not hasattr(local, "renderer"):
-            local.renderer = mujoco.Renderer(self.model, self.size, self.size)
-            local.data = mujoco.MjData(self.model)
-        r, d = local.renderer, local.data
-        for i in rows:
-            for j in range(states.shape[1]):
-                mujoco.mj_setState(self.model, d, states[i, j],
-                                   mujoco.mjtState.mjSTATE_FULLPHYSICS)
-                mujoco.mj_forward(self.model, d)
-                r.update_scene(d, self.camera)
-                r.render(out=out[i, j])
-
-    def __call__(self, states: np.ndarray) -> np.ndarray:
-        out = np.empty((*states.shape[:2], self.size, self.size, 3), np.uint8)
-        chunks = np.array_split(np.arange(len(states)), 4 * self.nthread)
-        for f in [self.pool.submit(self._rows, c, states, out) for c in chunks if len(c)]:
-            f.result()
-        return out
 
 
 def main() -> None:
@@ -75,7 +40,7 @@ def main() -> None:
         sim = bench.SimloaderMeasure(model, w, "cpu", args.seed, nthread=args.threads,
                                      record=("state", view))
         states = next(iter(sim.ds))["state"].numpy()
-        raw = RawRenderers(model, camera, args.size, args.threads)
+        raw = bench.RawRenderers(model, camera, args.size, args.threads)
         raw(states)  # makes its renderers
         plain = bench.SimloaderMeasure(model, w, "cpu", args.seed, nthread=args.threads,
                                        record=("state",))

@@ -23,7 +23,7 @@ import mujoco
 
 import common
 import simloader
-from simloader.tools import bench
+from simloader import bench
 
 DEFAULT = [common.Workload("cartpole", 8192, 1000), common.Workload("humanoid", 4096, 200)]
 QUICK = [common.Workload("cartpole", 256, 200), common.Workload("humanoid", 64, 50)]

@@ -27,7 +27,7 @@ simloader alternate in the warm runs. "Cold" means cold compilation caches: the 
 not dropped (the libraries' files are read from memory after the first child).
 
 The raw scripts import neither simloader nor this folder; they are the recipes of
-`simloader.tools.bench` (`RawMjx`, `RawWarp`, `raw_rollout`), written out.
+`simloader.bench` (`RawMjx`, `RawWarp`, `raw_rollout`), written out (`simloader.bench.startup`).
 `XLA_PYTHON_CLIENT_PREALLOCATE=false` is set for both (simloader's default) unless already set.
 
 Run on the GPU machine from the repository root:
@@ -39,225 +39,21 @@ Smoke run on a laptop:
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import pathlib
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
-from typing import Any, Optional
+from typing import Optional
 
 import common
+from simloader.bench.startup import (CPU_AFTER_TORCH_S, PHASES, RAW_SCRIPT, SIM_OPTIONS,
+                                     SIMLOADER, run_child)
 
-REPO = common.REPO
 ENGINES = ("cpu", "mjx", "warp")
 DEFAULT = ["mjx:cartpole:4096x200", "mjx:humanoid:4096x200", "warp:humanoid:8192x200",
            "cpu:cartpole:4096x200"]
 QUICK = ["cpu:cartpole:64x20", "mjx:cartpole:64x20", "warp:cartpole:64x20"]
-PHASES = ("startup", "import_torch", "import_engine", "construct", "trace", "compile",
-          "first_sim", "handoff")
-CPU_AFTER_TORCH_S = 0.5  # rollout: simloader's first batch at most this after torch's import
-
-# -- the children: self-contained scripts, run as `python -c` -----------------------------------
-
-PRELUDE = r'''
-import json, os, sys, time
-_OFF = max(0.0, time.time() - float(os.environ["BENCH_STARTUP_T0"]))
-_PC0 = time.perf_counter() - _OFF
-P = {"startup": _OFF}
-X = {}
-_LAST = [time.perf_counter()]
-def mark(name):
-    now = time.perf_counter()
-    P[name] = now - _LAST[0]
-    _LAST[0] = now
-    return now
-SPEC = json.loads(os.environ["BENCH_STARTUP_SPEC"])
-def finish():
-    now = time.perf_counter()
-    out = {"phases": P, "total": now - _PC0, "after_torch": now - t_torch, "extra": X}
-    sys.stdout.flush()
-    print("\n" + json.dumps(out), flush=True)
-def handed_over(first):
-    """The first batch ({key: tensor}) is in torch's hands: its device and shape, the line."""
-    X["device"] = str(next(iter(first.values())).device)
-    X["shape"] = list(first["state"].shape) if "state" in first else None
-    finish()
-import torch  # first, as a torch user has it
-t_torch = mark("import_torch")
-'''
-
-RAW_JAX = PRELUDE + r'''
-import contextlib, io
-import jax
-import jax.numpy as jnp
-import mujoco
-with contextlib.redirect_stdout(io.StringIO()):  # mjx's "Failed to import warp" print
-    from mujoco import mjx
-mark("import_engine")
-jax.config.update("jax_compilation_cache_dir", SPEC["jax_cache"])
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-m = mujoco.MjModel.from_xml_path(SPEC["model"])
-mx = mjx.put_model(m, impl="jax")
-d0 = mjx.make_data(mx, impl="jax")  # the state mj_resetData gives
-jax.block_until_ready(d0)
-mark("construct")
-nbatch, nstep, nu = SPEC["nbatch"], SPEC["nstep"], m.nu
-limited = m.actuator_ctrllimited.astype(bool)
-low, high = -jnp.ones(nu), jnp.ones(nu)
-low = jnp.where(limited, m.actuator_ctrlrange[:, 0], low).astype(jnp.float32)
-high = jnp.where(limited, m.actuator_ctrlrange[:, 1], high).astype(jnp.float32)
-step = jax.vmap(mjx.step, in_axes=(None, 0))
-def batch(mx, d0, key, index):
-    ctrl = jax.random.uniform(jax.random.fold_in(key, index), (nstep, nbatch, nu),
-                              minval=low, maxval=high)
-    d = jax.tree.map(lambda x: jnp.broadcast_to(x, (nbatch, *x.shape)), d0)
-    def body(d, u):
-        d = step(mx, d.replace(ctrl=u))
-        state = jnp.concatenate([d.time[:, None], d.qpos, d.qvel, d.act], axis=1)
-        return d, (state, d.sensordata)
-    _, (state, sensordata) = jax.lax.scan(body, d, ctrl)
-    return {"state": state.swapaxes(0, 1), "sensordata": sensordata.swapaxes(0, 1),
-            "control": ctrl.swapaxes(0, 1)}
-key = jax.random.key(SPEC["seed"])
-jitted = jax.jit(batch)
-with jax.default_matmul_precision("float32"):
-    if hasattr(jitted, "trace"):
-        lowered = jitted.trace(mx, d0, key, 0).lower()
-    else:
-        lowered = jitted.lower(mx, d0, key, 0)
-    mark("trace")
-    compiled = lowered.compile()
-    mark("compile")
-out = jax.block_until_ready(compiled(mx, d0, key, 0))
-mark("first_sim")
-first = {k: torch.from_dlpack(v) for k, v in out.items()}
-mark("handoff")
-handed_over(first)
-'''
-
-RAW_WARP = PRELUDE + r'''
-import mujoco
-import warp as wp
-import mujoco_warp as mjw
-mark("import_engine")
-wp.init()
-m = mujoco.MjModel.from_xml_path(SPEC["model"])
-nworld, nstep, nu = SPEC["nbatch"], SPEC["nstep"], m.nu
-with wp.ScopedDevice("cuda:0"):
-    mw = mjw.put_model(m)
-    mw.opt.warn_overflow = 0  # no printf from the kernels (as simloader)
-    d = mjw.make_data(m, nworld=nworld)
-device = torch.device("cuda", 0)
-t = lambda a: wp.to_torch(a).reshape(nworld, -1)
-ctrl, parts, sensordata = t(d.ctrl), [t(getattr(d, f)) for f in ("time", "qpos", "qvel", "act")], t(d.sensordata)
-limited = torch.as_tensor(m.actuator_ctrllimited.astype(bool), device=device)
-rng = torch.as_tensor(m.actuator_ctrlrange, dtype=torch.float32, device=device)
-low = torch.where(limited, rng[:, 0], -1.0)
-high = torch.where(limited, rng[:, 1], 1.0)
-stream = torch.cuda.Stream(device)
-warp_stream = wp.stream_from_torch(stream)
-torch.cuda.synchronize()
-mark("construct")
-with torch.cuda.stream(stream), wp.ScopedStream(warp_stream):
-    mjw.step(mw, d)  # builds (or loads from the kernel cache) Warp's modules
-    wp.synchronize_stream(warp_stream)
-    mark("compile")
-    with wp.ScopedCapture() as capture:
-        mjw.step(mw, d)
-    graph = capture.graph
-    wp.synchronize_stream(warp_stream)
-    mark("trace")
-    mjw.reset_data(mw, d)  # back to the initial state after the two steps above
-    gen = torch.Generator(device).manual_seed(SPEC["seed"])
-    controls = low + (high - low) * torch.rand((nworld, nstep, nu), device=device, generator=gen)
-    nstate = sum(p.shape[1] for p in parts)
-    state = torch.empty((nworld, nstep, nstate), device=device)
-    sensors = torch.empty((nworld, nstep, sensordata.shape[1]), device=device)
-    for i in range(nstep):
-        ctrl.copy_(controls[:, i])
-        wp.capture_launch(graph, stream=warp_stream)
-        torch.cat(parts, dim=1, out=state[:, i])
-        sensors[:, i] = sensordata
-stream.synchronize()
-mark("first_sim")
-first = {"state": state, "sensordata": sensors, "control": controls,
-         "qpos": wp.to_torch(d.qpos)}  # the outputs are torch views of Warp's arrays already
-torch.cuda.current_stream().wait_stream(stream)
-torch.cuda.current_stream().synchronize()
-mark("handoff")
-handed_over(first)
-'''
-
-RAW_ROLLOUT = PRELUDE + r'''
-import numpy as np
-import mujoco
-from mujoco import rollout
-mark("import_engine")
-m = mujoco.MjModel.from_xml_path(SPEC["model"])
-try:
-    nthread = len(os.sched_getaffinity(0))
-except AttributeError:
-    nthread = os.cpu_count() or 1
-datas = [mujoco.MjData(m) for _ in range(nthread)]
-full = mujoco.mjtState.mjSTATE_FULLPHYSICS
-s0 = np.empty(mujoco.mj_stateSize(m, full))
-mujoco.mj_getState(m, datas[0], s0, full)
-nbatch, nstep = SPEC["nbatch"], SPEC["nstep"]
-x0 = np.tile(s0, (nbatch, 1))
-limited = m.actuator_ctrllimited.astype(bool)
-low, high = -np.ones(m.nu), np.ones(m.nu)
-low[limited] = m.actuator_ctrlrange[limited, 0]
-high[limited] = m.actuator_ctrlrange[limited, 1]
-rng = np.random.default_rng(SPEC["seed"])
-mark("construct")
-control = rng.uniform(low, high, size=(nbatch, nstep, m.nu))
-state, sensordata = rollout.rollout(m, datas, x0, control, persistent_pool=True)
-mark("first_sim")
-first = {"state": torch.from_numpy(state), "sensordata": torch.from_numpy(sensordata),
-         "control": torch.from_numpy(control)}
-mark("handoff")
-X["threads"] = nthread
-handed_over(first)
-'''
-
-SIMLOADER = PRELUDE + r'''
-import simloader
-from simloader import controls
-mark("import_engine")
-kwargs = {"backend": SPEC["backend"]}
-ds = simloader.SimDataset(SPEC["model"], nbatch=SPEC["nbatch"], nstep=SPEC["nstep"],
-                          control=controls.Uniform(), seed=SPEC["seed"], **kwargs)
-mark("construct")
-it = iter(ds)
-start = time.perf_counter()
-batch = next(it)
-first_s = time.perf_counter() - start
-_LAST[0] = time.perf_counter()
-if torch.cuda.is_available() and torch.cuda.is_initialized():
-    # torch's stream only: a device-wide synchronize could break a CUDA graph capture of the
-    # next batch under way in simloader's producer (see simloader.tools.bench.sync)
-    torch.cuda.current_stream().synchronize()
-mark("handoff")
-stats = ds.stats
-stats = stats if isinstance(stats, dict) else dict(vars(stats))
-trace, comp = stats.get("trace_s"), stats.get("compile_s")
-P["trace"] = trace
-P["compile"] = comp
-P["first_sim"] = max(0.0, first_s - (trace or 0.0) - (comp or 0.0))
-X.update({k: stats.get(k) for k in ("traces", "compiles", "programs_loaded", "backend",
-                                      "graph_captures")})
-handed_over(batch)
-it.close()
-'''
-
-RAW_SCRIPT = {"mjx": RAW_JAX, "warp": RAW_WARP, "cpu": RAW_ROLLOUT}
-SIM_OPTIONS = {"mjx": {"backend": "mjx"}, "warp": {"backend": "warp"},
-               "cpu": {"backend": "cpu"}}
-
 
 # -- the parent ---------------------------------------------------------------------------------
 
@@ -284,45 +80,6 @@ def model_path(name: str, folder: Optional[pathlib.Path]) -> str:
             raise SystemExit(f"model {name!r}: no file {path}")
     from simloader import models
     return str(models.builtin_path(name))
-
-
-def child_env(root: pathlib.Path, spec: dict, simloader: bool) -> dict[str, str]:
-    env = dict(os.environ)
-    for var, sub in (("XDG_CACHE_HOME", "xdg"), ("JAX_COMPILATION_CACHE_DIR", "jax"),
-                     ("WARP_CACHE_PATH", "warp"), ("CUDA_CACHE_PATH", "cuda")):
-        env[var] = str(root / sub)
-        (root / sub).mkdir(parents=True, exist_ok=True)
-    env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    env["BENCH_STARTUP_SPEC"] = json.dumps(spec)
-    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
-             if p and pathlib.Path(p).resolve() != REPO]
-    if simloader:  # benchmark the checkout this script is in, installed or not
-        paths.insert(0, str(REPO))
-    env["PYTHONPATH"] = os.pathsep.join(paths)
-    return env
-
-
-def run_child(script: str, root: pathlib.Path, spec: dict, simloader: bool,
-              timeout: float) -> dict[str, Any]:
-    """One fresh process; its JSON line, plus `wall`, or `{"error": ...}`."""
-    env = child_env(root, spec, simloader)
-    env["BENCH_STARTUP_T0"] = repr(time.time())
-    start = time.perf_counter()
-    try:
-        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                              env=env, cwd=root, timeout=timeout)
-    except subprocess.TimeoutExpired as e:
-        tail = (e.stderr or b"")[-1500:]
-        tail = tail.decode(errors="replace") if isinstance(tail, bytes) else tail
-        return {"error": f"timed out after {timeout:.0f} s\n{tail}"}
-    wall = time.perf_counter() - start
-    lines = [line for line in proc.stdout.strip().splitlines() if line.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        return {"error": f"exit {proc.returncode}\n{proc.stderr[-3000:]}"}
-    out = json.loads(lines[-1])
-    out["wall"] = wall
-    out["stderr"] = proc.stderr[-1500:]
-    return out
 
 
 def fmt(values: list[Optional[float]], spread: bool = False) -> str:

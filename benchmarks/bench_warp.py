@@ -3,7 +3,7 @@
 Rows, per workload, all measured in this process with alternating repetitions (medians):
 
 - raw, no controls (the ceiling): one `mjw.step` captured as a CUDA graph, replayed.
-- raw, same work (`simloader.tools.bench.RawWarp`, the baseline of `simloader bench` too): the same
+- raw, same work (`simloader.bench.RawWarp`, the baseline of `simloader bench` too): the same
   graph, plus what simloader does per step in the plainest torch a user would write: the
   step's controls copied into `d.ctrl` from a (nworld, nstep, nu) tensor drawn on the GPU
   every batch, and the state (time, qpos, qvel, act) and sensors copied into
@@ -37,7 +37,7 @@ from common import markdown_table
 
 import simloader
 from simloader import controls
-from simloader.tools import bench
+from simloader import bench
 
 WORKLOADS = [common.Workload("humanoid", 8192, 200), common.Workload("humanoid", 32768, 100),
              common.Workload("cartpole", 8192, 1000)]
@@ -127,7 +127,7 @@ _JAX_CHILD = """
 import json, statistics, sys, time
 import simloader
 from simloader import controls
-from simloader.tools import bench
+from simloader import bench
 path, nbatch, nstep, n, repeats = sys.argv[1], *map(int, sys.argv[2:])
 ds = simloader.SimDataset(path, backend="mjx", nbatch=nbatch, nstep=nstep,
                           control=controls.Uniform(), num_batches=n)

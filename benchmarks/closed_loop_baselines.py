@@ -15,7 +15,7 @@ import numpy as np
 
 import torch
 
-from simloader.tools.bench import STEP_READS, RawBaseline, Workload, ctrl_bounds
+from simloader.bench import STEP_READS, RawBaseline, Workload, ctrl_bounds
 
 
 def mlp(nin: int, nout: int, hidden: int = 256, seed: int = 0) -> "torch.nn.Module":

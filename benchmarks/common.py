@@ -27,10 +27,10 @@ REPO = pathlib.Path(__file__).resolve().parent.parent
 # benchmark the checkout the scripts are in, installed or not
 sys.path.insert(0, str(REPO))
 # the measuring core is the package's (it backs `simloader bench`); re-exported for the scripts
-from simloader.tools.bench import (  # noqa: E402,F401
+from simloader.bench import (  # noqa: E402,F401
     HEADERS, Stream, Workload, cpu_count, ctrl_bounds, drain, interleave, markdown_table,
     method_rows, ns, progress, rate, ratio, sync, time_stream)
-from simloader.tools import bench as _bench  # noqa: E402
+from simloader import bench as _bench  # noqa: E402
 # the lead copies the models into the ignored .models/ (only the repository travels to the GPU
 # machine); a developer checkout has them in ../shared
 MODEL_DIRS = (REPO / ".models" / "dm_control", REPO.parent / "shared" / "models" / "dm_control")

@@ -301,7 +301,7 @@ def info(args: argparse.Namespace) -> None:
 
 
 def bench(args: argparse.Namespace) -> None:
-    from simloader.tools import bench as b
+    from simloader import bench as b
     with from_arguments():
         model = simloader.load_model(args.model)
     plot = os.path.join(args.out, args.plot) if args.plot else ""
@@ -326,6 +326,85 @@ def bench(args: argparse.Namespace) -> None:
     if plot:
         b.bar_plot(plot, f"{w}: simloader vs raw", s_per_step)
         print(f"plot saved to {plot}")
+
+
+BENCH_COMMANDS = ("run", "report", "list")  # `simloader bench run` is the parser "bench-run"
+
+
+def bench_list(args: argparse.Namespace) -> None:
+    """The suite's workloads: name, machine kind, subject, baseline, target and its source."""
+    from simloader.bench import workloads
+    try:
+        chosen = workloads.select(args.workloads, args.suite)
+    except ValueError as e:
+        raise BadArgument(str(e)) from None
+    for b in chosen:
+        target = "measured only" if b.target is None else f"target {b.target:.3f}x"
+        print(f"{b.name} [{b.suite}] {target}: {b.source}\n    subject:  {b.subject}\n"
+              f"    baseline: {b.baseline}")
+
+
+def bench_run(args: argparse.Namespace) -> None:
+    """Runs the suite's workloads, appends their JSON lines to --out, prints the table and,
+    with --check, exits 1 naming each workload below its target."""
+    import datetime
+    import pathlib
+
+    from simloader.bench import results, suite, workloads
+    try:
+        chosen = workloads.select(args.workloads, args.suite)
+    except ValueError as e:
+        raise BadArgument(str(e)) from None
+    if not chosen:
+        raise BadArgument(f"workloads: none of {args.workloads} is in --suite {args.suite}")
+    if args.quick:
+        chosen = [workloads.quick(b) for b in chosen]
+    out = pathlib.Path(args.out or os.path.join(
+        DEFAULT_OUT, f"bench-{args.suite or 'chosen'}-"
+                     f"{datetime.date.today().isoformat()}.jsonl"))
+    print(f"simloader {simloader.__version__} bench run: {len(chosen)} workloads, "
+          f"{args.repeats} alternating repetitions each; lines to {out}")
+
+    def said(line: dict) -> None:
+        if line.get("role") != "subject":
+            return
+        if "error" in line:
+            print(f"  {line['workload']}: failed: {line['error']}")
+        else:
+            target = "" if line["target"] is None else f" (target {line['target']:.3f})"
+            print(f"  {line['workload']}: {line['ratio']:.3f}{target}")
+
+    lines = suite.run(chosen, out, repeats=args.repeats, min_seconds=args.min_seconds,
+                      seed=args.seed, folder=args.folder, on_line=said)
+    print(results.table(lines))
+    missed = results.failures(lines)
+    if args.check and missed:
+        print("simloader bench run --check: below target:\n" + "\n".join(
+            f"  {m}" for m in missed), file=sys.stderr)
+        raise SystemExit(1)
+
+
+def bench_report(args: argparse.Namespace) -> None:
+    """Renders JSON lines into NAME.md (a table) and NAME.png (the ratios and targets)."""
+    import pathlib
+
+    from simloader.bench import results
+    for path in args.results:
+        if not os.path.isfile(path):
+            raise BadArgument(f"results: expected a JSON-lines file, got {path!r} (no such file)")
+    try:
+        lines = results.read_lines(args.results)
+    except ValueError as e:
+        raise BadArgument(f"results: {e}") from None
+    name = args.name or pathlib.Path(args.results[0]).stem
+    md, png = results.report(lines, pathlib.Path(args.out), name,
+                             args.title or f"simloader bench: {name}")
+    print(f"{md}\n{png}")
+    if args.check:
+        missed = results.failures(lines)
+        if missed:
+            print("below target:\n" + "\n".join(f"  {m}" for m in missed), file=sys.stderr)
+            raise SystemExit(1)
 
 
 def check(args: argparse.Namespace) -> None:
@@ -508,7 +587,12 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
                         "its batch[\"params\"] key and what each column is (repeatable)")
     i.set_defaults(run=info)
 
-    b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators")
+    b = sub.add_parser("bench", help="time simloader's backends next to the raw simulators "
+                                     "(and `simloader bench run|report|list`: the suite)",
+                       description="One model on every engine here, next to the raw "
+                                   "simulators and a Python loop. The suite of named "
+                                   "workloads with targets is `simloader bench run`, "
+                                   "`simloader bench report` and `simloader bench list`.")
     add_model_argument(b)
     b.add_argument("--backends", nargs="+", choices=("cpu", "mjx", "warp"),
                    help="default: cpu, and the GPU engines that run here")
@@ -526,6 +610,50 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
     b.add_argument("--plot", default="simloader-bench.png",
                    help="file name of the bar chart in --out ('' for none)")
     b.set_defaults(run=bench)
+
+    def workload_arguments(p: argparse.ArgumentParser) -> None:
+        p.add_argument("workloads", nargs="*", metavar="WORKLOAD",
+                       help="names from `simloader bench list` (default: every workload of "
+                            "--suite)")
+        p.add_argument("--suite", choices=("cpu", "gpu"),
+                       help="the machine kind: cpu (any machine, the CPU engine) or gpu (an "
+                            "NVIDIA GPU: MJX and MuJoCo Warp)")
+        p.set_defaults(model=None)
+
+    br = sub.add_parser("bench-run", prog="simloader bench run",
+                        help="= `simloader bench run`: the suite's workloads, held to targets")
+    workload_arguments(br)
+    br.add_argument("--check", action="store_true",
+                    help="exit 1 if a workload is below its target, naming it")
+    br.add_argument("--quick", action="store_true",
+                    help="smoke-test sizes (a 64th of the trajectories, a tenth of the steps): "
+                         "that every part runs here, not the targets")
+    br.add_argument("--out", help="the JSON-lines file the results are appended to (default: "
+                                  f"{DEFAULT_OUT}/bench-SUITE-DATE.jsonl)")
+    br.add_argument("--repeats", type=positive_int, default=3,
+                    help="alternating timed repetitions per workload")
+    br.add_argument("--min-seconds", type=float, default=1.5,
+                    help="each timed repetition lasts at least this long")
+    br.add_argument("--seed", type=int, default=0)
+    br.add_argument("--folder", help="where stores and start-up caches go while measured: a "
+                                     "temporary folder made in it (default: the system's), "
+                                     "removed at the end")
+    br.set_defaults(run=bench_run)
+
+    bp = sub.add_parser("bench-report", prog="simloader bench report",
+                        help="= `simloader bench report`: tables and plots from results")
+    bp.add_argument("results", nargs="+", help="JSON-lines files of `simloader bench run`")
+    bp.add_argument("--out", default=DEFAULT_OUT, help="folder for NAME.md and NAME.png")
+    bp.add_argument("--name", help="file name without suffix (default: the first file's)")
+    bp.add_argument("--title", help="the table's and plot's title")
+    bp.add_argument("--check", action="store_true",
+                    help="exit 1 if the latest row of a workload is below its target")
+    bp.set_defaults(run=bench_report, model=None)
+
+    bl = sub.add_parser("bench-list", prog="simloader bench list",
+                        help="= `simloader bench list`: the suite's workloads and targets")
+    workload_arguments(bl)
+    bl.set_defaults(run=bench_list)
 
     w = sub.add_parser("warmup", help="compile a GPU engine for a model ahead of time")
     add_model_argument(w)
@@ -589,13 +717,17 @@ def main(argv: list[str] | None = None) -> None:
     if argv is None and sys.argv[1:] == ["--reference"]:  # docs/cli.md
         print(reference(), end="")
         return
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["bench"] and argv[1:2] and argv[1] in BENCH_COMMANDS:
+        argv = [f"bench-{argv[1]}", *argv[2:]]  # `simloader bench run` is "bench-run"
     args = parser.parse_args(argv)
     sub_parser = sub.choices[args.command]
     option = getattr(args, "model_option", None)
     if option is not None and args.model is not None and option != args.model:
         sub_parser.error(f"model: given twice and differently, {args.model!r} (positional) and "
                          f"--model {option!r}; give one")
-    args.model = args.model or option or DEFAULT_MODEL
+    if not args.command.startswith("bench-"):
+        args.model = args.model or option or DEFAULT_MODEL
     if args.command == "video":  # the file: positional or --out, as write's --out
         if args.out_file is not None and args.out is not None and args.out_file != args.out:
             sub_parser.error(f"out: given twice and differently, {args.out_file!r} "

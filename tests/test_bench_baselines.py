@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import simloader
-from simloader.tools import bench
+from simloader import bench
 
 pytest.importorskip("mujoco.mjx")
 
@@ -43,7 +43,7 @@ def test_bench_imports_without_warp():
     # the baselines import their engines when built: `simloader bench` on the rollout backend
     # runs where MuJoCo Warp is not installed
     code = ("import sys; sys.modules['warp'] = sys.modules['mujoco_warp'] = None; "
-            "import simloader.tools.bench; assert 'jax' not in sys.modules")
+            "import simloader.bench; assert 'jax' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 

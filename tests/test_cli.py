@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from simloader import cli
-from simloader.tools import bench
+from simloader import bench
 
 
 def test_info_names_columns(capsys):

@@ -1,7 +1,7 @@
 """Determinism (reliability check 5): the same seed gives bit-identical batches across fresh
 processes on the CPU backend, with random controls, random initial states and randomized model
 parameters. (Within one process, and across DataLoader workers and ranks, see test_dataset.py;
-MJX on the GPU: benchmarks/determinism.py.)"""
+MJX on the GPU: benchmarks/experiments/determinism.py.)"""
 
 import hashlib
 import json

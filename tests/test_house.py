@@ -30,12 +30,12 @@ def test_a_circle_is_named():
 def test_every_engine_lives_in_its_folder_alone():
     # outside an engine's folder nothing imports its modules, at load time or later: the
     # registry names each engine's entry module as a string (backends.ENGINES). The raw
-    # baselines `simloader bench` compares with (tools/) drive MJX themselves
+    # baselines `simloader bench` compares with (bench/raw.py) drive MJX themselves
     top, lazy = house.graph()
     reaching = sorted((m, t) for g in (top, lazy) for m, targets in g.items() for t in targets
                       for e in ENGINES if (t == e or t.startswith(e + "."))
                       and not (m == e or m.startswith(e + ".")))
-    assert reaching == [("simloader.tools.bench", "simloader.backends.mjx.runtime")]
+    assert reaching == [("simloader.bench.raw", "simloader.backends.mjx.runtime")]
 
 
 def test_no_circle_through_lazy_imports_either():
@@ -46,11 +46,11 @@ def test_no_circle_through_lazy_imports_either():
     house.floors(both)  # raises on a circle, naming it
 
 
-# engine words as values: only the registry and the engines' folders hold them. tools/ is
+# engine words as values: only the registry and the engines' folders hold them. bench/ is
 # `simloader bench`'s raw baselines, which drive each engine's raw library by name (the CLI's
 # `bench --backends` choices are those baselines)
 ENGINE_WORDS = {"cpu", "mjx", "warp", "rollout"}
-ALLOWED = ("simloader/backends/", "simloader/tools/")
+ALLOWED = ("simloader/backends/", "simloader/bench/")
 
 
 def _engine_words(path):

@@ -96,9 +96,15 @@ def forward_at(model, state, warmstart, ctrl):
     return data
 
 
+_PARSED = {}
+
+
 def field_of(data, model, name):
     """What `record=[name]` holds for one frame, from an MjData."""
-    (r,) = records.parse(model, [name])
+    key = (id(model), name)  # parsed once: a check reads every field of every frame
+    if key not in _PARSED:
+        (_PARSED[key],) = records.parse(model, [name])
+    r = _PARSED[key]
     return np.asarray(r.value(np, {f: np.asarray(getattr(data, f)) for f in r.fields()}, ()))
 
 

@@ -1,7 +1,7 @@
 """`backend="auto"`: which engine runs fastest for this model, these sizes and this machine.
 
 The choice is an estimate of each candidate's steps per second, from a rule measured on the
-machines in `benchmarks/results/auto_choice-*.md` (`benchmarks/auto_choice.py` prints the rule's
+machines in `benchmarks/results/auto_choice-*.md` (`benchmarks/experiments/auto_choice.py` prints the rule's
 estimate next to every engine's measured throughput and says whether `auto` chose the fastest):
 
 - the CPU engine runs `min(nbatch, cores)` trajectories at once, each at this model's own

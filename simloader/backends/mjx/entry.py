@@ -10,7 +10,7 @@ from simloader.backends import gpu_rule
 from simloader.backends.contract import Engine, EngineEntry, Job
 
 # (floor, cost) of one step of a batch, fitted on an H200 to simloader's delivered steps/s
-# (auto_choice-h200-2026-11-26.md): XLA fuses a contact-free step (about 0.2 ms a step
+# (archive/auto_choice-h200-2026-11-26.md): XLA fuses a contact-free step (about 0.2 ms a step
 # whatever the batch); contacts make it much dearer per trajectory
 RULE = {False: ((200e-6, 0.0), (0.0, 1 / 300)), True: ((0.0, 115.0), (0.0, 1 / 43))}
 # MJX on JAX's CPU (no GPU): XLA spreads the vmapped batch over the cores; a step of the batch

@@ -17,7 +17,7 @@ terms and no slot or row is raced for:
 - at most two actuators on any degree of freedom (their forces are atomic adds).
 
 The built-in cart-pole passes (its one limited slider, one actuator); the humanoid does not
-(contacts, 21 limited hinges). Measured on the GPU: `benchmarks/determinism.py`.
+(contacts, 21 limited hinges). Measured on the GPU: `benchmarks/experiments/determinism.py`.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ from simloader.backends import gpu_rule
 from simloader.backends.contract import Engine, EngineEntry, Job
 
 # (floor, cost) of one step of a batch, fitted on an H200 to simloader's delivered steps/s
-# (auto_choice-h200-2026-11-26.md): the graph's kernel launches, about 0.24 ms a step for the
+# (archive/auto_choice-h200-2026-11-26.md): the graph's kernel launches, about 0.24 ms a step for the
 # cart-pole and 0.52 ms for the humanoid, then a small cost per trajectory
 RULE = {False: ((212e-6, 15.5), (0.0, 1 / 167)), True: ((212e-6, 15.5), (0.0, 1 / 199))}
 # a torch policy between steps inside the captured graph: 0.78 of the open loop for the

@@ -9,20 +9,24 @@ physics of the continued worlds (a humanoid under random controls falls and lies
 more contacts, more constraint rows, more solver work per step), not simloader's bookkeeping;
 the contacts per world at the end of a batch are printed beside each.
 
-    python benchmarks/warp_continued_cost.py --save --results-dir $OUT --tag h200
+    python benchmarks/experiments/warp_continued_cost.py --save --results-dir $OUT --tag h200
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import time
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
+# benchmarks/ on the path: `common` is there, one folder up from these experiments
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
 import common  # noqa: E402
 import mujoco  # noqa: E402
 import torch  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("humanoid", 4096, 100)]
 QUICK = [common.Workload("cartpole", 64, 10)]

@@ -19,13 +19,12 @@ one process and the median of the repetitions is reported (`shared/design/perfor
 
 from __future__ import annotations
 
+import concurrent.futures
+import copy
 import dataclasses
-import math
-import os
-import statistics
-import sys
+import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable
 from typing import Any, Optional
 
 import mujoco
@@ -68,110 +67,6 @@ def ctrl_bounds(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
     low[limited] = model.actuator_ctrlrange[limited, 0]
     high[limited] = model.actuator_ctrlrange[limited, 1]
     return low, high
-
-
-def cpu_count() -> int:
-    """CPU cores this process may run on (what simloader's CPU engine uses)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-def device_name(device: torch.device) -> str:
-    """What a torch device is, for the "runs on" column ("NVIDIA H200", "CPU")."""
-    return torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-
-
-# -- timing -----------------------------------------------------------------------------------
-
-def sync() -> None:
-    """Waits for the GPU work queued on torch's current stream.
-
-    Not a device-wide `torch.cuda.synchronize()`: simloader orders each delivered batch before
-    the consumer's stream, so that stream is all a timing of delivered batches must wait for;
-    a device-wide synchronize would also wait for the batches the producer thread simulates
-    ahead, and time them twice.
-    """
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
-        torch.cuda.current_stream().synchronize()
-
-
-def drain() -> None:
-    """Waits until the work already dispatched to the devices has run.
-
-    simloader's MJX producer dispatches batches ahead; those an iterator was closed on still
-    run on the device and would slow whatever is timed next. Devices run their work in order,
-    so a tiny computation on each, waited for, waits for them.
-    """
-    sync()
-    jax = sys.modules.get("jax")
-    if jax is not None:
-        for device in jax.local_devices():
-            jax.block_until_ready(jax.device_put(0, device) + 1)
-
-
-def progress(iterable: Iterable, desc: str = "", total: Optional[int] = None) -> Iterable:
-    """A tqdm progress bar on stderr (sparse when stderr is a log file)."""
-    from tqdm import tqdm
-    return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr,
-                mininterval=1.0 if sys.stderr.isatty() else 30.0)
-
-
-def interleave(measures: dict[str, Callable[[], float]], repeats: int,
-               desc: str = "") -> dict[str, float]:
-    """The median of each measure's result, the measures run alternately `repeats` times.
-
-    Each measure times its own steady part (warm-up excluded) and returns seconds per
-    simulated step. The order is reversed every repetition, so that drift in the machine
-    (clocks, caches, other load) touches every measure alike.
-    """
-    times: dict[str, list[float]] = {name: [] for name in measures}
-    order = list(measures)
-    for rep in progress(range(repeats), desc=desc):
-        for name in order if rep % 2 == 0 else reversed(order):
-            times[name].append(measures[name]())
-    return {name: statistics.median(t) for name, t in times.items()}
-
-
-def batches_for(batch_s: float, min_batches: int, min_seconds: float) -> int:
-    """Timed batches per repetition: `min_batches`, or more to last `min_seconds`."""
-    return max(min_batches, math.ceil(min_seconds / max(batch_s, 1e-9)))
-
-
-@dataclasses.dataclass
-class Stream:
-    """One pass over a dataset: `first_s` to the first batch, `steady_s` for the rest."""
-
-    first_s: float
-    steady_s: float
-    last: Optional[dict[str, torch.Tensor]] = None
-
-
-def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
-                keep_last: bool = False) -> Stream:
-    """Delivered throughput of a dataset: `nbatches` batches after the first, tensors in hand.
-
-    A fresh iterator per call: simloader's producer thread starts with it and stops at
-    `close`, and the device is drained, so nothing simulates while another measure runs. The
-    first batch, which pays for threads, compilation and the empty prefetch queue, is timed
-    apart; the steady part runs from holding the first batch to holding the last, blocked on
-    the device after each.
-    """
-    it = iter(ds)
-    try:
-        start = time.perf_counter()
-        batch = next(it)
-        sync()
-        first = time.perf_counter()
-        for _ in range(nbatches):
-            del batch  # release a (possibly multi-GB) batch before the next arrives
-            batch = next(it)
-            sync()
-        return Stream(first - start, time.perf_counter() - first, batch if keep_last else None)
-    finally:
-        it.close()
-        drain()
 
 
 # -- the raw baselines ------------------------------------------------------------------------
@@ -386,6 +281,11 @@ class RawWarp(RawBaseline):
       cameras: also render camera 0 at 64x64 RGB every step and copy its pixels out.
       kinematics: also compute MuJoCo Warp's kinematics of the new state inside the graph,
         after the step (what `after_step` may read).
+      continued: the worlds continue from batch to batch (True), or are put back at the model's
+        initial state before every batch (False: time, qpos, qvel and act as `make_data` leaves
+        them, warmstart zero), as a simloader stream restarts them unless `continue_episodes`.
+        The two differ in physics, not bookkeeping: a fallen humanoid's contacts cost MuJoCo
+        Warp about 11% more per step than a falling one's (`warp-continued-physics`).
       after_step: with same work, `after_step(self, t)` after step `t`'s state is copied out,
         in torch on the baseline's stream (a reset of the rows a rule ends, for example).
 
@@ -401,7 +301,8 @@ class RawWarp(RawBaseline):
     def __init__(self, model: mujoco.MjModel, w: Workload, seed: int,
                  sizes: tuple[Optional[int], Optional[int]] = (None, None),
                  same_work: bool = True, cameras: bool = False, kinematics: bool = False,
-                 after_step: Optional[Callable[[Any, int], None]] = None):
+                 after_step: Optional[Callable[[Any, int], None]] = None,
+                 continued: bool = False):
         # imported here: the package (and `simloader bench` on the CPU engine) runs
         # without Warp installed
         import mujoco_warp as mjw
@@ -429,6 +330,8 @@ class RawWarp(RawBaseline):
         self.ctrl, self.parts = t(self.d.ctrl), [t(getattr(self.d, f)) for f in
                                                  ("time", "qpos", "qvel", "act")]
         self.sensordata = t(self.d.sensordata)
+        self.continued = continued
+        self.initial = [p.clone() for p in self.parts]  # before any step
         self.gen = torch.Generator(self.device).manual_seed(seed)
         self.low, self.high = (torch.as_tensor(b, dtype=self.ctrl.dtype, device=self.device)
                                for b in ctrl_bounds(model))
@@ -451,9 +354,10 @@ class RawWarp(RawBaseline):
         self._time_first_batch()
 
     @classmethod
-    def matching(cls, model: mujoco.MjModel, w: Workload, seed: int, options: Any) -> RawWarp:
+    def matching(cls, model: mujoco.MjModel, w: Workload, seed: int, options: Any,
+                 **kwargs: Any) -> RawWarp:
         """The same-work baseline of a simloader dataset resolved to `options` (its sizes)."""
-        return cls(model, w, seed, sizes=(options.naconmax, options.njmax))
+        return cls(model, w, seed, sizes=(options.naconmax, options.njmax), **kwargs)
 
     def _physics(self) -> None:
         mjw = self.mjw
@@ -469,6 +373,10 @@ class RawWarp(RawBaseline):
     def __call__(self) -> dict[str, torch.Tensor]:
         wp = self.wp
         with torch.cuda.stream(self.stream):
+            if not self.continued:
+                for part, value in zip(self.parts, self.initial):
+                    part.copy_(value)
+                wp.to_torch(self.d.qacc_warmstart).zero_()
             if self.same_work:
                 torch.rand(self.controls.shape, generator=self.gen, device=self.device,
                            out=self.controls)
@@ -498,147 +406,60 @@ def raw_baseline(backend: str) -> type[RawMjx] | type[RawWarp]:
     return baselines[backend]
 
 
-# -- simloader, measured the same way ---------------------------------------------------------
+class RawRenderers:
+    """`nthread` threads, each with its own mujoco.Renderer, rendering (nbatch, nframes) FULLPHYSICS
+    states into one uint8 array.
 
-class SimloaderMeasure:
-    """A simloader dataset, warmed up by one pass (which compiles on MJX), then measured.
+    `gl`: the GL platform's module ("egl", "osmesa"), as `MUJOCO_GL` names it, for a process
+    that imported mujoco before choosing one (None: the one mujoco chose at import).
+    `shadows`, `multisample`: MuJoCo's shadow maps and multisampled offscreen buffer (its
+    defaults: on), off as a user turns them off for a software renderer (`offsamples = 0` on a
+    copy of the model, the scene's shadow flag)."""
 
-    Attributes:
-      ds: the dataset; first_s: seconds to its first batch (compilation included);
-      compile_s: of which compiling; shapes, device: of the delivered batch.
-    """
+    _gl_lock = threading.Lock()
 
-    def __init__(self, model: mujoco.MjModel, w: Workload, backend: str, seed: int,
-                 **options: Any):
-        import simloader  # imported late: benchmarks/ put their checkout first on sys.path
-        self.w = w
-        options = {"control": simloader.controls.Uniform(), **options}
-        self.ds = simloader.SimDataset(model, backend=backend, nbatch=w.nbatch, nstep=w.nstep,
-                                       seed=seed, **options)
-        first = time_stream(self.ds, 0, keep_last=True)
-        self.first_s = first.first_s
-        self.compile_s = self.ds.stats.get("compile_s", 0.0)
-        self.shapes = {k: tuple(v.shape) for k, v in first.last.items() if k != "params"}
-        self.device = first.last["control"].device
-        del first
+    def __init__(self, model: mujoco.MjModel, camera: Any, size: int, nthread: int,
+                 gl: Optional[str] = None, shadows: bool = True, multisample: bool = True):
+        if not multisample:
+            model = copy.copy(model)
+            model.vis.quality.offsamples = 0
+        self.model, self.camera, self.size, self.nthread = model, camera, size, nthread
+        self.gl, self.shadows = gl, shadows
+        self.local = threading.local()
+        self.pool = concurrent.futures.ThreadPoolExecutor(nthread)
 
-    def measure(self, nbatches: int) -> float:
-        """Seconds per step of `nbatches` delivered batches after a fresh iterator's first."""
-        return time_stream(self.ds, nbatches).steady_s / (nbatches * self.w.steps)
+    def _renderer(self) -> mujoco.Renderer:
+        if self.gl is None:
+            return mujoco.Renderer(self.model, self.size, self.size)
+        import importlib
 
+        from mujoco.rendering.classic import gl_context
+        with self._gl_lock:  # mujoco.Renderer takes its context class from this module
+            before = gl_context.GLContext
+            gl_context.GLContext = importlib.import_module(f"mujoco.{self.gl}").GLContext
+            try:
+                return mujoco.Renderer(self.model, self.size, self.size)
+            finally:
+                gl_context.GLContext = before
 
-# -- tables and plots -------------------------------------------------------------------------
+    def _rows(self, rows, states, out):
+        local = self.local
+        if not hasattr(local, "renderer"):
+            local.renderer = self._renderer()
+            local.data = mujoco.MjData(self.model)
+        r, d = local.renderer, local.data
+        for i in rows:
+            for j in range(states.shape[1]):
+                mujoco.mj_setState(self.model, d, states[i, j],
+                                   mujoco.mjtState.mjSTATE_FULLPHYSICS)
+                mujoco.mj_forward(self.model, d)
+                r.update_scene(d, self.camera)
+                r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+                r.render(out=out[i, j])
 
-def ns(seconds_per_step: float) -> str:
-    return f"{seconds_per_step * 1e9:,.1f}" if seconds_per_step < 1e-7 else \
-        f"{seconds_per_step * 1e9:,.0f}"
-
-
-def rate(steps_per_second: float) -> str:
-    return f"{steps_per_second / 1e6:,.2f}M"
-
-
-def ratio(x: Optional[float]) -> str:
-    return "-" if x is None else f"{x:.3f}"
-
-
-def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """A Markdown table, columns padded for reading in a terminal too."""
-    cells = [list(map(str, headers))] + [list(map(str, r)) for r in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
-    line = lambda r: "| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
-    return "\n".join([line(cells[0]), "| " + " | ".join("-" * w for w in widths) + " |"]
-                     + [line(r) for r in cells[1:]])
-
-
-HEADERS = ["workload", "nbatch x nstep", "method", "runs on", "ns/step", "steps/s",
-           "throughput / raw", "vs Python loop"]
-
-
-def method_rows(w: Workload, s_per_step: dict[str, float], runs_on: dict[str, str],
-                raw_of: dict[str, str], python: Optional[str]) -> list[list[str]]:
-    """Rows of `HEADERS`, one per method, in the order of `s_per_step`.
-
-    Args:
-      s_per_step: seconds per simulated step of each method.
-      runs_on: where each method runs ("16 cores", "NVIDIA H200").
-      raw_of: for a simloader method, the raw method it is compared to (throughput ratio).
-      python: the method that is the single-environment Python loop, for speed-ups.
-    """
-    base = s_per_step.get(python)
-    rows = []
-    for method, s in s_per_step.items():
-        raw = s_per_step.get(raw_of.get(method, method)) if method in raw_of or \
-            method in raw_of.values() else None
-        rows.append([w.name, f"{w.nbatch} x {w.nstep}", method, runs_on[method], ns(s),
-                     rate(1 / s), ratio(raw / s if raw else None),
-                     f"{base / s:,.1f}x" if base else "-"])
-    return rows
-
-
-def bar_plot(path: str, title: str, s_per_step: dict[str, float]) -> None:
-    """A horizontal bar chart of steps/s per method (log scale), raw baselines hatched."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = list(s_per_step)
-    fig, ax = plt.subplots(figsize=(7, 0.6 * len(names) + 1.5))
-    rates = [1 / s_per_step[n] for n in names]
-    raw = [n in RAW_OF.values() or n == PYTHON for n in names]
-    bars = ax.barh(names, rates, color=["lightgray" if r else "tab:blue" for r in raw],
-                   edgecolor=["dimgray" if r else "tab:blue" for r in raw],
-                   hatch=["//" if r else "" for r in raw])
-    for value, bar in zip(rates, bars):
-        ax.annotate(f" {value:,.3g}", (bar.get_width(), bar.get_y() + bar.get_height() / 2),
-                    va="center")
-    ax.set_xscale("log")
-    # log-scale bars start at the left edge: put it well below the slowest, so lengths compare
-    ax.set_xlim(min(rates) / 10, max(rates) * 3)
-    ax.invert_yaxis()
-    ax.set_xlabel("simulated steps per second (log)")
-    ax.set_title(title)
-    ax.grid(True, axis="x", which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-# -- `simloader bench` ------------------------------------------------------------------------
-
-def compare(model: mujoco.MjModel, w: Workload, backends: Sequence[str], *, repeats: int = 3,
-            min_batches: int = 3, min_seconds: float = 2.0, python_steps: int = 5000,
-            seed: int = 0) -> tuple[dict[str, float], dict[str, str], list[str]]:
-    """Measures the chosen backends next to their raw simulators and a Python loop.
-
-    Returns:
-      (seconds per step of each method, where each runs, notes).
-    """
-    measures: dict[str, Callable[[], float]] = {}
-    runs_on = {PYTHON: "1 core"}
-    notes = []
-    for backend in backends:
-        if backend == "cpu":
-            raw, batch_s = raw_rollout(model, w, cpu_count(), seed)
-            # all the cores, as the raw rollout: nothing trains beside this measurement
-            sim = SimloaderMeasure(model, w, "cpu", seed, nthread=cpu_count())
-            n = batches_for(batch_s, min_batches, min_seconds)
-            measures[RAW_ROLLOUT] = lambda raw=raw, n=n: raw(n)
-            measures[SIMLOADER_ROLLOUT] = lambda sim=sim, n=n: sim.measure(n)
-            runs_on[RAW_ROLLOUT] = runs_on[SIMLOADER_ROLLOUT] = f"{cpu_count()} cores"
-        elif backend in ("mjx", "warp"):
-            sim = SimloaderMeasure(model, w, backend, seed)
-            Raw = raw_baseline(backend)
-            raw = Raw.matching(model, w, seed, sim.ds.config.options)
-            notes.append(f"{backend}: raw: {Raw.engine}")
-            n = batches_for(raw.batch_s, min_batches, min_seconds)
-            measures[Raw.row] = lambda raw=raw, n=n: raw.measure(n)
-            measures[Raw.simloader_row] = lambda sim=sim, n=n: sim.measure(n)
-            runs_on[Raw.row] = runs_on[Raw.simloader_row] = device_name(sim.device)
-            notes.append(f"{backend}: compiled in {raw.compile_s:.1f} s (raw) and "
-                         f"{sim.compile_s:.1f} s (simloader, first batch after "
-                         f"{sim.first_s:.1f} s)")
-        else:
-            raise ValueError(f"backends: expected 'cpu', 'mjx' or 'warp', got {backend!r}")
-    measures[PYTHON] = python_loop(model, w.nstep, python_steps, seed)
-    return interleave(measures, repeats, desc=f"{w} x{repeats}"), runs_on, notes
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        out = np.empty((*states.shape[:2], self.size, self.size, 3), np.uint8)
+        chunks = np.array_split(np.arange(len(states)), 4 * self.nthread)
+        for f in [self.pool.submit(self._rows, c, states, out) for c in chunks if len(c)]:
+            f.result()
+        return out

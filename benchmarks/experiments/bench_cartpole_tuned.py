@@ -6,19 +6,25 @@ ls_iterations="4"`, contacts and Euler damping off); it keeps its own sensors an
 The issue's bar: the built-in cart-pole on MJX runs at least 0.9x the dm_control
 cart-pole's steps/s at 8192 trajectories. Measured alternately in one process (medians).
 
-  python benchmarks/bench_cartpole_tuned.py --model-dir .models/dm_control --save --results-dir $OUT
+  python benchmarks/experiments/bench_cartpole_tuned.py --model-dir .models/dm_control --save \\
+      --results-dir $OUT
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
+import sys
 
-import common
-from common import markdown_table
+# benchmarks/ on the path: `common` is there, one folder up from these experiments
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-import simloader
-from simloader.tools import bench
+import common  # noqa: E402
+from common import markdown_table  # noqa: E402
+
+import simloader  # noqa: E402
+from simloader import bench  # noqa: E402
 
 
 def main() -> None:

@@ -12,8 +12,8 @@ The runs of a setting share a new persistent compilation cache, as processes sha
 default cache: the first run compiles and the others load its executable. `--no-cache` makes
 every run compile (GPU autotuning may then pick other kernels from run to run).
 
-    python benchmarks/determinism.py --quick                          # CPU JAX, small sizes
-    python benchmarks/determinism.py --save --results-dir $OUT        # on the GPU machine
+    python benchmarks/experiments/determinism.py --quick              # CPU JAX, small sizes
+    python benchmarks/experiments/determinism.py --save --results-dir $OUT  # on the GPU machine
 """
 
 from __future__ import annotations
@@ -29,8 +29,11 @@ from typing import Any, Optional
 
 import numpy as np
 
-import common
-import simloader
+# benchmarks/ on the path: `common` is there, one folder up from these experiments
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import common  # noqa: E402
+import simloader  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", 4096, 200), common.Workload("humanoid", 4096, 100)]
 QUICK = [common.Workload("cartpole", 64, 20)]

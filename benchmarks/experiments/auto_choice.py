@@ -3,7 +3,7 @@ table of models and sizes, next to auto's choice and the rule's estimates.
 
 Rows: the built-in cart-pole (contact-free), the built-in humanoid (contacts) and the
 cart-pole with a 64x64 RGB camera (`Camera("front")`), each at nbatch 64, 1024 and 8192.
-Each engine is timed through simloader as delivered (`simloader.tools.bench.SimloaderMeasure`:
+Each engine is timed through simloader as delivered (`simloader.bench.SimloaderMeasure`:
 a warm-up pass, which compiles on MJX, then the median of `--repeats` passes of `--batches`
 batches, tensors in hand). Its start-up (construction to the first batch in hand, MJX with an
 empty compilation cache: a first run's) is timed too, since `auto` judges an endless stream by
@@ -12,8 +12,8 @@ that delivers most in that minute. The camera rows run fewer steps (`--camera-ns
 step renders `nbatch` images. Also printed: each model's single-core step time and the rule's
 estimate per engine (`simloader/backends/auto.py`), the numbers the rule is fitted to.
 
-  python benchmarks/auto_choice.py --save --results-dir $OUT          # GPU machine
-  python benchmarks/auto_choice.py --nstep 20 --save                   # 2-core machine
+  python benchmarks/experiments/auto_choice.py --save --results-dir $OUT  # GPU machine
+  python benchmarks/experiments/auto_choice.py --nstep 20 --save          # 2-core machine
 """
 
 from __future__ import annotations
@@ -21,20 +21,24 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import statistics
 import sys
 import tempfile
 import time
 
-import common
-from common import markdown_table
+# benchmarks/ on the path: `common` is there, one folder up from these experiments
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-import simloader
-from simloader import threads
-from simloader.tools import bench
-from simloader import backends
-from simloader.backends import auto
-from simloader.backends.contract import Job
+import common  # noqa: E402
+from common import markdown_table  # noqa: E402
+
+import simloader  # noqa: E402
+from simloader import threads  # noqa: E402
+from simloader import bench  # noqa: E402
+from simloader import backends  # noqa: E402
+from simloader.backends import auto  # noqa: E402
+from simloader.backends.contract import Job  # noqa: E402
 
 SIZES = (64, 1024, 8192)
 

@@ -24,9 +24,9 @@ engines also run simulating there (`SimDataset(sim_device=...)`), the batches de
 Default workloads: cpu and mjx cart-pole 8192 x 1000, warp humanoid 8192 x 100 (`--workloads`
 replaces them for every backend).
 
-    python benchmarks/train_overlap.py --quick
-    python benchmarks/train_overlap.py --backends cpu mjx warp --save --results-dir $OUT
-    python benchmarks/train_overlap.py --device cuda:0 --sim-device cuda:1 --save \\
+    python benchmarks/experiments/train_overlap.py --quick
+    python benchmarks/experiments/train_overlap.py --backends cpu mjx warp --save --results-dir $OUT
+    python benchmarks/experiments/train_overlap.py --device cuda:0 --sim-device cuda:1 --save \\
         --results-dir $OUT --tag other-gpu                                   # on 2 GPUs
 """
 
@@ -45,6 +45,9 @@ import time  # noqa: E402
 from typing import Optional  # noqa: E402
 
 import torch  # noqa: E402
+
+# benchmarks/ on the path: `common` is there, one folder up from these experiments
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import common  # noqa: E402
 import simloader  # noqa: E402

@@ -8,8 +8,8 @@ refusals (`DamagedStore`, which must be 0) and whether the number of trajectorie
 ever went down (it must not: an open sees the committed slots of one moment, later than the
 last). Exit status 1 on any refusal.
 
-    python benchmarks/store_read_while_growing.py                  # 200 -> 1200 slots, 2 readers
-    python benchmarks/store_read_while_growing.py --save           # also benchmarks/results/
+    python benchmarks/experiments/store_read_while_growing.py      # 200 -> 1200 slots, 2 readers
+    python benchmarks/experiments/store_read_while_growing.py --save  # also benchmarks/results/
 """
 
 from __future__ import annotations
@@ -94,8 +94,8 @@ def main() -> int:
         "",
         f"- machine: {os.cpu_count()} CPU cores, "
         f"Python {platform.python_version()}, simloader {simloader.__version__}",
-        f"- command: `python benchmarks/store_read_while_growing.py --start {args.start} "
-        f"--slots {args.slots} --steps {args.steps} --readers {args.readers}`",
+        "- command: `python benchmarks/experiments/store_read_while_growing.py "
+        f"--start {args.start} --slots {args.slots} --steps {args.steps} --readers {args.readers}`",
         f"- store: cartpole, 4 trajectories x 20 steps a slot; {args.start} slots first "
         f"({t1 - t0:.1f} s), then grown to {sizes} in {grown:.1f} s by one process; "
         f"{final} slots at the end, verified (every checksum)",
@@ -115,7 +115,8 @@ def main() -> int:
     print(text)
     if args.save:
         name = f"store_read_while_growing-{time.strftime('%Y-%m-%d')}.md"
-        with open(os.path.join(os.path.dirname(__file__), "results", name), "w") as f:
+        folder = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # benchmarks/
+        with open(os.path.join(folder, "results", name), "w") as f:
             f.write(text + "\n")
     return 1 if refusals or any(r["shrank"] for r in results) or final != args.slots else 0
 

@@ -17,13 +17,14 @@ compiled batch function called back to back and blocked on its last batch:
 The removed pieces are correctness (a diverged trajectory must be flagged and restarted), so
 the rows without them only say what each costs.
 
-    python benchmarks/bench_jax_pieces.py --quick
-    python benchmarks/bench_jax_pieces.py --save --results-dir $OUT       # on the GPU machine
+    python benchmarks/experiments/bench_jax_pieces.py --quick
+    python benchmarks/experiments/bench_jax_pieces.py --save --results-dir $OUT  # on the GPU machine
 """
 
 from __future__ import annotations
 
 import os
+import sys
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
@@ -34,9 +35,12 @@ from collections.abc import Callable  # noqa: E402
 from typing import Any  # noqa: E402
 from unittest import mock  # noqa: E402
 
+# benchmarks/ on the path: `common` is there, one folder up from these experiments
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
 import common  # noqa: E402
 import simloader  # noqa: E402
-from simloader.tools import bench  # noqa: E402
+from simloader import bench  # noqa: E402
 
 DEFAULT = [common.Workload("cartpole", 8192, 1000), common.Workload("humanoid", 4096, 200)]
 QUICK = [common.Workload("cartpole", 64, 50)]
