@@ -359,6 +359,8 @@ def bench_run(args: argparse.Namespace) -> None:
         raise BadArgument(f"workloads: none of {args.workloads} is in --suite {args.suite}")
     if args.quick:
         chosen = [workloads.quick(b) for b in chosen]
+    if args.repeats is None:
+        args.repeats = 5 if args.suite == "cpu" else 3
     out = pathlib.Path(args.out or os.path.join(
         DEFAULT_OUT, f"bench-{args.suite or 'chosen'}-"
                      f"{datetime.date.today().isoformat()}.jsonl"))
@@ -398,7 +400,7 @@ def bench_report(args: argparse.Namespace) -> None:
         raise BadArgument(f"results: {e}") from None
     name = args.name or pathlib.Path(args.results[0]).stem
     md, png = results.report(lines, pathlib.Path(args.out), name,
-                             args.title or f"simloader bench: {name}")
+                             args.title or f"simloader bench: {name}", args.note)
     print(f"{md}\n{png}")
     if args.check:
         missed = results.failures(lines)
@@ -630,8 +632,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
                          "that every part runs here, not the targets")
     br.add_argument("--out", help="the JSON-lines file the results are appended to (default: "
                                   f"{DEFAULT_OUT}/bench-SUITE-DATE.jsonl)")
-    br.add_argument("--repeats", type=positive_int, default=3,
-                    help="alternating timed repetitions per workload")
+    br.add_argument("--repeats", type=positive_int, default=None,
+                    help="alternating timed repetitions per workload (default: 5 on --suite "
+                         "cpu, where a shared 2-core machine drifts, else 3)")
     br.add_argument("--min-seconds", type=float, default=1.5,
                     help="each timed repetition lasts at least this long")
     br.add_argument("--seed", type=int, default=0)
@@ -646,6 +649,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
     bp.add_argument("--out", default=DEFAULT_OUT, help="folder for NAME.md and NAME.png")
     bp.add_argument("--name", help="file name without suffix (default: the first file's)")
     bp.add_argument("--title", help="the table's and plot's title")
+    bp.add_argument("--note", action="append", default=[],
+                    help="a paragraph under the title (repeatable): the command, what differs")
     bp.add_argument("--check", action="store_true",
                     help="exit 1 if the latest row of a workload is below its target")
     bp.set_defaults(run=bench_report, model=None)

@@ -157,9 +157,21 @@ HEAVY_FIRST = ("test_mjx.py", "test_warp.py", "test_startup.py", "test_examples.
                "test_render_cpu.py", "test_policy.py")
 
 
-def pytest_collection_modifyitems(items):
+def pytest_addoption(parser):
+    parser.addoption("--soak", action="store_true", default=False,
+                     help="run the soaks (marker `soak`: long stability runs, minutes each; "
+                          "SIMLOADER_SOAK_SECONDS sets their length)")
+
+
+def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a file
+    # the soaks (tests/test_soak.py) run only when asked for: they take minutes each
+    if not config.getoption("--soak"):
+        skip = pytest.mark.skip(reason="a soak: run with --soak")
+        for item in items:
+            if item.get_closest_marker("soak") is not None:
+                item.add_marker(skip)
 
 
 # simloader.write of a cart-pole stream (64 x 400 per batch: long enough to be caught mid-way)

@@ -50,7 +50,7 @@ def read_lines(paths: Sequence[os.PathLike | str]) -> list[dict[str, Any]]:
 
 def latest(lines: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """The last subject line of each workload, with its baseline's last line attached
-    (`baseline`), in first-seen order: a rerun of a workload replaces its row."""
+    (`baseline`), in first-seen order: a rerun of a workload replaces its row in place."""
     rows: dict[str, dict[str, Any]] = {}
     baselines: dict[str, dict[str, Any]] = {}
     for line in lines:
@@ -58,8 +58,7 @@ def latest(lines: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         if line.get("role") == "baseline":
             baselines[name] = line
         elif line.get("role") == "subject":
-            rows.pop(name, None)
-            rows[name] = line
+            rows[name] = line  # a dict keeps the key's first position
     return [{**row, "baseline": None if "error" in row else baselines.get(name)}
             for name, row in rows.items()]
 
@@ -165,7 +164,7 @@ def plot(lines: Sequence[dict[str, Any]], path: os.PathLike | str, title: str) -
     ax.axvline(1.0, color="gray", lw=0.8, ls=":")
     ax.invert_yaxis()
     ax.set_xlim(0, max([1.2] + [x * 1.15 for x in ratios]))
-    ax.set_xlabel("simloader / baseline throughput (black tick: target; gray: measured only)")
+    ax.set_xlabel("simloader / baseline (tick: target; gray: measured only)")
     ax.set_title(title)
     ax.tick_params(axis="y", labelsize=8)
     fig.tight_layout()
@@ -174,12 +173,13 @@ def plot(lines: Sequence[dict[str, Any]], path: os.PathLike | str, title: str) -
 
 
 def report(lines: Sequence[dict[str, Any]], out: pathlib.Path, name: str,
-           title: str) -> tuple[pathlib.Path, pathlib.Path]:
-    """Writes `out/name.md` (title, where and when, the table, misses) and `out/name.png`."""
+           title: str, notes: Sequence[str] = ()) -> tuple[pathlib.Path, pathlib.Path]:
+    """Writes `out/name.md` (title, where and when, `notes`, the table, misses) and
+    `out/name.png`."""
     out.mkdir(parents=True, exist_ok=True)
     md, png = out / f"{name}.md", out / f"{name}.png"
     missed = failures(lines)
-    text = [f"# {title}", "", header(lines), "",
+    text = [f"# {title}", "", header(lines), "", *[f"{n}\n" for n in notes],
             "Medians of alternating repetitions in one process; ratio = simloader's throughput "
             "over the baseline's (for start-up, the baseline's seconds over simloader's). "
             f"Rendered by `simloader bench report` from the JSON lines `{name}.jsonl`.", "",

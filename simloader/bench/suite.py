@@ -97,7 +97,7 @@ def options(s: Stream, model: mujoco.MjModel, *, camera: bool = True) -> dict[st
         out["randomize"] = [cli_specs.parse_randomize(r) for r in s.randomize]
     if s.policy:  # it picks every step's controls
         out["policy"] = policy_for(model, "cuda" if s.engine in ("mjx", "warp") else "cpu")
-        del out["control"]
+        out["control"] = None  # (not the measure's default Uniform)
     if s.engine == "cpu" and s.all_cores:
         out["nthread"] = timing.cpu_count()  # all the cores, as the raw rollout
     return out
