@@ -27,6 +27,7 @@ import torch
 
 import common
 import simloader
+from simloader import bench
 
 DEFAULT = [common.Workload("cartpole", 32, 50)]
 QUICK = [common.Workload("cartpole", 8, 10)]
@@ -56,22 +57,6 @@ def stream(ds: simloader.SimDataset, frames: int) -> float:
     seconds = time.perf_counter() - start
     it.close()
     return seconds / done
-
-
-def read(loader, frames: int, per_item: int, key: str) -> float:
-    """Seconds per frame `loader` renders until `frames` frames (after its first batch)."""
-    done, start = 0, None
-    while done < frames:
-        for batch in loader:
-            images = batch[key]
-            common.sync()
-            if start is None:
-                start = time.perf_counter()
-                continue
-            done += len(images) * per_item
-            if done >= frames:
-                break
-    return (time.perf_counter() - start) / done
 
 
 def size(path: str) -> int:
@@ -110,7 +95,7 @@ def main() -> None:
                     multiprocessing_context="spawn" if args.read_workers else None)
                 how = (f"DataLoader of trajectories, {args.read_batch} per batch, "
                        f"{args.read_workers} workers (spawn)")
-                measure = {"read": lambda: read(loader, frames, w.nstep, key)}
+                measure = {"read": lambda: bench.read_frames(loader, frames, w.nstep, key)}
             else:
                 stored = simloader.StoredDataset(states, cameras=camera, backend=args.backend,
                                                  device="cuda", keys=["state"])
@@ -119,7 +104,7 @@ def main() -> None:
                                             order="random")
                 how = (f"transitions().loader({args.transition_batch}) on the GPU, both "
                        f"frames of each transition")
-                measure = {"read": lambda: read(loader, frames, 2, key)}
+                measure = {"read": lambda: bench.read_frames(loader, frames, 2, key)}
             results = common.interleave({"stream": lambda: stream(streaming, frames),
                                          **measure}, args.repeats, desc=str(w))
             streamed, rendered = 1 / results["stream"], 1 / results["read"]

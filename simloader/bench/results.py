@@ -115,7 +115,9 @@ def table(lines: Sequence[dict[str, Any]]) -> str:
             row["workload"], "-" if failed else stream,
             "-" if failed else f"{kind} / {base_kind}" + (
                 "" if base_stream == stream else f" ({base_stream})"),
-            "-" if failed else f"{_rate(row.get('units_per_s'), unit)} {unit} {per}",
+            "-" if failed else (f"{_rate(row.get('units_per_s'), unit)} {per}"
+                                if unit == "first batches"
+                                else f"{_rate(row.get('units_per_s'), unit)} {unit} {per}"),
             _rate(base.get("units_per_s"), unit) if base else "-",
             f"{row['ratio']:.3f}" if row.get("ratio") is not None else "-",
             f">= {row['target']:.2f}" if row.get("target") is not None else "-",

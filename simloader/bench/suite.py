@@ -240,8 +240,8 @@ READ_WORKERS = 2  # the CPU renderer's DataLoader workers (target 15: "2 workers
 
 def _read_render(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Path) -> Side:
     """A store of the stream's states (no images) rendering its camera on read: on the CPU a
-    `DataLoader` of trajectories with `READ_WORKERS` workers, on a GPU `transitions().loader(4096)` (both
-    frames of each transition)."""
+    `DataLoader` of trajectories with `READ_WORKERS` workers, on a GPU
+    `transitions().loader(4096)` (both frames of each transition)."""
     import simloader
     if s.camera is None:
         raise ValueError(f"{s}: rendering on read needs a camera")
@@ -266,19 +266,8 @@ def _read_render(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Pa
         per_item = 2
 
     def measure(n: int) -> float:
-        frames, done, start = n * s.steps, 0, None
-        while done < frames:
-            for batch in loader:
-                # the camera's key holds its name ("camera/front/rgb")
-                images = next(v for k, v in batch.items() if k.startswith("camera/"))
-                timing.sync()
-                if start is None:  # after the first batch: workers and renderers are up
-                    start = time.perf_counter()
-                    continue
-                done += len(images) * per_item
-                if done >= frames:
-                    break
-        return (time.perf_counter() - start) / done
+        # the camera's key holds its name ("camera/front/rgb")
+        return timing.read_frames(loader, n * s.steps, per_item)
 
     start = time.perf_counter()
     measure(1)

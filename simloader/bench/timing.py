@@ -150,3 +150,27 @@ class SimloaderMeasure:
     def measure(self, nbatches: int) -> float:
         """Seconds per step of `nbatches` delivered batches after a fresh iterator's first."""
         return time_stream(self.ds, nbatches).steady_s / (nbatches * self.w.steps)
+
+
+def read_frames(loader: Iterable[dict], frames: int, per_item: int,
+                key: Optional[str] = None) -> float:
+    """Seconds per frame a loader of rendered images delivers until `frames` frames, after its
+    first batch (workers and renderers started), passing over it as often as needed.
+
+    Args:
+      per_item: frames per item of a batch (a trajectory's frames, or 2 for a transition).
+      key: the images' key (None: the first key starting with "camera/").
+    """
+    done, start = 0, None
+    while done < frames:
+        for batch in loader:
+            images = batch[key] if key is not None else next(
+                v for k, v in batch.items() if k.startswith("camera/"))
+            sync()
+            if start is None:
+                start = time.perf_counter()
+                continue
+            done += len(images) * per_item
+            if done >= frames:
+                break
+    return (time.perf_counter() - start) / done

@@ -213,7 +213,8 @@ def _gpu() -> list[Benchmark]:
     for size in (small, human):
         for rules in ((below,), (below, limit)):
             for continued in (False, True):
-                name = (f"warp-episodes-{size.nbatch}x{size.nstep}-{'below' if len(rules) == 1 else 'below-timelimit'}"
+                name = (f"warp-episodes-{size.nbatch}x{size.nstep}-"
+                        f"{'below' if len(rules) == 1 else 'below-timelimit'}"
                         f"{'-continued' if continued else ''}")
                 base = size.but(continue_episodes=continued)
                 out.append(_pair(name, "gpu", base.but(terminate=rules), base, 0.95,
