@@ -152,9 +152,12 @@ def fresh_python():
 # The heaviest test files (seconds on the 2-core CI machine, most of it MJX compilation), run
 # first: `--dist loadfile` hands files to the two workers in collection order, and a heavy file
 # collected last keeps one worker busy long after the other has finished.
-HEAVY_FIRST = ("test_mjx.py", "test_warp.py", "test_startup.py", "test_examples.py",
-               "test_mjx_randomize.py", "test_distributed.py", "test_observe_mjx.py",
-               "test_render_cpu.py", "test_policy.py")
+HEAVY_FIRST = ("test_docs.py", "test_startup.py", "test_examples.py", "test_record_kinematics.py",
+               "test_mjx.py", "test_store_faults.py", "test_distributed.py",
+               "test_store_pixels.py", "test_accuracy.py", "test_warp.py",
+               "test_store_pipeline.py", "test_mjx_resume.py", "test_tutorial.py",
+               "test_mjx_randomize.py", "test_observe_mjx.py", "test_render_cpu.py",
+               "test_policy.py")
 
 
 def pytest_addoption(parser):
