@@ -351,6 +351,9 @@ def bench_run(args: argparse.Namespace) -> None:
     import pathlib
 
     from simloader.bench import results, suite, workloads
+    if not args.workloads and args.suite is None:  # the suite of this machine's kind
+        import torch
+        args.suite = "gpu" if torch.cuda.is_available() else "cpu"
     try:
         chosen = workloads.select(args.workloads, args.suite)
     except ValueError as e:
@@ -483,7 +486,8 @@ def _reference(parser: argparse.ArgumentParser, sub: Any) -> str:
              "test checks that it is current).", "", "```text", parser.format_help().rstrip(),
              "```"]
     for name, each in sub.choices.items():
-        parts += ["", f"## `simloader {name}`", "", "```text", each.format_help().rstrip(),
+        shown = name.replace("bench-", "bench ")  # `simloader bench run` is "bench-run"
+        parts += ["", f"## `simloader {shown}`", "", "```text", each.format_help().rstrip(),
                   "```"]
     return "\n".join(parts) + "\n"
 
@@ -616,7 +620,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
     def workload_arguments(p: argparse.ArgumentParser) -> None:
         p.add_argument("workloads", nargs="*", metavar="WORKLOAD",
                        help="names from `simloader bench list` (default: every workload of "
-                            "--suite)")
+                            "--suite; `bench run` with neither: the suite of this machine, "
+                            "gpu where torch sees a CUDA GPU, else cpu)")
         p.add_argument("--suite", choices=("cpu", "gpu"),
                        help="the machine kind: cpu (any machine, the CPU engine) or gpu (an "
                             "NVIDIA GPU: MJX and MuJoCo Warp)")
