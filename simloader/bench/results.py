@@ -109,15 +109,15 @@ def table(lines: Sequence[dict[str, Any]]) -> str:
         base = row.get("baseline") or {}
         kind, _, stream = row.get("method", "").partition(": ")
         base_kind, _, base_stream = base.get("method", "").partition(": ")
-        per = "per second" if unit != "first batches" else "to the first batch"
+        per = {"steps": "steps/s", "frames": "frames/s"}.get(unit, f"{unit}/s")
         failed = "error" in row
         rows.append([
             row["workload"], "-" if failed else stream,
             "-" if failed else f"{kind} / {base_kind}" + (
                 "" if base_stream == stream else f" ({base_stream})"),
-            "-" if failed else (f"{_rate(row.get('units_per_s'), unit)} {per}"
+            "-" if failed else (f"{_rate(row.get('units_per_s'), unit)} to the first batch"
                                 if unit == "first batches"
-                                else f"{_rate(row.get('units_per_s'), unit)} {unit} {per}"),
+                                else f"{_rate(row.get('units_per_s'), unit)} {per}"),
             _rate(base.get("units_per_s"), unit) if base else "-",
             f"{row['ratio']:.3f}" if row.get("ratio") is not None else "-",
             f">= {row['target']:.2f}" if row.get("target") is not None else "-",
