@@ -394,6 +394,11 @@ def bench_report(args: argparse.Namespace) -> None:
     import pathlib
 
     from simloader.bench import results
+    try:
+        import matplotlib  # noqa: F401 - the plot's; said before anything is written
+    except ImportError:
+        raise SystemExit("simloader bench report: its plot needs matplotlib: pip install "
+                         "'simloader[plot]'") from None
     for path in args.results:
         if not os.path.isfile(path):
             raise BadArgument(f"results: expected a JSON-lines file, got {path!r} (no such file)")
