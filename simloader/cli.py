@@ -394,11 +394,10 @@ def bench_report(args: argparse.Namespace) -> None:
     import pathlib
 
     from simloader.bench import results
-    try:
-        import matplotlib  # noqa: F401 - the plot's; said before anything is written
-    except ImportError:
+    import importlib.util
+    if importlib.util.find_spec("matplotlib") is None:  # said before anything is written
         raise SystemExit("simloader bench report: its plot needs matplotlib: pip install "
-                         "'simloader[plot]'") from None
+                         "'simloader[plot]'")
     for path in args.results:
         if not os.path.isfile(path):
             raise BadArgument(f"results: expected a JSON-lines file, got {path!r} (no such file)")
