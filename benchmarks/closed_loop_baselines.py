@@ -15,35 +15,10 @@ import numpy as np
 
 import torch
 
-from simloader.bench import STEP_READS, RawBaseline, Workload, ctrl_bounds
-
-
-def mlp(nin: int, nout: int, hidden: int = 256, seed: int = 0) -> "torch.nn.Module":
-    """The benchmark policy: a torch MLP with two tanh hidden layers of `hidden` units and a
-    tanh output (controls in [-1, 1], scaled by `Scaled`)."""
-    import torch
-    torch.manual_seed(seed)
-    return torch.nn.Sequential(torch.nn.Linear(nin, hidden), torch.nn.Tanh(),
-                               torch.nn.Linear(hidden, hidden), torch.nn.Tanh(),
-                               torch.nn.Linear(hidden, nout), torch.nn.Tanh())
-
-
-class StatePolicy:
-    """A policy for `SimDataset(policy=)`: the MLP of `(qpos, qvel)`, its [-1, 1] outputs mapped
-    onto each actuator's control range (`ctrl_bounds`)."""
-
-    def __init__(self, net: Any, model: mujoco.MjModel):
-        import torch
-        self.net = net
-        device = next(net.parameters()).device
-        low, high = (torch.as_tensor(b, dtype=torch.float32, device=device)
-                     for b in ctrl_bounds(model))
-        self.mid, self.half = (high + low) / 2, (high - low) / 2
-
-    def __call__(self, obs: dict) -> Any:
-        import torch
-        x = torch.cat([obs["qpos"], obs["qvel"]], dim=-1)
-        return self.mid + self.half * self.net(x)
+from simloader.bench import STEP_READS, RawBaseline, Workload
+# the benchmark policy, shared with the suite's policy workload (bench_policy_*.py use it
+# as closed_loop_baselines.mlp and .StatePolicy)
+from simloader.bench.raw import StatePolicy, mlp  # noqa: F401
 
 
 class RawClosedLoopBatch(RawBaseline):

@@ -331,6 +331,16 @@ def bench(args: argparse.Namespace) -> None:
 BENCH_COMMANDS = ("run", "report", "list")  # `simloader bench run` is the parser "bench-run"
 
 
+def exit_below_target(lines: list, who: str) -> None:
+    """`--check`: exits 1 naming each workload below its target (or failed), if any."""
+    from simloader.bench import results
+    missed = results.failures(lines)
+    if missed:
+        print(f"{who}: below target:\n" + "\n".join(f"  {m}" for m in missed),
+              file=sys.stderr)
+        raise SystemExit(1)
+
+
 def bench_list(args: argparse.Namespace) -> None:
     """The suite's workloads: name, machine kind, subject, baseline, target and its source."""
     from simloader.bench import workloads
@@ -382,19 +392,16 @@ def bench_run(args: argparse.Namespace) -> None:
     lines = suite.run(chosen, out, repeats=args.repeats, min_seconds=args.min_seconds,
                       seed=args.seed, folder=args.folder, on_line=said)
     print(results.table(lines))
-    missed = results.failures(lines)
-    if args.check and missed:
-        print("simloader bench run --check: below target:\n" + "\n".join(
-            f"  {m}" for m in missed), file=sys.stderr)
-        raise SystemExit(1)
+    if args.check:
+        exit_below_target(lines, "simloader bench run --check")
 
 
 def bench_report(args: argparse.Namespace) -> None:
     """Renders JSON lines into NAME.md (a table) and NAME.png (the ratios and targets)."""
+    import importlib.util
     import pathlib
 
     from simloader.bench import results
-    import importlib.util
     if importlib.util.find_spec("matplotlib") is None:  # said before anything is written
         raise SystemExit("simloader bench report: its plot needs matplotlib: pip install "
                          "'simloader[plot]'")
@@ -410,10 +417,7 @@ def bench_report(args: argparse.Namespace) -> None:
                              args.title or f"simloader bench: {name}", args.note)
     print(f"{md}\n{png}")
     if args.check:
-        missed = results.failures(lines)
-        if missed:
-            print("below target:\n" + "\n".join(f"  {m}" for m in missed), file=sys.stderr)
-            raise SystemExit(1)
+        exit_below_target(lines, "simloader bench report --check")
 
 
 def check(args: argparse.Namespace) -> None:

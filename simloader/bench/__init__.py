@@ -15,8 +15,9 @@ from simloader.bench.compare import (HEADERS, bar_plot, compare, markdown_table,
                                      ns, rate, ratio)
 from simloader.bench.raw import (PYTHON, RAW_MJX, RAW_OF, RAW_ROLLOUT, RAW_WARP, SIMLOADER_MJX,
                                  SIMLOADER_ROLLOUT, SIMLOADER_WARP, STEP_READS, RawBaseline,
-                                 RawMjx, RawRenderers, RawWarp, Workload, ctrl_bounds,
-                                 default_state, python_loop, raw_baseline, raw_rollout)
+                                 RawMjx, RawRenderers, RawWarp, StatePolicy, Workload,
+                                 ctrl_bounds, default_state, mlp, python_loop, raw_baseline,
+                                 raw_rollout)
 from simloader.bench.timing import (SimloaderMeasure, Stream, batches_for, cpu_count,
                                     device_name, drain, interleave, progress, read_frames, sync,
                                     time_stream)
@@ -24,8 +25,9 @@ from simloader.bench.timing import (SimloaderMeasure, Stream, batches_for, cpu_c
 __all__ = [
     "HEADERS", "PYTHON", "RAW_MJX", "RAW_OF", "RAW_ROLLOUT", "RAW_WARP", "SIMLOADER_MJX",
     "SIMLOADER_ROLLOUT", "SIMLOADER_WARP", "STEP_READS", "RawBaseline", "RawMjx",
-    "RawRenderers", "RawWarp", "SimloaderMeasure", "Stream", "Workload", "bar_plot",
-    "batches_for", "compare", "cpu_count", "ctrl_bounds", "default_state", "device_name",
-    "drain", "interleave", "markdown_table", "method_rows", "ns", "progress", "python_loop",
+    "RawRenderers", "RawWarp", "SimloaderMeasure", "StatePolicy", "Stream", "Workload",
+    "bar_plot", "batches_for", "compare", "cpu_count", "ctrl_bounds", "default_state",
+    "device_name", "drain", "interleave", "markdown_table", "method_rows", "mlp", "ns",
+    "progress", "python_loop",
     "rate", "ratio", "raw_baseline", "raw_rollout", "read_frames", "sync", "time_stream",
 ]

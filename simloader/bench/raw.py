@@ -111,14 +111,17 @@ def python_loop(model: mujoco.MjModel, nstep: int, total_steps: int,
     return measure
 
 
-def raw_rollout(model: Any, w: Workload, nthread: int,
-                seed: int) -> tuple[Callable[[int], float], float]:
+def raw_rollout(model: Any, w: Workload, nthread: int, seed: int,
+                render: Optional[Callable[[np.ndarray], Any]] = None,
+                ) -> tuple[Callable[[int], float], float]:
     """A measure (seconds per step) of back-to-back `mujoco.rollout` calls, and the seconds
     of one call.
 
     One MjData per thread and a persistent thread pool, fresh uniform controls and fresh
     output arrays every call (as simloader allocates a new tensor per batch). `model`: one
     MjModel, or a list of `w.nbatch` (one per trajectory, as `mujoco.rollout` takes them).
+    `render`: also called on each call's states (a `RawRenderers`), as a stream with a camera
+    simulates and then renders.
     """
     first = model[0] if isinstance(model, (list, tuple)) else model
     datas = [mujoco.MjData(first) for _ in range(nthread)]
@@ -128,17 +131,45 @@ def raw_rollout(model: Any, w: Workload, nthread: int,
 
     def one_batch():
         control = rng.uniform(low, high, size=(w.nbatch, w.nstep, first.nu))
-        return rollout.rollout(model, datas, x0, control, persistent_pool=True)
+        state, sensordata = rollout.rollout(model, datas, x0, control, persistent_pool=True)
+        return state, sensordata, None if render is None else render(state)
 
     def measure(nbatches: int) -> float:
         start = time.perf_counter()
         for _ in range(nbatches):
-            state, sensordata = one_batch()
-            del state, sensordata
+            out = one_batch()
+            del out
         return (time.perf_counter() - start) / (nbatches * w.steps)
 
     one_batch()  # warm-up: starts the pool, touches the code paths
     return measure, measure(1) * w.steps
+
+
+# -- the benchmark policy (closed-loop baselines and the suite's policy workload) -------------
+
+def mlp(nin: int, nout: int, hidden: int = 256, seed: int = 0) -> torch.nn.Module:
+    """The benchmark policy: a torch MLP with two tanh hidden layers of `hidden` units and a
+    tanh output (controls in [-1, 1], scaled by `StatePolicy`)."""
+    torch.manual_seed(seed)
+    return torch.nn.Sequential(torch.nn.Linear(nin, hidden), torch.nn.Tanh(),
+                               torch.nn.Linear(hidden, hidden), torch.nn.Tanh(),
+                               torch.nn.Linear(hidden, nout), torch.nn.Tanh())
+
+
+class StatePolicy:
+    """A policy for `SimDataset(policy=)`: the MLP of `(qpos, qvel)`, its [-1, 1] outputs mapped
+    onto each actuator's control range (`ctrl_bounds`)."""
+
+    def __init__(self, net: Any, model: mujoco.MjModel):
+        self.net = net
+        device = next(net.parameters()).device
+        low, high = (torch.as_tensor(b, dtype=torch.float32, device=device)
+                     for b in ctrl_bounds(model))
+        self.mid, self.half = (high + low) / 2, (high - low) / 2
+
+    def __call__(self, obs: dict) -> Any:
+        x = torch.cat([obs["qpos"], obs["qvel"]], dim=-1)
+        return self.mid + self.half * self.net(x)
 
 
 # the fields a step reads of the previous one (besides its inputs)

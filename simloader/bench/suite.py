@@ -23,7 +23,6 @@ from collections.abc import Callable, Sequence
 from typing import Any, Optional
 
 import mujoco
-import numpy as np
 import torch
 
 from simloader.bench import raw as R
@@ -50,42 +49,19 @@ class Side:
 
 # -- streams as datasets ------------------------------------------------------------------------
 
-def policy_for(model: mujoco.MjModel, device: Any) -> Callable[[dict], torch.Tensor]:
-    """The benchmark policy: a 2 x 256 tanh MLP of (qpos, qvel), its [-1, 1] outputs mapped onto
-    each actuator's range (`raw.ctrl_bounds`), on `device`."""
-    gen = torch.Generator().manual_seed(0)
-    nin, nout = model.nq + model.nv, model.nu
-    layers = []
-    for a, b in ((nin, 256), (256, 256), (256, nout)):
-        lin = torch.nn.Linear(a, b)
-        with torch.no_grad():
-            lin.weight.copy_(torch.randn(b, a, generator=gen) / a ** 0.5)
-            lin.bias.zero_()
-        layers += [lin, torch.nn.Tanh()]
-    net = torch.nn.Sequential(*layers).to(device)
-    low, high = (torch.as_tensor(x, dtype=torch.float32, device=device)
-                 for x in R.ctrl_bounds(model))
-    mid, half = (high + low) / 2, (high - low) / 2
-
-    def policy(obs: dict) -> torch.Tensor:
-        return mid + half * net(torch.cat([obs["qpos"], obs["qvel"]], dim=-1))
-
-    return policy
-
-
 def camera_of(s: Stream) -> Any:
     import simloader
     return simloader.Camera(0, height=s.camera[0], width=s.camera[1],
                             shadows=s.camera_quality, multisample=s.camera_quality)
 
 
-def options(s: Stream, model: mujoco.MjModel, *, camera: bool = True) -> dict[str, Any]:
+def options(s: Stream, model: mujoco.MjModel) -> dict[str, Any]:
     """`SimDataset` keyword arguments of the stream (besides model, backend and sizes)."""
     import simloader
     from simloader import cli_specs
     out: dict[str, Any] = {"control": simloader.controls.Uniform()}
     record = s.record
-    if camera and s.camera is not None:
+    if s.camera is not None:
         record = (*(record or ("state",)), camera_of(s))
     if record:
         out["record"] = record
@@ -96,11 +72,28 @@ def options(s: Stream, model: mujoco.MjModel, *, camera: bool = True) -> dict[st
     if s.randomize:
         out["randomize"] = [cli_specs.parse_randomize(r) for r in s.randomize]
     if s.policy:  # it picks every step's controls
-        out["policy"] = policy_for(model, "cuda" if s.engine in ("mjx", "warp") else "cpu")
+        device = "cuda" if s.engine in ("mjx", "warp") else "cpu"
+        out["policy"] = R.StatePolicy(R.mlp(model.nq + model.nv, model.nu).to(device), model)
         out["control"] = None  # (not the measure's default Uniform)
     if s.engine == "cpu" and s.all_cores:
         out["nthread"] = timing.cpu_count()  # all the cores, as the raw rollout
     return out
+
+
+def dataset(s: Stream, model: mujoco.MjModel, seed: int, **changes: Any) -> Any:
+    """The stream's `SimDataset` (`changes` replace its options)."""
+    import simloader
+    return simloader.SimDataset(model, backend=s.engine, nbatch=s.nbatch, nstep=s.nstep,
+                                seed=seed, **{**options(s, model), **changes})
+
+
+def _timed(measure: Callable[[int], float], steps: int,
+           close: Callable[[], None] = lambda: None) -> Side:
+    """A side whose first call (warm-up: compilation, pools, workers) is its `first_s`."""
+    start = time.perf_counter()
+    measure(1)
+    first = time.perf_counter() - start
+    return Side(measure, first, measure(1) * steps, close=close)
 
 
 def sizes(s: Stream) -> R.Workload:
@@ -122,8 +115,8 @@ def _raw(s: Stream, model: mujoco.MjModel, seed: int, continued: bool) -> Side:
     if s.engine == "cpu":
         if continued:
             raise ValueError(f"{s}: the raw CPU baseline restarts its trajectories")
-        measure, batch_s = R.raw_rollout(model, w, timing.cpu_count(), seed)
         if s.camera is None:
+            measure, batch_s = R.raw_rollout(model, w, timing.cpu_count(), seed)
             return Side(measure, batch_s, batch_s)
         # simulate, then render every state (what the stream does), on as many threads
         from simloader import render
@@ -131,27 +124,9 @@ def _raw(s: Stream, model: mujoco.MjModel, seed: int, continued: bool) -> Side:
         renderers = R.RawRenderers(model, 0, s.camera[0], timing.cpu_count(),
                                    gl=platform if platform in ("egl", "osmesa") else None,
                                    shadows=s.camera_quality, multisample=s.camera_quality)
-        datas = [mujoco.MjData(model) for _ in range(timing.cpu_count())]
-        x0 = np.tile(R.default_state(model), (w.nbatch, 1))
-        low, high = R.ctrl_bounds(model)
-        rng = np.random.default_rng(seed)
-        from mujoco import rollout
-
-        def one() -> None:
-            control = rng.uniform(low, high, size=(w.nbatch, w.nstep, model.nu))
-            states, _ = rollout.rollout(model, datas, x0, control, persistent_pool=True)
-            renderers(states)
-
-        def measure_cam(n: int) -> float:
-            start = time.perf_counter()
-            for _ in range(n):
-                one()
-            return (time.perf_counter() - start) / (n * w.steps)
-
         start = time.perf_counter()
-        one()
-        first = time.perf_counter() - start
-        return Side(measure_cam, first, measure_cam(1) * w.steps,
+        measure, batch_s = R.raw_rollout(model, w, timing.cpu_count(), seed, render=renderers)
+        return Side(measure, time.perf_counter() - start, batch_s,
                     close=lambda: renderers.pool.shutdown())
     if s.engine == "mjx":
         if continued or s.camera is not None:
@@ -160,9 +135,7 @@ def _raw(s: Stream, model: mujoco.MjModel, seed: int, continued: bool) -> Side:
     else:
         if s.camera is not None and s.camera != (64, 64):
             raise ValueError(f"{s}: the raw Warp baseline renders 64 x 64 only")
-        import simloader
-        resolved = simloader.SimDataset(model, backend="warp", nbatch=s.nbatch, nstep=s.nstep,
-                                        **options(s, model)).config.options
+        resolved = dataset(s, model, seed).config.options
         r = R.RawWarp.matching(model, w, seed, resolved, cameras=s.camera is not None,
                                continued=continued)
     return Side(r.measure, r.first_s, r.batch_s)
@@ -171,8 +144,7 @@ def _raw(s: Stream, model: mujoco.MjModel, seed: int, continued: bool) -> Side:
 def _write(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Path) -> Side:
     """`simloader.write` of `n` batches into a fresh store of ours, removed after timing."""
     import simloader
-    ds = simloader.SimDataset(model, backend=s.engine, nbatch=s.nbatch, nstep=s.nstep,
-                              seed=seed, **options(s, model))
+    ds = dataset(s, model, seed)
     count = [0]
 
     def measure(n: int) -> float:
@@ -186,10 +158,7 @@ def _write(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Path) ->
         timing.drain()
         return seconds / (n * s.steps)
 
-    start = time.perf_counter()
-    measure(1)  # compiles, and opens the writer's pipeline once
-    first = time.perf_counter() - start
-    return Side(measure, first, measure(1) * s.steps)
+    return _timed(measure, s.steps)
 
 
 def disk_seconds_per_byte(folder: pathlib.Path, nbytes: int) -> float:
@@ -217,12 +186,11 @@ def _write_bound(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Pa
     """The lower of generating the stream (delivered) and the disk's bound for its bytes: per
     step, the larger of the generation's seconds and the disk's seconds for a step's bytes."""
     import simloader
-    ds = simloader.SimDataset(model, backend=s.engine, nbatch=s.nbatch, nstep=s.nstep,
-                              seed=seed, **options(s, model))
-    path = simloader.write(ds, folder / "bytes-per-step.zarr", batches=2, progress=False)
+    gen = delivered(s, model, seed)
+    # (its own dataset writes a store to learn the bytes per step: no second compilation)
+    path = simloader.write(gen.ds, folder / "bytes-per-step.zarr", batches=2, progress=False)
     per_step = store_bytes(pathlib.Path(path)) / (2 * s.steps)
     shutil.rmtree(path)
-    gen = delivered(s, model, seed)
     extra: dict[str, Any] = {"store_bytes_per_step": per_step}
 
     def measure(n: int) -> float:
@@ -245,11 +213,8 @@ def _read_render(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Pa
     import simloader
     if s.camera is None:
         raise ValueError(f"{s}: rendering on read needs a camera")
-    plain = options(s, model, camera=False)
-    plain["record"] = ("state",)
-    ds = simloader.SimDataset(model, backend=s.engine, nbatch=s.nbatch, nstep=s.nstep,
-                              seed=seed, **plain)
-    path = simloader.write(ds, folder / "states.zarr", batches=2, progress=False)
+    states = dataset(s.but(camera=None), model, seed, record=("state",))
+    path = simloader.write(states, folder / "states.zarr", batches=2, progress=False)
     camera = camera_of(s)
     if s.engine == "cpu":
         stored = simloader.StoredDataset(path, cameras=camera, keys=["state"])
@@ -265,14 +230,8 @@ def _read_render(s: Stream, model: mujoco.MjModel, seed: int, folder: pathlib.Pa
         loader = transitions.loader(min(4096, len(transitions)), order="random")
         per_item = 2
 
-    def measure(n: int) -> float:
-        # the camera's key holds its name ("camera/front/rgb")
-        return timing.read_frames(loader, n * s.steps, per_item)
-
-    start = time.perf_counter()
-    measure(1)
-    first = time.perf_counter() - start
-    return Side(measure, first, measure(1) * s.steps, close=lambda: shutil.rmtree(path))
+    return _timed(lambda n: timing.read_frames(loader, n * s.steps, per_item), s.steps,
+                  close=lambda: shutil.rmtree(path))
 
 
 def _mixture(b: Benchmark, models: list, seed: int) -> tuple[Side, Side]:
@@ -282,30 +241,15 @@ def _mixture(b: Benchmark, models: list, seed: int) -> tuple[Side, Side]:
     import simloader
     streams = b.subject.streams
     alone = [delivered(s, m, seed + i) for i, (s, m) in enumerate(zip(streams, models))]
-    mixed = [simloader.SimDataset(m, backend=s.engine, nbatch=s.nbatch, nstep=s.nstep,
-                                  seed=seed + 10 + i, **options(s, m))
-             for i, (s, m) in enumerate(zip(streams, models))]
+    mixed = [dataset(s, m, seed + 10 + i) for i, (s, m) in enumerate(zip(streams, models))]
     mixture = simloader.Mixture(mixed, seed=seed)
     draws: list[int] = []
 
     def measure_mixture(n: int) -> float:
-        it = iter(mixture)
-        try:
-            next(it)
-            timing.sync()
-            start, steps = time.perf_counter(), 0
-            draws.clear()
-            for _ in range(n):
-                batch = next(it)
-                timing.sync()
-                task = int(batch["task"].reshape(-1)[0])
-                draws.append(task)
-                steps += streams[task].steps
-                del batch
-            return (time.perf_counter() - start) / steps
-        finally:
-            it.close()
-            timing.drain()
+        draws.clear()
+        steady = timing.time_stream(mixture, n, on_batch=lambda batch: draws.append(
+            int(batch["task"].reshape(-1)[0]))).steady_s
+        return steady / sum(streams[i].steps for i in draws)
 
     def measure_members(n: int) -> float:
         batch_s = [m.measure(n) * s.steps for m, s in zip(alone, streams)]
@@ -353,12 +297,14 @@ def _startup(s: Stream, raw: bool, folder: pathlib.Path, seed: int, timeout: flo
 def build(b: Benchmark, seed: int, folder: pathlib.Path, timeout: float) -> tuple[Side, Side]:
     """The subject and baseline of `b`, built (compiled, warmed up) and ready to time."""
     import simloader
-    models = [simloader.load_model(s.model) for s in b.subject.streams]
+    names = {s.model for m in (b.subject, b.baseline) for s in m.streams}
+    loaded = {name: simloader.load_model(name) for name in names}  # each once
     if b.subject.kind == W.MIXTURE:
-        return _mixture(b, models, seed)
+        return _mixture(b, [loaded[s.model] for s in b.subject.streams], seed)
 
     def side(m: Method) -> Side:
-        s, model = m.streams[0], simloader.load_model(m.streams[0].model)
+        s = m.streams[0]
+        model = loaded[s.model]
         if m.kind == W.SIMLOADER:
             return _from_measure(delivered(s, model, seed), s.steps)
         if m.kind in (W.RAW, W.RAW_CONTINUED):
@@ -426,13 +372,19 @@ def memory() -> dict[str, Optional[int]]:
     return out
 
 
+def where() -> dict[str, Any]:
+    """The fields every line of a run shares: machine, commit, versions (asked once a run)."""
+    return {"machine": machine(), **commit(), "versions": versions()}
+
+
 def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
-            folder: pathlib.Path, timeout: float) -> list[dict[str, Any]]:
-    """Two result lines (subject, baseline) of one workload."""
-    here = folder / b.name
-    here.mkdir()
+            folder: pathlib.Path, timeout: float,
+            here: Optional[dict[str, Any]] = None) -> list[dict[str, Any]]:
+    """Two result lines (subject, baseline) of one workload (`here`: `where()`, once a run)."""
+    own = folder / b.name
+    own.mkdir()
     began = time.perf_counter()
-    subject, baseline = build(b, seed, here, timeout)
+    subject, baseline = build(b, seed, own, timeout)
     try:
         startup_kind = b.subject.kind == W.STARTUP
         # start-up: `min_calls` fresh processes per repetition (their median)
@@ -453,7 +405,7 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
               "ceiling_s": b.ceiling_s, "source": b.source, "repeats": repeats,
               "calls_per_repeat": n, "wall_s": time.perf_counter() - began,
               "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "machine": machine(), **commit(), "versions": versions(), "memory": memory()}
+              **(here if here is not None else where()), "memory": memory()}
     lines = []
     for role, side, method in (("subject", subject, b.subject),
                                ("baseline", baseline, b.baseline)):
@@ -483,16 +435,17 @@ def run(benchmarks: Sequence[Benchmark], out: pathlib.Path, *, repeats: int = 3,
     from simloader.bench import results
     lines: list[dict[str, Any]] = []
     work = pathlib.Path(tempfile.mkdtemp(prefix="simloader-bench-", dir=folder))
+    here = where()
     try:
         for b in timing.progress(benchmarks, desc="workloads", total=len(benchmarks)):
             try:
                 got = run_one(b, repeats=repeats, min_seconds=min_seconds, seed=seed,
-                              folder=work, timeout=timeout)
+                              folder=work, timeout=timeout, here=here)
             except Exception as e:  # one workload's failure is a result, not the end of the run
                 got = [{"workload": b.name, "suite": b.suite, "role": "subject",
                         "target": b.target, "passed": False, "error": f"{type(e).__name__}: {e}",
                         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(
-                            timespec="seconds"), "machine": machine(), **commit()}]
+                            timespec="seconds"), **here}]
             results.append_lines(out, got)
             for line in got:
                 on_line(line)

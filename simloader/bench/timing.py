@@ -98,14 +98,15 @@ class Stream:
 
 
 def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
-                keep_last: bool = False) -> Stream:
+                keep_last: bool = False,
+                on_batch: Optional[Callable[[dict], None]] = None) -> Stream:
     """Delivered throughput of a dataset: `nbatches` batches after the first, tensors in hand.
 
     A fresh iterator per call: simloader's producer thread starts with it and stops at
     `close`, and the device is drained, so nothing simulates while another measure runs. The
     first batch, which pays for threads, compilation and the empty prefetch queue, is timed
     apart; the steady part runs from holding the first batch to holding the last, blocked on
-    the device after each.
+    the device after each. `on_batch` sees each steady batch (a mixture's draws, say).
     """
     it = iter(ds)
     try:
@@ -117,6 +118,8 @@ def time_stream(ds: Iterable[dict[str, torch.Tensor]], nbatches: int,
             del batch  # release a (possibly multi-GB) batch before the next arrives
             batch = next(it)
             sync()
+            if on_batch is not None:
+                on_batch(batch)
         return Stream(first - start, time.perf_counter() - first, batch if keep_last else None)
     finally:
         it.close()
