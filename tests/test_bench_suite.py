@@ -109,6 +109,12 @@ def test_a_rerun_replaces_a_workloads_row(tmp_path):
 def test_write_render_on_read_and_mixture_sides_measure(tmp_path, monkeypatch):
     monkeypatch.setattr(suite, "READ_WORKERS", 0)  # spawned workers: the suite's own run
     cam = TINY.but(record=("state",), camera=(16, 16), camera_quality=False)
+    # what the user keeps in the folder the run is pointed at, a link out of it included
+    outside = tmp_path.parent / f"{tmp_path.name}-outside"
+    outside.mkdir()
+    (outside / "data.bin").write_bytes(b"user's")
+    (tmp_path / "keep.txt").write_text("user's")
+    (tmp_path / "link").symlink_to(outside, target_is_directory=True)
     out, lines = run([
         Benchmark("tiny-write", "cpu", Method(W.WRITE, (TINY,)), Method(W.SIMLOADER, (TINY,)),
                   1e-3, "a test"),
@@ -126,8 +132,13 @@ def test_write_render_on_read_and_mixture_sides_measure(tmp_path, monkeypatch):
                  and line["role"] == "baseline")
     assert bound["extra"]["store_bytes_per_step"] > 0
     assert bound["extra"]["disk_steps_per_s"] > 0
-    # the run removed the stores it made, and made nothing else where it was pointed
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["lines.jsonl"]
+    # the run removed the stores it made, made nothing else where it was pointed, and
+    # touched nothing of the user's there or behind the link
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt", "lines.jsonl", "link"]
+    assert (tmp_path / "keep.txt").read_text() == "user's"
+    assert (tmp_path / "link").is_symlink()
+    assert sorted(p.name for p in outside.iterdir()) == ["data.bin"]
+    assert (outside / "data.bin").read_bytes() == b"user's"
 
 
 def test_cli_bench_list_and_bad_names(capsys):
