@@ -1,17 +1,20 @@
-"""The Warp engine's own work around MuJoCo Warp's step, as Warp kernels of one thread per world.
+"""The Warp engine's own work around MuJoCo Warp's step, as Warp kernels.
 
 On a cheap model every launch of the step graph shows: the cart-pole's step is about 300
 microseconds for 8192 worlds, and each small torch operation adds a launch and its gap (the
 divergence check and restart alone were about fifteen of them). So the engine's work between
-two control rows is three launches besides MuJoCo Warp's own, as a raw loop has:
+two control rows is a few launches besides MuJoCo Warp's own, each of one thread per value
+where the work is per value (a thread per world looping over its columns in sequence is latency
+no step hides):
 
 - `Inputs.launch`, before the step: step `t`'s control row of every world (the driver's
   (nbatch, nstep, ncontrol) rows; a world an episode holds at its fresh state takes the inputs
   mj_resetData leaves) into MuJoCo Warp's input arrays, one launch per input array;
-- `AfterStep.launch`, after it: MuJoCo's divergence check and restart (`rules.unstable`,
-  `rules.restart_unstable`, the same tests in the same float32 arithmetic), a held world back
-  at its fresh state, then the frame of a `state` record (and each record that is a run of
-  columns of one array, `Columns`) written into its frames;
+- `AfterStep.launch`, after it: MuJoCo's divergence check (`rules.unstable`, the same tests in
+  the same float32 arithmetic, one thread per value), the restart of the worlds it flags
+  (`rules.restart_unstable`) and a held world back at its fresh state (one thread per world),
+  then the frame of a `state` record and of each record that is a run of columns of one
+  array (one thread per column);
 - the step index's increment (a torch operation).
 
 Records of any other shape (an int32 count, say) are read by torch as before
@@ -64,32 +67,46 @@ def _sane(x: wp.float32) -> bool:
 
 
 @wp.kernel
-def _after_step(t: wp.array(dtype=wp.int64), every: int, qpos0: wp.array2d(dtype=wp.float32),
-                time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
-                qvel: wp.array2d(dtype=wp.float32), act: wp.array2d(dtype=wp.float32),
-                qacc: wp.array2d(dtype=wp.float32), warmstart: wp.array2d(dtype=wp.float32),
-                sensordata: wp.array2d(dtype=wp.float32), diverged: wp.array(dtype=wp.bool),
-                held: wp.array(dtype=wp.bool), at: wp.array2d(dtype=wp.float32),
-                state: wp.array3d(dtype=wp.float32)):
-    """After MuJoCo Warp's step t: the divergence check and restart, the episodes' hold, the
-    `state` frame (an empty `state` records none)."""
+def _check(time: wp.array(dtype=wp.float32), qpos: wp.array2d(dtype=wp.float32),
+           qvel: wp.array2d(dtype=wp.float32), qacc: wp.array2d(dtype=wp.float32),
+           act: wp.array2d(dtype=wp.float32), sensordata: wp.array2d(dtype=wp.float32),
+           bad: wp.array(dtype=wp.bool), diverged: wp.array(dtype=wp.bool)):
+    """MuJoCo's divergence check of one value of world w after the step (`rules.unstable`):
+    column j of (time, qpos, qvel, qacc, act, sensordata) laid end to end; a bad value sets
+    the world's `bad` (this step's) and `diverged` (the batch's) flags."""
+    w, j = wp.tid()
+    nq, nv, na = qpos.shape[1], qvel.shape[1], act.shape[1]
+    ok = bool(True)
+    if j == 0:
+        ok = _sane(time[w])
+    elif j < 1 + nq:
+        ok = _sane(qpos[w, j - 1])
+    elif j < 1 + nq + nv:
+        ok = _sane(qvel[w, j - 1 - nq])
+    elif j < 1 + nq + 2 * nv:
+        ok = _sane(qacc[w, j - 1 - nq - nv])
+    elif j < 1 + nq + 2 * nv + na:
+        ok = _sane(act[w, j - 1 - nq - 2 * nv])
+    else:
+        ok = wp.isfinite(sensordata[w, j - 1 - nq - 2 * nv - na])
+    if not ok:  # every writer writes True: no race
+        bad[w] = True
+        diverged[w] = True
+
+
+@wp.kernel
+def _restart(qpos0: wp.array2d(dtype=wp.float32), time: wp.array(dtype=wp.float32),
+             qpos: wp.array2d(dtype=wp.float32), qvel: wp.array2d(dtype=wp.float32),
+             act: wp.array2d(dtype=wp.float32), warmstart: wp.array2d(dtype=wp.float32),
+             sensordata: wp.array2d(dtype=wp.float32), bad: wp.array(dtype=wp.bool),
+             held: wp.array(dtype=wp.bool), at: wp.array2d(dtype=wp.float32)):
+    """A world `_check` found bad restarted as mj_resetData leaves it (`rules.RESET`), its
+    flag cleared for the next step; a world an episode holds back at its fresh state. Only
+    those worlds loop over their columns: the others read two flags."""
     w = wp.tid()
     nq, nv, na = qpos.shape[1], qvel.shape[1], act.shape[1]
-    bad = not _sane(time[w])
-    for i in range(nq):
-        if not _sane(qpos[w, i]):
-            bad = True
-    for i in range(nv):
-        if not (_sane(qvel[w, i]) and _sane(qacc[w, i])):
-            bad = True
-    for i in range(na):
-        if not _sane(act[w, i]):
-            bad = True
-    for i in range(sensordata.shape[1]):
-        if not wp.isfinite(sensordata[w, i]):
-            bad = True
-    if bad:  # restarted as mj_resetData leaves a world (`rules.RESET`)
-        diverged[w] = True
+    if bad[w]:
+        bad[w] = False
         row = w
         if qpos0.shape[0] == 1:
             row = 0
@@ -105,15 +122,24 @@ def _after_step(t: wp.array(dtype=wp.int64), every: int, qpos0: wp.array2d(dtype
             sensordata[w, i] = 0.0
     if held.shape[0] > 0 and held[w]:  # an episode's fresh frame stays at its fresh state
         set_state(w, at, time, qpos, qvel, act, warmstart)
-    if state.shape[0] > 0:
-        frame = int(t[0] // wp.int64(every))
+
+
+@wp.kernel
+def _state_frame(t: wp.array(dtype=wp.int64), every: int, time: wp.array(dtype=wp.float32),
+                 qpos: wp.array2d(dtype=wp.float32), qvel: wp.array2d(dtype=wp.float32),
+                 act: wp.array2d(dtype=wp.float32), state: wp.array3d(dtype=wp.float32)):
+    """Column j of the `state` frame of step t (time, qpos, qvel, act laid end to end)."""
+    w, j = wp.tid()
+    nq, nv = qpos.shape[1], qvel.shape[1]
+    frame = int(t[0] // wp.int64(every))
+    if j == 0:
         state[w, frame, 0] = time[w]
-        for i in range(nq):
-            state[w, frame, 1 + i] = qpos[w, i]
-        for i in range(nv):
-            state[w, frame, 1 + nq + i] = qvel[w, i]
-        for i in range(na):
-            state[w, frame, 1 + nq + nv + i] = act[w, i]
+    elif j < 1 + nq:
+        state[w, frame, j] = qpos[w, j - 1]
+    elif j < 1 + nq + nv:
+        state[w, frame, j] = qvel[w, j - 1 - nq]
+    else:
+        state[w, frame, j] = act[w, j - 1 - nq - nv]
 
 
 @wp.kernel
@@ -183,17 +209,24 @@ class AfterStep:
         self.state_key = next((key for key, (o, frames) in records.items()
                                if isinstance(o, records_.State)
                                and frames.dtype == torch.float32), None)
-        fields = [views["time"].reshape(-1)] + [views[name] for name in (
-            "qpos", "qvel", "act", "qacc", "qacc_warmstart", "sensordata")]
-        self.arrays = [_warp(qpos0.reshape(qpos0.shape[0], -1))] + [_warp(f) for f in fields]
+        v = {name: _warp(views[name]) for name in (
+            "qpos", "qvel", "act", "qacc", "qacc_warmstart", "sensordata")}
+        v["time"] = _warp(views["time"].reshape(-1))
+        n = diverged.shape[0]
+        self.bad = _warp(torch.zeros(n, dtype=torch.bool, device=device))  # this step's
         self.diverged = _warp(diverged)
+        self.check = [v[k] for k in ("time", "qpos", "qvel", "qacc", "act", "sensordata")]
+        self.ncheck = sum(a.shape[1] if a.ndim == 2 else 1 for a in self.check)
         if episodes is not None:
-            self.hold = [_warp(episodes.held), _warp(episodes.at)]
+            hold = [_warp(episodes.held), _warp(episodes.at)]
         else:
-            self.hold = [_empty((0,), torch.bool, device),
-                         _empty((0, 0), torch.float32, device)]
+            hold = [_empty((0,), torch.bool, device), _empty((0, 0), torch.float32, device)]
+        self.restart = [_warp(qpos0.reshape(qpos0.shape[0], -1)),
+                        *(v[k] for k in ("time", "qpos", "qvel", "act", "qacc_warmstart",
+                                         "sensordata")), self.bad, *hold]
+        self.physics = [v[k] for k in ("time", "qpos", "qvel", "act")]
         self.state = (_warp(records[self.state_key][1]) if self.state_key is not None
-                      else _empty((0, 0, 0), torch.float32, device))
+                      else None)
         self.columns, self.rest = [], []
         for key, (o, frames) in records.items():
             if key == self.state_key:
@@ -209,8 +242,14 @@ class AfterStep:
         restart and hold and the frames of the column records: what brings the data to the
         frame's state (`record_kinematics="frame"`)."""
         n = self.diverged.shape[0]
-        wp.launch(_after_step, dim=n, inputs=[t, self.every, *self.arrays, self.diverged,
-                                              *self.hold, self.state])
+        # one thread per world and column, as torch's copies are: one thread per world,
+        # looping over a humanoid's 150 columns in sequence, is latency a step cannot hide
+        wp.launch(_check, dim=(n, self.ncheck), inputs=[*self.check, self.bad,
+                                                        self.diverged])
+        wp.launch(_restart, dim=n, inputs=self.restart)
+        if self.state is not None:
+            wp.launch(_state_frame, dim=(n, self.state.shape[2]),
+                      inputs=[t, self.every, *self.physics, self.state])
         if then is not None:
             then()
         for source, start, width, frames in self.columns:
