@@ -10,6 +10,7 @@ attribute) and is flagged when it is opened (`stored_warning`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.metadata
 import re
 import warnings
@@ -104,6 +105,11 @@ def _release(version: str) -> tuple[int, ...]:
 
 def installed() -> dict[str, Optional[str]]:
     """The installed versions of the packages of `FAULTS` (None: not installed)."""
+    return dict(_installed())
+
+
+@functools.cache  # a process's packages do not change; each look-up is a scan of site-packages
+def _installed() -> dict[str, Optional[str]]:
     out: dict[str, Optional[str]] = {}
     for package in {fault.package for fault in FAULTS}:
         try:
