@@ -1,0 +1,230 @@
+"""Menagerie robots on the GPU engines, one table: per robot and engine, whether the engine
+simulates it, the first batch cold and warm next to the raw engine's, and steps/s next to the
+raw engine doing the same work.
+
+The robots are the Menagerie scenes the tests carry (`tests/robots`, collision geometry only).
+For each (robot, engine) the engine accepts (`Engine.refuses_model`; a refusal is a row too):
+
+1. First batch: fresh processes, as `benchmarks/bench_startup.py` runs them
+   (`simloader.bench.startup`): raw cold, simloader cold (each with an empty cache root of its
+   own), then raw warm and simloader warm (the same roots). simloader's share is simloader's
+   seconds after `import torch` less the raw script's. With `--jobs` above 1 the robots' children
+   run side by side (each compiles on one CPU core; the GPU work of a first batch is under a
+   second): cold seconds are then those of a busy machine, and warm ones slightly too.
+2. Steady state, one (robot, engine) at a time, in a child whose caches are the simloader
+   side's of step 1 (warm): `simloader.bench.compare` at NBATCHxNSTEP, simloader and the raw
+   engine alternating (`RawWarp`, `RawMjx`: same work), medians.
+
+Every child's result is appended to `robots[-TAG]-DATE.jsonl` as it comes (a run cut short
+keeps what it measured); the table is rendered from those lines.
+
+Run on the GPU machine from the repository root:
+  python benchmarks/bench_robots.py --jobs 14 --save --results-dir $OUT
+  python benchmarks/bench_robots.py --phase steady --cache-root ROOT --save --results-dir $OUT
+Smoke run without a GPU (MJX on the CPU, tiny):
+  python benchmarks/bench_robots.py --engines mjx --robots universal_robots_ur5e --nbatch 4 \
+      --nstep 5 --repeats 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import json
+import pathlib
+import statistics
+import subprocess
+import sys
+import tempfile
+from typing import Any, Optional
+
+import common
+import mujoco
+
+from simloader.bench.startup import RAW_SCRIPT, SIMLOADER, child_env, run_child
+
+ROBOTS = common.REPO / "tests" / "robots"
+ENGINES = ("warp", "mjx")
+TARGET = 0.97  # steps/s against the raw engine's, same work (issue 64)
+
+
+def robots() -> list[str]:
+    return sorted(p.name for p in ROBOTS.iterdir() if (p / "scene.xml").is_file())
+
+
+def refusal(robot: str, engine: str) -> Optional[str]:
+    """Why `engine` does not simulate `robot` here (None: it does)."""
+    from simloader.backends import engine as entry
+    e = entry(engine)
+    missing = e.missing()
+    if missing is not None:
+        return f"cannot run here: {missing}"
+    why = e.refuses_model(mujoco.MjModel.from_xml_path(str(ROBOTS / robot / "scene.xml")))
+    return None if why is None else f"refuses: {why}"
+
+
+def roots(cache_root: pathlib.Path, robot: str, engine: str) -> dict[str, pathlib.Path]:
+    return {who: cache_root / f"{robot}-{engine}-{who}" for who in ("raw", "simloader")}
+
+
+def first_batches(robot: str, engine: str, args: argparse.Namespace,
+                  record: Any) -> None:
+    """Step 1 for one (robot, engine): cold, then `--repeats` warm pairs, each recorded."""
+    spec = {"model": str(ROBOTS / robot / "scene.xml"), "nbatch": args.nbatch,
+            "nstep": args.nstep, "seed": 0, "backend": engine}
+    where = roots(args.cache_root, robot, engine)
+    for folder in where.values():
+        folder.mkdir(parents=True, exist_ok=False)  # cold for real: a fresh folder
+    order = [("raw", "cold"), ("simloader", "cold")]
+    for rep in range(args.repeats):
+        pair = [("raw", "warm"), ("simloader", "warm")]
+        order += pair if rep % 2 else pair[::-1]
+    for who, kind in order:
+        script = SIMLOADER if who == "simloader" else RAW_SCRIPT[engine]
+        r = run_child(script, where[who], dict(spec, jax_cache=str(where[who] / "jax")),
+                      who == "simloader", args.timeout)
+        record({"phase": "first", "robot": robot, "engine": engine, "who": who,
+                "kind": kind, **{k: r.get(k) for k in ("total", "after_torch", "wall",
+                                                        "phases", "error")}})
+
+
+STEADY = r'''
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import mujoco
+from simloader.bench.compare import compare
+from simloader.bench.raw import Workload, RAW_OF
+path, engine, nbatch, nstep, repeats = sys.argv[2], sys.argv[3], *map(int, sys.argv[4:])
+model = mujoco.MjModel.from_xml_path(path)
+s, _, notes = compare(model, Workload("scene", nbatch, nstep), [engine], repeats=repeats,
+                      min_batches=3, min_seconds=1.0, python_steps=100)
+print(json.dumps({"s_per_step": s, "notes": notes}))
+'''
+
+
+def steady(robot: str, engine: str, args: argparse.Namespace, record: Any) -> None:
+    """Step 2 for one (robot, engine), in a child on the simloader side's warm caches."""
+    where = roots(args.cache_root, robot, engine)["simloader"]
+    env = child_env(where, {}, simloader=True)
+    cmd = [sys.executable, "-c", STEADY, str(common.REPO), str(ROBOTS / robot / "scene.xml"),
+           engine, str(args.nbatch), str(args.nstep), str(args.repeats)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=args.timeout)
+    lines = [x for x in proc.stdout.splitlines() if x.startswith("{")]
+    out = (json.loads(lines[-1]) if proc.returncode == 0 and lines
+           else {"error": f"exit {proc.returncode}\n{proc.stderr[-2000:]}"})
+    record({"phase": "steady", "robot": robot, "engine": engine, **out})
+
+
+def median(xs: list) -> Optional[float]:
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
+
+
+def table(lines: list[dict]) -> str:
+    """One row per (robot, engine) from the JSON lines."""
+    from simloader.bench.raw import raw_baseline
+    keys = sorted({(x["robot"], x["engine"]) for x in lines})
+    rows = []
+    for robot, engine in keys:
+        mine = [x for x in lines if (x["robot"], x["engine"]) == (robot, engine)]
+        refused = next((x["refused"] for x in mine if x["phase"] == "refused"), None)
+        if refused is not None:
+            rows.append([robot, engine, refused[:100], *["-"] * 7])
+            continue
+
+        def first(who: str, kind: str, field: str = "total") -> Optional[float]:
+            return median([x.get(field) for x in mine if x["phase"] == "first"
+                           and x["who"] == who and x["kind"] == kind and not x.get("error")])
+
+        def share(kind: str) -> str:
+            sim, raw = first("simloader", kind, "after_torch"), first("raw", kind, "after_torch")
+            return "-" if sim is None or raw is None else f"{sim - raw:+.2f}"
+
+        def pair(kind: str) -> str:
+            sim, raw = first("simloader", kind), first("raw", kind)
+            return "failed" if sim is None or raw is None else f"{sim:.1f} / {raw:.1f}"
+
+        st = next((x for x in mine if x["phase"] == "steady"), None)
+        rate = raw_rate = ratio = "-"
+        held = "-"
+        if st is not None and "s_per_step" in st:
+            Raw = raw_baseline(engine)
+            s = st["s_per_step"]
+            if Raw.row in s and Raw.simloader_row in s:
+                rate = f"{1 / s[Raw.simloader_row] / 1e6:.2f}M"
+                raw_rate = f"{1 / s[Raw.row] / 1e6:.2f}M"
+                r = s[Raw.row] / s[Raw.simloader_row]
+                ratio, held = f"{r:.3f}", ("yes" if r >= TARGET else "**no**")
+        elif st is not None:
+            rate = "failed"
+        rows.append([robot, engine, "accepts", pair("cold"), share("cold"), pair("warm"),
+                     share("warm"), rate, raw_rate, f"{ratio} ({held})" if ratio != "-"
+                     else ratio])
+    headers = ["robot", "engine", "engine's verdict", "first batch cold, s: simloader / raw",
+               "simloader's share cold, s", "first batch warm, s: simloader / raw",
+               "simloader's share warm, s", "steps/s simloader", "steps/s raw",
+               f"ratio (>= {TARGET})"]
+    return common.markdown_table(headers, rows)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--robots", nargs="+", choices=robots(), default=robots())
+    p.add_argument("--engines", nargs="+", choices=ENGINES, default=list(ENGINES))
+    p.add_argument("--nbatch", type=int, default=4096)
+    p.add_argument("--nstep", type=int, default=100)
+    p.add_argument("--phase", choices=("all", "first", "steady"), default="all",
+                   help="first batches, steady state, or both (steady reuses --cache-root)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="(robot, engine) start-up runs side by side")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="warm first-batch pairs; repetitions of the steady state")
+    p.add_argument("--timeout", type=float, default=400.0, help="seconds per child")
+    p.add_argument("--cache-root", type=pathlib.Path,
+                   help="a new folder for the children's caches (default: a fresh temporary "
+                        "folder); --phase steady: the one the first phase used")
+    common.add_output_options(p)
+    args = p.parse_args()
+    if args.cache_root is None:
+        args.cache_root = pathlib.Path(tempfile.mkdtemp(prefix="bench_robots-"))
+    elif args.phase != "steady" and args.cache_root.exists():
+        raise SystemExit(f"--cache-root: {args.cache_root} exists; give a new folder (its "
+                         f"first batches must start cold)")
+    lines_path = common.result_path(args, "robots", ".jsonl")
+    lines_path.parent.mkdir(parents=True, exist_ok=True)
+
+    def record(line: dict) -> None:
+        with open(lines_path, "a") as f:
+            f.write(json.dumps(line) + "\n")
+
+    jobs = []
+    for robot in args.robots:
+        for engine in args.engines:
+            why = refusal(robot, engine)
+            if why is not None:
+                record({"phase": "refused", "robot": robot, "engine": engine, "refused": why})
+            else:
+                jobs.append((robot, engine))
+    if args.phase in ("all", "first"):
+        with concurrent.futures.ThreadPoolExecutor(args.jobs) as pool:
+            done = [pool.submit(first_batches, r, e, args, record) for r, e in jobs]
+            for f in common.progress(concurrent.futures.as_completed(done), "first batches",
+                                     total=len(done)):
+                f.result()
+    if args.phase in ("all", "steady"):
+        for robot, engine in common.progress(jobs, "steady state"):
+            steady(robot, engine, args, record)
+    lines = [json.loads(x) for x in lines_path.read_text().splitlines()]
+    sections = [
+        f"## Menagerie robots (tests/robots) at {args.nbatch}x{args.nstep}", table(lines),
+        "First batch: seconds from process start to the first batch in torch's hands, "
+        "fresh processes, median of the warm runs; share: simloader's seconds after `import "
+        "torch` less the raw script's. Steady state: simloader's steps/s over the raw "
+        "engine's, same work, in one process on warm caches. JSON lines: "
+        f"`{lines_path.name}`."]
+    common.report(args, "robots", "Menagerie robots on the GPU engines", sections)
+
+
+if __name__ == "__main__":
+    main()
