@@ -236,26 +236,27 @@ def buffer_sizes(model: mujoco.MjModel, nbatch: int, x0: np.ndarray,
 def _calibrate(model: mujoco.MjModel, x0: np.ndarray) -> tuple[int, int]:
     """The most contacts and constraint rows one trajectory of MuJoCo C used.
 
-    The trajectories run on threads (mj_step releases the GIL), each under controls of its
-    own generator, so the sizes do not depend on the number of threads: at construction this
-    is most of simloader's own start-up on a GPU machine (4800 humanoid steps, 0.24 s on one
-    core of the 2-core machine)."""
+    The trajectories run on threads (mj_step releases the GIL): at construction this was most
+    of simloader's own start-up on a GPU machine (4800 humanoid steps, 0.24 s on one core).
+    Their controls are drawn first, from one generator in trajectory order, as one thread drew
+    them step by step before: the sizes do not depend on the threads, and are those the suite
+    measured on an H200 (njmax 64 for the humanoid; draws of another order gave 70, and a run
+    of the cameras workload then the randomized one hit an illegal memory access there)."""
     low, high = np.where(model.actuator_ctrllimited[:, None].astype(bool), model.actuator_ctrlrange,
                          [-1.0, 1.0]).T
+    n = min(_CALIBRATION_TRAJECTORIES, len(x0))
+    controls = np.random.default_rng(0).uniform(low, high, (n, _CALIBRATION_STEPS, model.nu))
 
     def trajectory(i: int) -> tuple[int, int]:
-        controls = np.random.default_rng([0, i]).uniform(low, high,
-                                                         (_CALIBRATION_STEPS, model.nu))
         data = mujoco.MjData(model)
         mujoco.mj_setState(model, data, x0[i], layout.FULLPHYSICS)
         ncon = nefc = 0
-        for u in controls:
+        for u in controls[i]:
             data.ctrl[:] = u
             mujoco.mj_step(model, data)
             ncon, nefc = max(ncon, data.ncon), max(nefc, data.nefc)
         return ncon, nefc
 
-    n = min(_CALIBRATION_TRAJECTORIES, len(x0))
     with concurrent.futures.ThreadPoolExecutor(min(n, threads.available_cpus())) as pool:
         used = list(pool.map(trajectory, range(n)))
     return max(c for c, _ in used), max(e for _, e in used)
