@@ -242,8 +242,10 @@ class AfterStep:
         restart and hold and the frames of the column records: what brings the data to the
         frame's state (`record_kinematics="frame"`)."""
         n = self.diverged.shape[0]
-        # one thread per world and column, as torch's copies are: one thread per world,
-        # looping over a humanoid's 150 columns in sequence, is latency a step cannot hide
+        # one thread per world and value, as torch's copies are: one thread per world,
+        # looping over a humanoid's 150 columns in sequence, cost about 33 microseconds a
+        # step on an H200 at 4096 and 8192 worlds alike (the continued stream 0.966x raw
+        # MuJoCo Warp before, 0.982x after; the suite's `warp-continued`)
         wp.launch(_check, dim=(n, self.ncheck), inputs=[*self.check, self.bad,
                                                         self.diverged])
         wp.launch(_restart, dim=n, inputs=self.restart)
