@@ -6,11 +6,12 @@ The robots are the Menagerie scenes the tests carry (`tests/robots`, collision g
 For each (robot, engine) the engine accepts (`Engine.refuses_model`; a refusal is a row too):
 
 1. First batch: fresh processes, as `benchmarks/bench_startup.py` runs them
-   (`simloader.bench.startup`): raw cold, simloader cold (each with an empty cache root of its
-   own), then raw warm and simloader warm (the same roots). simloader's share is simloader's
-   seconds after `import torch` less the raw script's. With `--jobs` above 1 the robots' children
-   run side by side (each compiles on one CPU core; the GPU work of a first batch is under a
-   second): cold seconds are then those of a busy machine, and warm ones slightly too.
+   (`simloader.bench.startup`). Cold: raw and simloader at the same time, each with an empty
+   cache root of its own, so that both see the same machine; `--jobs` pairs side by side
+   (MuJoCo Warp compiles on one CPU core a process): cold seconds are those of a busy machine,
+   compared fairly. Warm: then one process at a time on the same roots, raw and simloader
+   alternating, `--repeats` each. simloader's share is its seconds after `import torch` less
+   the raw script's.
 2. Steady state, one (robot, engine) at a time, in a child whose caches are the simloader
    side's of step 1 (warm): `simloader.bench.compare` at NBATCHxNSTEP, simloader and the raw
    engine alternating (`RawWarp`, `RawMjx`: same work), medians.
@@ -67,25 +68,28 @@ def roots(cache_root: pathlib.Path, robot: str, engine: str) -> dict[str, pathli
     return {who: cache_root / f"{robot}-{engine}-{who}" for who in ("raw", "simloader")}
 
 
-def first_batches(robot: str, engine: str, args: argparse.Namespace,
-                  record: Any) -> None:
-    """Step 1 for one (robot, engine): cold, then `--repeats` warm pairs, each recorded."""
+def first_batch(robot: str, engine: str, who: str, kind: str, args: argparse.Namespace,
+                record: Any) -> None:
+    """One fresh process to its first batch: `who` (raw or simloader), caches `kind`."""
     spec = {"model": str(ROBOTS / robot / "scene.xml"), "nbatch": args.nbatch,
             "nstep": args.nstep, "seed": 0, "backend": engine}
-    where = roots(args.cache_root, robot, engine)
-    for folder in where.values():
+    folder = roots(args.cache_root, robot, engine)[who]
+    if kind == "cold":
         folder.mkdir(parents=True, exist_ok=False)  # cold for real: a fresh folder
-    order = [("raw", "cold"), ("simloader", "cold")]
-    for rep in range(args.repeats):
-        pair = [("raw", "warm"), ("simloader", "warm")]
-        order += pair if rep % 2 else pair[::-1]
-    for who, kind in order:
-        script = SIMLOADER if who == "simloader" else RAW_SCRIPT[engine]
-        r = run_child(script, where[who], dict(spec, jax_cache=str(where[who] / "jax")),
-                      who == "simloader", args.timeout)
-        record({"phase": "first", "robot": robot, "engine": engine, "who": who,
-                "kind": kind, **{k: r.get(k) for k in ("total", "after_torch", "wall",
-                                                        "phases", "error")}})
+    script = SIMLOADER if who == "simloader" else RAW_SCRIPT[engine]
+    r = run_child(script, folder, dict(spec, jax_cache=str(folder / "jax")),
+                  who == "simloader", args.timeout)
+    record({"phase": "first", "robot": robot, "engine": engine, "who": who, "kind": kind,
+            **{k: r.get(k) for k in ("total", "after_torch", "wall", "phases", "error")}})
+
+
+def cold_pair(robot: str, engine: str, args: argparse.Namespace, record: Any) -> None:
+    """Raw and simloader cold at the same time: whatever else runs beside them (other
+    robots' pairs, with `--jobs`), both see it."""
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        for f in [pool.submit(first_batch, robot, engine, who, "cold", args, record)
+                  for who in ("raw", "simloader")]:
+            f.result()
 
 
 STEADY = r'''
@@ -123,6 +127,7 @@ def median(xs: list) -> Optional[float]:
 def table(lines: list[dict]) -> str:
     """One row per (robot, engine) from the JSON lines."""
     from simloader.bench.raw import raw_baseline
+    lines = [x for x in lines if x["phase"] != "machine"]
     keys = sorted({(x["robot"], x["engine"]) for x in lines})
     rows = []
     for robot, engine in keys:
@@ -174,8 +179,11 @@ def main() -> None:
     p.add_argument("--engines", nargs="+", choices=ENGINES, default=list(ENGINES))
     p.add_argument("--nbatch", type=int, default=4096)
     p.add_argument("--nstep", type=int, default=100)
-    p.add_argument("--phase", choices=("all", "first", "steady"), default="all",
-                   help="first batches, steady state, or both (steady reuses --cache-root)")
+    p.add_argument("--phase", choices=("all", "first", "steady", "report"), default="all",
+                   help="first batches, steady state, both (steady reuses --cache-root), or "
+                        "only the table of the JSON lines already written")
+    p.add_argument("--note", action="append", default=[],
+                   help="a paragraph printed (and saved) under the table")
     p.add_argument("--jobs", type=int, default=1,
                    help="(robot, engine) start-up runs side by side")
     p.add_argument("--repeats", type=int, default=1,
@@ -188,7 +196,7 @@ def main() -> None:
     args = p.parse_args()
     if args.cache_root is None:
         args.cache_root = pathlib.Path(tempfile.mkdtemp(prefix="bench_robots-"))
-    elif args.phase != "steady" and args.cache_root.exists():
+    elif args.phase in ("all", "first") and args.cache_root.exists():
         raise SystemExit(f"--cache-root: {args.cache_root} exists; give a new folder (its "
                          f"first batches must start cold)")
     lines_path = common.result_path(args, "robots", ".jsonl")
@@ -198,8 +206,10 @@ def main() -> None:
         with open(lines_path, "a") as f:
             f.write(json.dumps(line) + "\n")
 
+    if args.phase != "report":  # the machine the lines were measured on, for the report
+        record({"phase": "machine", **common.environment()})
     jobs = []
-    for robot in args.robots:
+    for robot in args.robots if args.phase != "report" else []:
         for engine in args.engines:
             why = refusal(robot, engine)
             if why is not None:
@@ -208,22 +218,40 @@ def main() -> None:
                 jobs.append((robot, engine))
     if args.phase in ("all", "first"):
         with concurrent.futures.ThreadPoolExecutor(args.jobs) as pool:
-            done = [pool.submit(first_batches, r, e, args, record) for r, e in jobs]
-            for f in common.progress(concurrent.futures.as_completed(done), "first batches",
+            done = [pool.submit(cold_pair, r, e, args, record) for r, e in jobs]
+            for f in common.progress(concurrent.futures.as_completed(done), "cold pairs",
                                      total=len(done)):
                 f.result()
+        # warm runs one at a time, the machine otherwise idle, raw and simloader alternating
+        warm = [(r, e, who) for rep in range(args.repeats) for r, e in jobs
+                for who in (("raw", "simloader") if rep % 2 == 0 else ("simloader", "raw"))]
+        for robot, engine, who in common.progress(warm, "warm runs"):
+            first_batch(robot, engine, who, "warm", args, record)
     if args.phase in ("all", "steady"):
         for robot, engine in common.progress(jobs, "steady state"):
             steady(robot, engine, args, record)
     lines = [json.loads(x) for x in lines_path.read_text().splitlines()]
-    sections = [
+    machines = [x for x in lines if x["phase"] == "machine"]
+    measured_on = ("Measured on: " + "; ".join(f"{k}: {v}" for k, v in machines[0].items()
+                                               if k != "phase") + "."
+                   if machines else "Measured on: the machine the notes below name.")
+    sections = [measured_on,
         f"## Menagerie robots (tests/robots) at {args.nbatch}x{args.nstep}", table(lines),
         "First batch: seconds from process start to the first batch in torch's hands, "
         "fresh processes, median of the warm runs; share: simloader's seconds after `import "
         "torch` less the raw script's. Steady state: simloader's steps/s over the raw "
         "engine's, same work, in one process on warm caches. JSON lines: "
-        f"`{lines_path.name}`."]
-    common.report(args, "robots", "Menagerie robots on the GPU engines", sections)
+        f"`{lines_path.name}`.", *args.note]
+    title = "Menagerie robots on the GPU engines"
+    if args.phase != "report":
+        common.report(args, "robots", title, sections)
+        return
+    # rendered elsewhere than measured: the lines' machine, not this one's, heads the file
+    print("\n\n".join(sections))
+    if args.save:
+        out = common.result_path(args, "robots", ".md")
+        out.write_text(f"# {title}\n\n" + "\n\n".join(sections) + "\n")
+        print(f"saved {out}", file=sys.stderr)
 
 
 if __name__ == "__main__":
