@@ -58,6 +58,10 @@ def test_contact_free_trajectories_match_mujoco_c(cache_dir):
                  num_batches=1)
     batch = next(iter(ds))
     assert batch["state"].dtype == torch.float32 and not batch["diverged"].any()
+    built = ds.stats["compile_s"]  # the engine built once, its seconds counted
+    assert built > 0
+    next(iter(ds))  # a second iterator reuses the engine: nothing more is built
+    assert ds.stats["compile_s"] == built
     state, sensordata = c_rollout(model, batch)
     np.testing.assert_allclose(batch["state"].cpu().numpy(), state, atol=CONTACT_FREE_TOL)
     np.testing.assert_allclose(batch["sensordata"].cpu().numpy(), sensordata,

@@ -67,10 +67,12 @@ class WarpBackend(Backend):
         engines = _ENGINES.setdefault(config, {})
         self.engine: WarpSimulation = engines.get(self.device)
         if self.engine is None:
+            start = time.perf_counter()
             with slow_notice("building MuJoCo Warp's step for this model", hint=_FIRST_USE):
                 self.engine = engines[self.device] = WarpSimulation(
                     config, options, self.device,
                     on_capture=lambda: stats.add(graph_captures=1))
+            stats.add(compile_s=time.perf_counter() - start)
         self.tables = self.engine.tables
         # which trajectories start afresh, the variant and values each runs with (on the device)
         self.trajectories = Trajectories(config, self.device)

@@ -31,8 +31,10 @@ class WarpEngine(EngineEntry):
     # overflow: trajectories that lost contacts or constraint rows to the buffer sizes (the
     # batch's `overflow` flags them); solver_limit: trajectories whose constraint solver
     # stopped at its iteration limit in a batch (MuJoCo C stops there too, silently);
-    # graph_captures: CUDA graphs captured, one per dataset and device, at its first batch
-    counters = ("overflow", "solver_limit", "graph_captures")
+    # graph_captures: CUDA graphs captured, one per dataset and device, at its first batch;
+    # compile_s: seconds building the engine there (MuJoCo Warp's model and data on the
+    # device, its kernels and simloader's compiled or loaded, the step graph captured)
+    counters = ("overflow", "solver_limit", "graph_captures", "compile_s")
 
     def missing(self) -> Optional[str]:
         import torch
