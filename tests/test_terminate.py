@@ -94,6 +94,33 @@ def test_the_flags_say_what_the_rule_and_the_resets_did(walker):
     assert not first[:, 0].any()
 
 
+def test_a_free_bodys_height_is_its_qpos_column_read_without_kinematics():
+    # mj_kinematics copies a free joint's position into xpos: the humanoid's torso (a free
+    # joint alone) is read from qpos, by every engine, with no kinematics; the walker's torso
+    # (slide and hinge joints) and the humanoid's head (under the torso) from xpos
+    humanoid = simloader.load_model("humanoid")
+    walker = mujoco.MjModel.from_xml_path(WALKER)
+    torso = T.parse(humanoid, T.Below("torso", 0.9))
+    assert torso.reads == ("qpos",) and not torso.kinematic
+    assert T.parse(humanoid, T.Below("head", 1.2)).reads == ("xpos",)
+    assert T.parse(walker, T.Below("torso", 0.9)).kinematic
+    rule = torso.rules[0]
+    ds = simloader.SimDataset(humanoid, nbatch=4, nstep=150, seed=3, backend="cpu",
+                              control=controls.Uniform())
+    states = next(iter(ds))["state"].numpy().reshape(-1, ds.config.nstate)
+    data = mujoco.MjData(humanoid)
+    heights = []
+    for row in states:
+        mujoco.mj_setState(humanoid, data, row, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        mujoco.mj_kinematics(humanoid, data)
+        heights.append(data.xpos[humanoid.body("torso").id, 2])
+    qpos = states[:, 1:1 + humanoid.nq]
+    np.testing.assert_array_equal(qpos[:, rule.free_z], heights)  # the same number, not close
+    met = rule.met(np, {"qpos": qpos})
+    np.testing.assert_array_equal(met, np.array(heights) < 0.9)
+    assert met.any() and not met.all()  # the humanoid falls: both verdicts are seen
+
+
 def test_fresh_states_come_from_the_generator_seeded_per_row_and_episode(walker):
     ds, batch = walker
     again = next(iter(simloader.SimDataset(

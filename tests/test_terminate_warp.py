@@ -105,6 +105,33 @@ def test_a_rule_kind_without_its_branch_meets_nothing_in_the_kernel():
     assert not after_step_verdict(len(T.KINDS))
 
 
+def test_a_free_bodys_height_rule_is_its_qpos_column_in_the_kernel():
+    # Below on a body moved by a free joint alone is the row outside(z column, height, +inf):
+    # the kernel's verdicts are the column's own, with no kinematics in the step
+    import warp as wp
+
+    from simloader.backends.warp import episodes
+    rule = T.parse(simloader.load_model("humanoid"), T.Below("torso", 0.9)).rules[0]
+    kind, column, low, high = rule.row()
+    assert (kind, column, low, high) == (T.KINDS["outside"], rule.free_z, 0.9, float("inf"))
+    z = np.array([2.0, 0.9, np.nextafter(np.float32(0.9), np.float32(0)), -1.0, np.inf],
+                 dtype=np.float32)
+    qpos = np.zeros((len(z), column + 1), dtype=np.float32)
+    qpos[:, column] = z
+    one = dict(device="cpu")
+    n = len(z)
+    flags = [wp.zeros((n, 1), dtype=wp.bool, **one) for _ in range(3)]
+    wp.launch(episodes._after_step, dim=n, inputs=[
+        wp.zeros(1, dtype=wp.int64, **one), 1, 0, wp.array([kind], dtype=wp.int32, **one),
+        wp.array([column], dtype=wp.int32, **one), wp.array([low], dtype=wp.float32, **one),
+        wp.array([high], dtype=wp.float32, **one), wp.zeros((n, 1), dtype=wp.vec3, **one),
+        wp.zeros((n, 1), dtype=wp.mat33, **one), wp.zeros(n, dtype=wp.bool, **one),
+        wp.zeros(n, dtype=wp.bool, **one), wp.zeros(n, dtype=wp.int64, **one), *flags,
+        wp.array(qpos, dtype=wp.float32, **one)], **one)
+    np.testing.assert_array_equal(flags[0].numpy()[:, 0], z < np.float32(0.9))
+    np.testing.assert_array_equal(rule.met(np, {"qpos": qpos}), z < np.float32(0.9))
+
+
 @dataclasses.dataclass(frozen=True)
 class Above(T.Rule):
     """A rule of the user's own: the body's height above `height` (CPU and MJX evaluate its
