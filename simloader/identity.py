@@ -133,8 +133,11 @@ def _describe(value: Any) -> Any:
         return {"shape": list(array.shape), "dtype": array.dtype.str,
                 "sha256": hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()[:16]}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        # a field marked `derived` is computed from the model (digested already): left out,
+        # so that fingerprints saved before it existed still match
         return {"type": _qualname(type(value)),
-                **{f.name: _describe(getattr(value, f.name)) for f in dataclasses.fields(value)}}
+                **{f.name: _describe(getattr(value, f.name)) for f in dataclasses.fields(value)
+                   if not f.metadata.get("derived")}}
     if isinstance(value, dict):
         return {str(k): _describe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

@@ -121,7 +121,9 @@ class Below(Rule):
     # mj_kinematics copies a free joint's position into xpos (MuJoCo C, MJX and MuJoCo Warp
     # alike), so the rule reads that column and no engine runs the kinematics for it (4% of a
     # humanoid's Warp step)
-    free_z: int = dataclasses.field(default=-1, compare=False, repr=False)
+    # (derived: from the model, so not part of a stream's fingerprint, `identity`)
+    free_z: int = dataclasses.field(default=-1, compare=False, repr=False,
+                                    metadata={"derived": True})
 
     def __post_init__(self):
         _name("Below", "body", self.body)

@@ -105,6 +105,10 @@ def test_a_free_bodys_height_is_its_qpos_column_read_without_kinematics():
     assert T.parse(humanoid, T.Below("head", 1.2)).reads == ("xpos",)
     assert T.parse(walker, T.Below("torso", 0.9)).kinematic
     rule = torso.rules[0]
+    # derived from the model: not in a stream's fingerprint (stores and checkpoints saved
+    # before the column was read still resume)
+    from simloader import identity
+    assert set(identity._describe(rule)) == {"type", "body", "height", "body_id"}
     ds = simloader.SimDataset(humanoid, nbatch=4, nstep=150, seed=3, backend="cpu",
                               control=controls.Uniform())
     states = next(iter(ds))["state"].numpy().reshape(-1, ds.config.nstate)

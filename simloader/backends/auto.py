@@ -150,6 +150,12 @@ def choose(asked: str, gpu_only: bool, probe: Any) -> Choice:
                          + ("; use backend='cpu'" if gpu_only else ""))
     if len(running) == 1:
         said = "; ".join(f"{n}: {w}" for n, w in why.items() if w)
+        # asked as a chosen engine is, so that the model is refused at construction (and
+        # an engine's checks may rely on it having been asked)
+        refusal = engines[running[0]].refuses_model(probe.model)
+        if refusal is not None:
+            raise ValueError(f"backend: no engine can run this dataset here ({said}; "
+                             f"{running[0]}: {refusal})")
         return Choice(running[0], f"auto: the only engine that runs here ({said})")
     cores = threads.available_cpus()
     steps = (None if probe.num_batches is None else

@@ -97,9 +97,10 @@ def check_options(config: SimConfig, options: dict[str, Any], reason: str) -> Wa
         check_simulated(name, model)
     pooled: set[str] = set()
     randomized: set[str] = set()
-    if len(models) > 1 or config.randomization is not None:
-        # one model alone needs no arrays here: the binding asked `refuses_model` first,
-        # which put it (a humanoid's put is 25-50 ms of a start-up)
+    if models[0] is not config.model or len(models) > 1 or config.randomization is not None:
+        # the dataset's own model alone needs no arrays here: the binding, or auto's choice,
+        # asked `refuses_model` of it first, which put it (a humanoid's put is 25-50 ms of a
+        # start-up)
         puts = [model_arrays.put(name, model) for name, model in zip(names, models)]
         pooled = set(_differing(puts, names))
         if config.randomization is not None:
