@@ -21,7 +21,7 @@ keeps what it measured); the table is rendered from those lines.
 
 Run on the GPU machine from the repository root:
   python benchmarks/bench_robots.py --jobs 14 --save --results-dir $OUT
-  python benchmarks/bench_robots.py --phase steady --cache-root ROOT --save --results-dir $OUT
+  python benchmarks/bench_robots.py --phase steady --cache-root ROOT --lines FILE --save --results-dir $OUT
 Smoke run without a GPU (MJX on the CPU, tiny):
   python benchmarks/bench_robots.py --engines mjx --robots universal_robots_ur5e --nbatch 4 \
       --nstep 5 --repeats 1
@@ -173,7 +173,7 @@ def table(lines: list[dict]) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--robots", nargs="+", choices=robots(), default=robots())
     p.add_argument("--engines", nargs="+", choices=ENGINES, default=list(ENGINES))
@@ -192,14 +192,22 @@ def main() -> None:
     p.add_argument("--cache-root", type=pathlib.Path,
                    help="a new folder for the children's caches (default: a fresh temporary "
                         "folder); --phase steady: the one the first phase used")
+    p.add_argument("--lines", type=pathlib.Path,
+                   help="the JSON-lines file to append to and render (default: "
+                        "RESULTS_DIR/robots[-TAG]-DATE.jsonl); a steady phase or a report on "
+                        "another day names the first phase's")
     common.add_output_options(p)
     args = p.parse_args()
+    if args.phase == "steady" and (args.cache_root is None or not args.cache_root.is_dir()):
+        # its children would compile every robot cold (minutes each on a GPU machine)
+        raise SystemExit("--phase steady: give --cache-root, the folder the first phase "
+                         "filled (warm caches)")
     if args.cache_root is None:
         args.cache_root = pathlib.Path(tempfile.mkdtemp(prefix="bench_robots-"))
     elif args.phase in ("all", "first") and args.cache_root.exists():
         raise SystemExit(f"--cache-root: {args.cache_root} exists; give a new folder (its "
                          f"first batches must start cold)")
-    lines_path = common.result_path(args, "robots", ".jsonl")
+    lines_path = args.lines or common.result_path(args, "robots", ".jsonl")
     lines_path.parent.mkdir(parents=True, exist_ok=True)
 
     def record(line: dict) -> None:
@@ -228,8 +236,12 @@ def main() -> None:
         for robot, engine, who in common.progress(warm, "warm runs"):
             first_batch(robot, engine, who, "warm", args, record)
     if args.phase in ("all", "steady"):
+        written = [json.loads(x) for x in lines_path.read_text().splitlines()]
+        warm = {(x["robot"], x["engine"]) for x in written if x["phase"] == "first"
+                and x["who"] == "simloader" and x["kind"] == "warm" and not x.get("error")}
         for robot, engine in common.progress(jobs, "steady state"):
-            steady(robot, engine, args, record)
+            if (robot, engine) in warm:  # else its first batch failed: nothing warm to time
+                steady(robot, engine, args, record)
     lines = [json.loads(x) for x in lines_path.read_text().splitlines()]
     machines = [x for x in lines if x["phase"] == "machine"]
     measured_on = ("Measured on: " + "; ".join(f"{k}: {v}" for k, v in machines[0].items()

@@ -84,5 +84,15 @@ def test_a_first_phase_refuses_a_cache_root_that_exists(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_steady_phase_without_the_first_phases_caches_is_refused(tmp_path):
+    # its children would compile every robot cold: minutes each of a GPU machine's time
+    proc = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bench_robots.py"),
+                           "--phase", "steady", "--cache-root", str(tmp_path / "none"),
+                           "--lines", str(tmp_path / "lines.jsonl")],
+                          capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode != 0 and "--cache-root" in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))
