@@ -226,3 +226,19 @@ def test_cli_speaks_the_same_words(capsys):
     out = capsys.readouterr().out
     assert "backend 'cpu' (mujoco.batch on CPU threads), chosen: asked" in out
     assert cli.engines_here()[0] == "cpu"
+
+
+def test_the_only_engine_that_runs_is_still_asked_whether_it_simulates_the_model(monkeypatch):
+    # the GPU engines only (impl='auto'), MuJoCo Warp missing: MJX is the one engine left,
+    # and a model it refuses is refused at construction, naming why (engines' checks rely on
+    # the chosen engine having been asked)
+    everything_runs(monkeypatch)
+    monkeypatch.setattr(type(backends.engine("warp")), "missing",
+                        lambda self: "no MuJoCo Warp here")
+    mjx = type(backends.engine("mjx"))
+    monkeypatch.setattr(mjx, "refuses_model", lambda self, model: "a feature it lacks")
+    with pytest.raises(ValueError, match=r"no engine can run this dataset here \(.*no MuJoCo "
+                                         r"Warp here.*; mjx: a feature it lacks\)"):
+        auto.choose("auto", True, probe("cartpole", 64))
+    monkeypatch.setattr(mjx, "refuses_model", lambda self, model: None)
+    assert auto.choose("auto", True, probe("cartpole", 64)).backend == "mjx"
