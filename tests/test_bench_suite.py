@@ -170,3 +170,14 @@ def test_raw_warp_restarts_its_worlds_unless_continued():
     # (two eager steps at construction, one per batch)
     assert torch.allclose(t_restarted[:, 0], torch.full((16,), dt), atol=1e-6)
     assert bool((t_continued[:, 0] > 5 * dt).all())
+
+
+def test_startup_seconds_pool_what_both_children_run_alike():
+    # before `import torch` ended both children run the same text: its noise is pooled (the
+    # median of all children), simloader's own seconds (after torch) stay each side's
+    subject = suite.Side(lambda n: 0.0, 0.0, 0.0,
+                         extra={"before_torch_s": [3.9, 3.8, 3.0], "after_torch_s": []})
+    baseline = suite.Side(lambda n: 0.0, 0.0, 0.0,
+                          extra={"before_torch_s": [3.1, 3.2, 3.3], "after_torch_s": []})
+    seconds = suite.startup_seconds({"subject": 4.0, "baseline": 3.5}, subject, baseline)
+    assert seconds == pytest.approx({"subject": 4.0 + 3.25, "baseline": 3.5 + 3.25})
