@@ -630,9 +630,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
                        help="names from `simloader bench list` (default: every workload of "
                             "--suite; `bench run` with neither: the suite of this machine, "
                             "gpu where torch sees a CUDA GPU, else cpu)")
-        p.add_argument("--suite", choices=("cpu", "gpu"),
-                       help="the machine kind: cpu (any machine, the CPU engine) or gpu (an "
-                            "NVIDIA GPU: MJX and MuJoCo Warp)")
+        p.add_argument("--suite", choices=("cpu", "gpu", "several-gpus"),
+                       help="the machine kind: cpu (any machine, the CPU engine), gpu (an "
+                            "NVIDIA GPU: MJX and MuJoCo Warp) or several-gpus (2 or 4 GPUs of "
+                            "one host: torchrun ranks and sim_device; a workload needing more "
+                            "GPUs than the machine has is skipped, saying so)")
         p.set_defaults(model=None)
 
     br = sub.add_parser("bench-run", prog="simloader bench run",

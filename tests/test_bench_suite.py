@@ -51,7 +51,7 @@ def test_every_target_workload_names_its_baseline_and_both_suites_exist():
         (n, r, c) for n in (4096, 8192) for r in (1, 2) for c in (False, True)}
     with pytest.raises(ValueError, match="no workload named 'nope'"):
         W.select(["nope"], None)
-    with pytest.raises(ValueError, match="suite: expected one of cpu, gpu, got 'tpu'"):
+    with pytest.raises(ValueError, match="suite: expected one of cpu, gpu, several-gpus, got 'tpu'"):
         W.select([], "tpu")
 
 
@@ -181,3 +181,25 @@ def test_startup_seconds_pool_what_both_children_run_alike():
                           extra={"before_torch_s": [3.1, 3.2, 3.3], "after_torch_s": []})
     seconds = suite.startup_seconds({"subject": 4.0, "baseline": 3.5}, subject, baseline)
     assert seconds == pytest.approx({"subject": 4.0 + 3.25, "baseline": 3.5 + 3.25})
+
+
+def test_ranks_job_splits_one_stream_over_torchrun_processes():
+    # the several-gpus suite's ranks side, here on the CPU (gloo): two processes, each its own
+    # part of the seeded stream, timed together
+    from simloader.bench import ranks
+    got = ranks.job(TINY, 2, 2, seed=0, timeout=240)
+    assert got["distinct"] and got["devices"] == ["cpu", "cpu"]
+    assert len(got["per_rank"]) == 2 and all(r > 0 for r in got["per_rank"])
+    assert got["per_gpu"] == pytest.approx(got["steps_per_s"] / 2)
+    assert got["steps_per_s"] <= 2 * max(got["per_rank"]) * (1 + 1e-9)
+
+
+def test_a_workload_needing_more_gpus_than_the_machine_has_is_skipped_not_failed(tmp_path):
+    needs = Benchmark("tiny-needs-gpus", "cpu", Method(W.RANKS, (TINY,), 2),
+                      Method(W.RANKS, (TINY,), 1), 0.9, "a test",
+                      gpus=torch.cuda.device_count() + 1)
+    out, lines = run([needs], tmp_path)
+    line, = lines
+    assert line["passed"] is None and "needs" in line["skipped"]
+    assert results.failures(lines) == []
+    assert "skipped: needs" in results.table(lines)

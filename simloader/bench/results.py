@@ -59,7 +59,8 @@ def latest(lines: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             baselines[name] = line
         elif line.get("role") == "subject":
             rows[name] = line  # a dict keeps the key's first position
-    return [{**row, "baseline": None if "error" in row else baselines.get(name)}
+    return [{**row, "baseline": None if "error" in row or "skipped" in row
+             else baselines.get(name)}
             for name, row in rows.items()]
 
 
@@ -95,6 +96,8 @@ def _rate(x: Optional[float], unit: str) -> str:
 def _verdict(row: dict[str, Any]) -> str:
     if "error" in row:
         return "failed"
+    if "skipped" in row:
+        return f"skipped: {row['skipped']}"
     if row.get("target") is None:
         return "measured"
     return "yes" if row.get("passed") else "**no**"
@@ -110,7 +113,7 @@ def table(lines: Sequence[dict[str, Any]]) -> str:
         kind, _, stream = row.get("method", "").partition(": ")
         base_kind, _, base_stream = base.get("method", "").partition(": ")
         per = {"steps": "steps/s", "frames": "frames/s"}.get(unit, f"{unit}/s")
-        failed = "error" in row
+        failed = "error" in row or "skipped" in row
         rows.append([
             row["workload"], "-" if failed else stream,
             "-" if failed else f"{kind} / {base_kind}" + (

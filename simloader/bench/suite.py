@@ -299,6 +299,43 @@ def _startup(s: Stream, raw: bool, folder: pathlib.Path, seed: int, timeout: flo
                 extra["filling_caches_s"], extra["filling_caches_s"], extra=extra)
 
 
+def _ranks(s: Stream, count: int, seed: int, timeout: float) -> Side:
+    """`count` processes under torchrun, one per GPU, each streaming `s` (its own part of one
+    seeded stream): seconds per step per GPU, all ranks' steps over the slowest rank's time.
+    Each call is a fresh job (`ranks.job`) timing its batches after a warm-up one; the first
+    job fills the caches (its wall time is `first_s`)."""
+    from simloader.bench import ranks
+    extra: dict[str, Any] = {"per_rank_steps_per_s": [], "distinct": []}
+
+    def call(n: int) -> float:
+        got = ranks.job(s, count, n, seed, timeout)
+        extra["per_rank_steps_per_s"].append(got["per_rank"])
+        extra["distinct"].append(got["distinct"])
+        if not got["distinct"]:
+            raise RuntimeError(f"{count} ranks of {s}: the ranks drew the same batches")
+        return 1 / got["per_gpu"]
+
+    start = time.perf_counter()
+    per_step = call(1)
+    first = time.perf_counter() - start
+    extra["per_rank_steps_per_s"].clear()
+    return Side(call, first, per_step * s.steps, extra=extra)
+
+
+def _sim_devices(s: Stream, count: int, model: mujoco.MjModel, seed: int) -> Side:
+    """`count` simulation GPUs (cuda:1 ..) each simulating `s`'s trajectories of a batch
+    `count` times as large, delivered on cuda:0 (`sim_device=`): seconds per step per
+    simulation GPU."""
+    if torch.cuda.device_count() < count + 1:
+        raise ValueError(f"{count} simulation GPUs and one delivering need {count + 1} GPUs; "
+                         f"this machine has {torch.cuda.device_count()}")
+    m = timing.SimloaderMeasure(
+        model, R.Workload(s.model, s.nbatch * count, s.nstep), s.engine, seed,
+        **options(s, model), device="cuda:0",
+        sim_device=[f"cuda:{i}" for i in range(1, count + 1)])
+    return Side(lambda n: m.measure(n) * count, m.first_s, m.measure(1) * s.steps * count)
+
+
 def startup_seconds(after: dict[str, float], subject: Side, baseline: Side) -> dict[str, float]:
     """Seconds from a process's start to its first batch, per side: its median seconds after
     `import torch` (`after`) plus the median, pooled over both sides' children, of the seconds
@@ -333,6 +370,10 @@ def build(b: Benchmark, seed: int, folder: pathlib.Path, timeout: float) -> tupl
             return _read_render(s, model, seed, folder)
         if m.kind in (W.STARTUP, W.RAW_STARTUP):
             return _startup(s, m.kind == W.RAW_STARTUP, folder, seed, timeout)
+        if m.kind == W.RANKS:
+            return _ranks(s, m.count, seed, timeout)
+        if m.kind == W.SIM_DEVICES:
+            return _sim_devices(s, m.count, model, seed)
         raise ValueError(f"{b.name}: no way to measure {m.kind!r}")
 
     return side(b.subject), side(b.baseline)
@@ -457,8 +498,17 @@ def run(benchmarks: Sequence[Benchmark], out: pathlib.Path, *, repeats: int = 3,
     try:
         for b in timing.progress(benchmarks, desc="workloads", total=len(benchmarks)):
             try:
-                got = run_one(b, repeats=repeats, min_seconds=min_seconds, seed=seed,
-                              folder=work, timeout=timeout, here=here)
+                if b.gpus > here["machine"]["gpus"]:
+                    # a fact about this machine, not a result: neither a pass nor a failure
+                    got = [{"workload": b.name, "suite": b.suite, "role": "subject",
+                            "target": b.target, "passed": None,
+                            "skipped": f"needs {b.gpus} GPUs; this machine has "
+                                       f"{here['machine']['gpus']}",
+                            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                                timespec="seconds"), **here}]
+                else:
+                    got = run_one(b, repeats=repeats, min_seconds=min_seconds, seed=seed,
+                                  folder=work, timeout=timeout, here=here)
             except Exception as e:  # one workload's failure is a result, not the end of the run
                 got = [{"workload": b.name, "suite": b.suite, "role": "subject",
                         "target": b.target, "passed": False, "error": f"{type(e).__name__}: {e}",

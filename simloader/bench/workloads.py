@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
-SUITES = ("cpu", "gpu")
+SUITES = ("cpu", "gpu", "several-gpus")
 
 # what each side of a comparison is (`suite.METHODS` builds them)
 SIMLOADER = "simloader"          # the stream, delivered (tensors in hand)
@@ -27,6 +27,8 @@ MIXTURE = "mixture"              # Mixture of the streams, equal weights
 MEMBERS = "members alone"        # the same batches, each member streamed alone
 STARTUP = "first batch"          # a fresh process to its first batch (caches warm)
 RAW_STARTUP = "raw first batch"  # a raw script of the engine, the same
+RANKS = "ranks"                  # `count` processes under torchrun, one per GPU (per GPU)
+SIM_DEVICES = "simulation GPUs"  # delivered on cuda:0, simulated on `count` others (per GPU)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,9 +85,11 @@ class Method:
 
     kind: str
     streams: tuple[Stream, ...]
+    count: int = 1  # RANKS: processes; SIM_DEVICES: simulation GPUs
 
     def __str__(self) -> str:
-        return f"{self.kind}: " + " & ".join(map(str, self.streams))
+        kind = f"{self.count} {self.kind}" if self.kind in (RANKS, SIM_DEVICES) else self.kind
+        return f"{kind}: " + " & ".join(map(str, self.streams))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +100,8 @@ class Benchmark:
     physics cost). `ceiling_s`: also, the subject's time to its first batch after importing
     torch is at most this (start-up on the CPU). `source`: where the target is set.
     `min_calls`: batches per timed repetition at least (more where a repetition has a fixed
-    cost to amortize: a store's creation, a mixture's draws).
+    cost to amortize: a store's creation, a mixture's draws). `gpus`: the GPUs its machine
+    needs (a run on fewer skips it, saying so).
     """
 
     name: str
@@ -108,6 +113,7 @@ class Benchmark:
     unit: str = "steps"
     ceiling_s: Optional[float] = None
     min_calls: int = 2
+    gpus: int = 0
 
 
 def _m(kind: str, *streams: Stream) -> Method:
@@ -222,7 +228,32 @@ def _gpu() -> list[Benchmark]:
     return out
 
 
-ALL: tuple[Benchmark, ...] = tuple(_cpu() + _gpu())
+def _several_gpus() -> list[Benchmark]:
+    """Target 5: one process per GPU under torchrun (per GPU against one GPU alone), and
+    simulation on other GPUs than the one delivering (`sim_device`), per simulation GPU."""
+    human = Stream("humanoid", "warp", 8192, 200)
+    cart = Stream("cartpole", "mjx", 8192, 1000)
+    # the sim_device benchmark's per-GPU workload (benchmarks/sim_devices.py)
+    split = Stream("humanoid", "warp", 8192, 100)
+    ranks = "target 5 ({}x one GPU on {} GPUs, one process each under torchrun)"
+    return [
+        Benchmark("warp-2-ranks", "several-gpus", Method(RANKS, (human,), 2),
+                  Method(RANKS, (human,), 1), 1.95 / 2, ranks.format(1.95, 2), gpus=2),
+        Benchmark("mjx-2-ranks", "several-gpus", Method(RANKS, (cart,), 2),
+                  Method(RANKS, (cart,), 1), 1.95 / 2, ranks.format(1.95, 2), gpus=2),
+        Benchmark("warp-4-ranks", "several-gpus", Method(RANKS, (human,), 4),
+                  Method(RANKS, (human,), 1), 3.9 / 4, ranks.format(3.9, 4), gpus=4),
+        Benchmark("warp-sim-device", "several-gpus", Method(SIM_DEVICES, (split,), 1),
+                  _m(SIMLOADER, split), None,
+                  "measured only: simulated on cuda:1 and delivered on cuda:0, against the "
+                  "same stream simulated where it is delivered", gpus=2),
+        Benchmark("warp-3-sim-devices", "several-gpus", Method(SIM_DEVICES, (split,), 3),
+                  Method(SIM_DEVICES, (split,), 1), 2.85 / 3,
+                  "target 5 (three simulation GPUs feed one trainer at 2.85x one's)", gpus=4),
+    ]
+
+
+ALL: tuple[Benchmark, ...] = tuple(_cpu() + _gpu() + _several_gpus())
 BY_NAME = {b.name: b for b in ALL}
 assert len(BY_NAME) == len(ALL), "workload names repeat"
 
@@ -232,7 +263,8 @@ def quick(b: Benchmark) -> Benchmark:
     every part of the suite runs here, not the targets."""
     def small(m: Method) -> Method:
         return Method(m.kind, tuple(s.but(nbatch=max(8, s.nbatch // 64),
-                                          nstep=max(5, s.nstep // 10)) for s in m.streams))
+                                          nstep=max(5, s.nstep // 10)) for s in m.streams),
+                      m.count)
     return dataclasses.replace(b, subject=small(b.subject), baseline=small(b.baseline))
 
 
