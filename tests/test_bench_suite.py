@@ -12,7 +12,7 @@ import torch
 
 import simloader
 from simloader import cli
-from simloader.bench import results, suite
+from simloader.bench import datasets, results, suite
 from simloader.bench import workloads as W
 from simloader.bench.workloads import Benchmark, Method, Stream
 
@@ -32,7 +32,7 @@ def test_every_workload_is_a_dataset_the_engines_accept(b):
         model = simloader.load_model(s.model)
         small = s.but(engine="cpu", nbatch=2, nstep=3)
         simloader.SimDataset(model, backend="cpu", nbatch=2, nstep=3,
-                             **suite.options(small, model))
+                             **datasets.options(small, model))
 
 
 def test_every_target_workload_names_its_baseline_and_both_suites_exist():

@@ -69,7 +69,7 @@ def main() -> None:
     import torch.distributed as dist
 
     import simloader
-    from simloader.bench import suite
+    from simloader.bench import datasets
 
     spec = json.loads(os.environ[SPEC])
     fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
@@ -82,7 +82,7 @@ def main() -> None:
     dist.init_process_group("nccl" if gpu else "gloo")
     rank, world = dist.get_rank(), dist.get_world_size()
     model = simloader.load_model(stream.model)
-    ds = suite.dataset(stream, model, spec["seed"])
+    ds = datasets.dataset(stream, model, spec["seed"])
     it = iter(ds)
     first = next(it)  # compilation, graph capture, threads
     digest = hashlib.sha256(first["control"].detach().cpu().numpy().tobytes()).hexdigest()
