@@ -194,8 +194,10 @@ def main() -> None:
                         "folder); --phase steady: the one the first phase used")
     p.add_argument("--lines", type=pathlib.Path,
                    help="the JSON-lines file to append to and render (default: "
-                        "RESULTS_DIR/robots[-TAG]-DATE.jsonl); a steady phase or a report on "
-                        "another day names the first phase's")
+                        "RESULTS_DIR/robots[-TAG]-DATE.jsonl with --save or for a steady "
+                        "phase or a report, else a new temporary file: a run without --save "
+                        "writes nothing into the results folder); a steady phase or a report "
+                        "on another day names the first phase's")
     common.add_output_options(p)
     args = p.parse_args()
     if args.phase == "steady" and (args.cache_root is None or not args.cache_root.is_dir()):
@@ -207,7 +209,14 @@ def main() -> None:
     elif args.phase in ("all", "first") and args.cache_root.exists():
         raise SystemExit(f"--cache-root: {args.cache_root} exists; give a new folder (its "
                          f"first batches must start cold)")
-    lines_path = args.lines or common.result_path(args, "robots", ".jsonl")
+    if args.lines is not None:
+        lines_path = args.lines
+    elif args.save or args.phase in ("steady", "report"):
+        lines_path = common.result_path(args, "robots", ".jsonl")
+    else:
+        lines_path = pathlib.Path(tempfile.mkdtemp(prefix="bench_robots-lines-")) / "robots.jsonl"
+        print(f"JSON lines (without --save, not kept in the results folder): {lines_path}",
+              file=sys.stderr)
     lines_path.parent.mkdir(parents=True, exist_ok=True)
 
     def record(line: dict) -> None:

@@ -94,5 +94,20 @@ def test_a_steady_phase_without_the_first_phases_caches_is_refused(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_run_without_save_writes_nothing_into_the_results_folder(tmp_path):
+    # MJX refuses the Go1 (condim 1 under the elliptic cone): no child runs, the table is
+    # printed, and its JSON lines go to a temporary file, not into --results-dir
+    results = tmp_path / "results"
+    results.mkdir()
+    proc = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bench_robots.py"),
+                           "--engines", "mjx", "--robots", "unitree_go1", "--phase", "first",
+                           "--cache-root", str(tmp_path / "caches"),
+                           "--results-dir", str(results)],
+                          capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "refuses" in proc.stdout and "not kept in the results folder" in proc.stderr
+    assert list(results.iterdir()) == []
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))
