@@ -385,6 +385,8 @@ def bench_run(args: argparse.Namespace) -> None:
             return
         if "error" in line:
             print(f"  {line['workload']}: failed: {line['error']}")
+        elif "skipped" in line:
+            print(f"  {line['workload']}: skipped: {line['skipped']}")
         else:
             target = "" if line["target"] is None else f" (target {line['target']:.3f})"
             print(f"  {line['workload']}: {line['ratio']:.3f}{target}")

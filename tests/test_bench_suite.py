@@ -183,15 +183,16 @@ def test_startup_seconds_pool_what_both_children_run_alike():
     assert seconds == pytest.approx({"subject": 4.0 + 3.25, "baseline": 3.5 + 3.25})
 
 
-def test_ranks_job_splits_one_stream_over_torchrun_processes():
+def test_ranks_side_splits_one_stream_over_torchrun_processes():
     # the several-gpus suite's ranks side, here on the CPU (gloo): two processes, each its own
-    # part of the seeded stream, timed together
-    from simloader.bench import ranks
-    got = ranks.job(TINY, 2, 2, seed=0, timeout=240)
-    assert got["distinct"] and got["devices"] == ["cpu", "cpu"]
-    assert len(got["per_rank"]) == 2 and all(r > 0 for r in got["per_rank"])
-    assert got["per_gpu"] == pytest.approx(got["steps_per_s"] / 2)
-    assert got["steps_per_s"] <= 2 * max(got["per_rank"]) * (1 + 1e-9)
+    # part of the seeded stream, timed together; a fresh job per call after the warm one
+    side = suite._ranks(TINY, 2, seed=0, timeout=240)
+    seconds = side.measure(2)
+    slowest, fastest = side.extra["slowest_rank_steps_per_s"], side.extra["fastest_rank_steps_per_s"]
+    assert len(slowest) == len(fastest) == 1  # the warm-up job's cleared
+    # per GPU: both ranks' steps over the slowest rank's seconds, halved
+    assert seconds == pytest.approx(1 / slowest[0]) and slowest[0] <= fastest[0]
+    assert side.call_s > 0 and side.first_s > 0
 
 
 def test_a_workload_needing_more_gpus_than_the_machine_has_is_skipped_not_failed(tmp_path):
@@ -203,3 +204,43 @@ def test_a_workload_needing_more_gpus_than_the_machine_has_is_skipped_not_failed
     assert line["passed"] is None and "needs" in line["skipped"]
     assert results.failures(lines) == []
     assert "skipped: needs" in results.table(lines)
+    # a report of this run and a measured one of another machine keeps the measured row
+    measured = {"workload": "tiny-needs-gpus", "role": "subject", "ratio": 0.99,
+                "passed": True, "target": 0.9}
+    assert results.latest([measured, line])[0]["ratio"] == 0.99
+    assert "skipped" in results.latest([line])[0]
+
+
+def test_bench_run_says_a_workload_it_skips_and_runs_on(tmp_path, capsys):
+    # warp-2-ranks needs 2 GPUs: skipped here, the run goes on to the table
+    if torch.cuda.device_count() >= 2:
+        pytest.skip("this machine runs it")
+    cli.main(["bench", "run", "warp-2-ranks", "--out", str(tmp_path / "lines.jsonl")])
+    out = capsys.readouterr().out
+    assert "warp-2-ranks: skipped: needs 2 GPUs" in out and "| warp-2-ranks" in out
+
+
+def test_a_ranks_job_past_its_time_leaves_no_rank_running():
+    # torchrun starts its ranks in sessions of their own: a timeout stops them through it
+    import pathlib
+    import time
+
+    from simloader.bench import ranks
+
+    def running():
+        found = []
+        for proc in pathlib.Path("/proc").iterdir():
+            try:
+                cmdline = (proc / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"simloader.bench.ranks" in cmdline:
+                found.append(proc.name)
+        return found
+
+    with pytest.raises(RuntimeError, match="timed out after 5 s"):
+        ranks.job(TINY, 2, 10 ** 6, seed=0, timeout=5)  # the ranks are stepping by then
+    deadline = time.monotonic() + 10
+    while running() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert running() == []

@@ -26,9 +26,11 @@ from simloader.bench import startup
 from simloader.bench.workloads import Stream
 
 SPEC = "SIMLOADER_BENCH_RANKS"  # the job's spec (JSON) in each rank's environment
-# NVLink multicast off in NCCL: shared machines refuse it (the device notes)
+# NVLink multicast off in NCCL: shared machines refuse it (the device notes); one OpenMP
+# thread a rank whatever the ranks (torchrun sets it only for more than one)
 SAFE_ENV = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1",
-            "NVSHMEM_DISABLE_NVLS": "1"}
+            "NVSHMEM_DISABLE_NVLS": "1", "OMP_NUM_THREADS": "1"}
+STOP_S = 30.0  # seconds torchrun gets to stop its ranks after a timeout
 
 
 def job(stream: Stream, ranks: int, batches: int, seed: int, timeout: float) -> dict[str, Any]:
@@ -49,15 +51,24 @@ def job(stream: Stream, ranks: int, batches: int, seed: int, timeout: float) -> 
         env["PYTHONPATH"] = os.pathsep.join(paths)
         command = [sys.executable, "-m", "torch.distributed.run", "--standalone",
                    f"--nproc_per_node={ranks}", "-m", "simloader.bench.ranks"]
+        proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
         try:
-            proc = subprocess.run(command, env=env, capture_output=True, text=True,
-                                  timeout=timeout)
-        except subprocess.TimeoutExpired as e:
-            raise RuntimeError(f"{ranks} ranks of {stream}: timed out after {timeout:.0f} s") \
-                from e
+            output, _ = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            # torchrun starts its ranks in sessions of their own: killing it alone would leave
+            # them holding the GPUs; SIGTERM makes it stop them, then it is killed
+            proc.terminate()
+            try:
+                output, _ = proc.communicate(timeout=STOP_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                output, _ = proc.communicate()
+            raise RuntimeError(f"{ranks} ranks of {stream}: timed out after {timeout:.0f} s\n"
+                               f"{(output or '')[-3000:]}") from None
         if proc.returncode != 0 or not out.is_file():
             raise RuntimeError(f"{ranks} ranks of {stream}: exit {proc.returncode}\n"
-                               f"{(proc.stdout + proc.stderr)[-3000:]}")
+                               f"{output[-3000:]}")
         return json.loads(out.read_text())
 
 
@@ -86,7 +97,7 @@ def main() -> None:
     it = iter(ds)
     first = next(it)  # compilation, graph capture, threads
     digest = hashlib.sha256(first["control"].detach().cpu().numpy().tobytes()).hexdigest()
-    device = str(first["state"].device)
+    device = str(first["control"].device)
     dist.barrier()
     start = time.perf_counter()
     for _ in range(spec["batches"]):

@@ -58,6 +58,8 @@ def latest(lines: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         if line.get("role") == "baseline":
             baselines[name] = line
         elif line.get("role") == "subject":
+            if "skipped" in line and name in rows and "skipped" not in rows[name]:
+                continue  # a machine with too few GPUs says nothing about a measured row
             rows[name] = line  # a dict keeps the key's first position
     return [{**row, "baseline": None if "error" in row or "skipped" in row
              else baselines.get(name)}

@@ -266,20 +266,27 @@ def _ranks(s: Stream, count: int, seed: int, timeout: float) -> Side:
     Each call is a fresh job (`ranks.job`) timing its batches after a warm-up one; the first
     job fills the caches (its wall time is `first_s`)."""
     from simloader.bench import ranks
-    extra: dict[str, Any] = {"per_rank_steps_per_s": [], "distinct": []}
+    # the slowest rank's steps/s of each job (its per-GPU rate is what is compared); the
+    # medians `run_one` writes are of numbers
+    extra: dict[str, Any] = {"slowest_rank_steps_per_s": [], "fastest_rank_steps_per_s": []}
 
     def call(n: int) -> float:
         got = ranks.job(s, count, n, seed, timeout)
-        extra["per_rank_steps_per_s"].append(got["per_rank"])
-        extra["distinct"].append(got["distinct"])
         if not got["distinct"]:
             raise RuntimeError(f"{count} ranks of {s}: the ranks drew the same batches")
+        devices = got["devices"]
+        if devices[0] != "cpu" and len(set(devices)) != count:
+            # ranks sharing a GPU would read as poor scaling
+            raise RuntimeError(f"{count} ranks of {s}: ranks on the same GPU: {devices}")
+        extra["slowest_rank_steps_per_s"].append(min(got["per_rank"]))
+        extra["fastest_rank_steps_per_s"].append(max(got["per_rank"]))
         return 1 / got["per_gpu"]
 
     start = time.perf_counter()
     per_step = call(1)
     first = time.perf_counter() - start
-    extra["per_rank_steps_per_s"].clear()
+    for values in extra.values():
+        values.clear()
     return Side(call, first, per_step * s.steps, extra=extra)
 
 
@@ -305,6 +312,8 @@ def startup_seconds(after: dict[str, float], subject: Side, baseline: Side) -> d
     5% target of 0.26 s), not simloader's: pooled, they weigh alike on both sides."""
     before = subject.extra["before_torch_s"] + baseline.extra["before_torch_s"]
     shared = statistics.median(before)
+    for side in (subject, baseline):  # what was added, in both sides' lines
+        side.extra["before_torch_pooled_s"] = shared
     return {role: seconds + shared for role, seconds in after.items()}
 
 
@@ -410,7 +419,7 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
             max(subject.call_s, baseline.call_s), b.min_calls, min_seconds)
         s = timing.interleave({"subject": lambda: subject.measure(n),
                                "baseline": lambda: baseline.measure(n)}, repeats, desc=b.name)
-        if startup_kind:
+        if startup_kind and b.baseline.kind == W.RAW_STARTUP:
             s = startup_seconds(s, subject, baseline)
     finally:
         subject.close()
