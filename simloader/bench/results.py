@@ -125,7 +125,7 @@ def table(lines: Sequence[dict[str, Any]]) -> str:
                                 else f"{_rate(row.get('units_per_s'), unit)} {per}"),
             _rate(base.get("units_per_s"), unit) if base else "-",
             f"{row['ratio']:.3f}" if row.get("ratio") is not None else "-",
-            f">= {row['target']:.2f}" if row.get("target") is not None else "-",
+            f">= {row['target']:.3g}" if row.get("target") is not None else "-",
             _verdict(row)])
     return markdown_table(["workload", "stream", "subject / baseline", "subject", "baseline",
                            "ratio", "target", "holds"], rows)

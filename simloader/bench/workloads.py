@@ -88,7 +88,9 @@ class Method:
     count: int = 1  # RANKS: processes; SIM_DEVICES: simulation GPUs
 
     def __str__(self) -> str:
-        kind = f"{self.count} {self.kind}" if self.kind in (RANKS, SIM_DEVICES) else self.kind
+        kind = self.kind
+        if kind in (RANKS, SIM_DEVICES):  # "2 ranks", "1 rank"
+            kind = f"{self.count} {kind if self.count > 1 else kind.removesuffix('s')}"
         return f"{kind}: " + " & ".join(map(str, self.streams))
 
 
