@@ -124,52 +124,101 @@ def median(xs: list) -> Optional[float]:
     return statistics.median(xs) if xs else None
 
 
-def table(lines: list[dict]) -> str:
-    """One row per (robot, engine) from the JSON lines."""
+def summaries(lines: list[dict]) -> list[dict[str, Any]]:
+    """Per (robot, engine), from the JSON lines: `refused` (why, or None); first batches
+    (`cold`, `warm`: {"simloader", "raw"} seconds from the process start, medians; None where
+    none came); simloader's `share` of each (its seconds after `import torch` less the raw
+    script's); steady state `rate`, `raw_rate` (steps/s), `ratio`, or `steady_failed`."""
     from simloader.bench.raw import raw_baseline
     lines = [x for x in lines if x["phase"] != "machine"]
-    keys = sorted({(x["robot"], x["engine"]) for x in lines})
-    rows = []
-    for robot, engine in keys:
+    out = []
+    for robot, engine in sorted({(x["robot"], x["engine"]) for x in lines}):
         mine = [x for x in lines if (x["robot"], x["engine"]) == (robot, engine)]
-        refused = next((x["refused"] for x in mine if x["phase"] == "refused"), None)
-        if refused is not None:
-            rows.append([robot, engine, refused[:100], *["-"] * 7])
-            continue
+        row: dict[str, Any] = {"robot": robot, "engine": engine, "refused": next(
+            (x["refused"] for x in mine if x["phase"] == "refused"), None)}
 
         def first(who: str, kind: str, field: str = "total") -> Optional[float]:
             return median([x.get(field) for x in mine if x["phase"] == "first"
                            and x["who"] == who and x["kind"] == kind and not x.get("error")])
 
-        def share(kind: str) -> str:
-            sim, raw = first("simloader", kind, "after_torch"), first("raw", kind, "after_torch")
-            return "-" if sim is None or raw is None else f"{sim - raw:+.2f}"
-
-        def pair(kind: str) -> str:
-            sim, raw = first("simloader", kind), first("raw", kind)
-            return "failed" if sim is None or raw is None else f"{sim:.1f} / {raw:.1f}"
-
+        for kind in ("cold", "warm"):
+            row[kind] = {who: first(who, kind) for who in ("simloader", "raw")}
+            sim, raw = (first(who, kind, "after_torch") for who in ("simloader", "raw"))
+            row[f"share_{kind}"] = None if sim is None or raw is None else sim - raw
+        row["rate"] = row["raw_rate"] = row["ratio"] = None
         st = next((x for x in mine if x["phase"] == "steady"), None)
-        rate = raw_rate = ratio = "-"
-        held = "-"
+        row["steady_failed"] = st is not None and "s_per_step" not in st
         if st is not None and "s_per_step" in st:
             Raw = raw_baseline(engine)
             s = st["s_per_step"]
             if Raw.row in s and Raw.simloader_row in s:
-                rate = f"{1 / s[Raw.simloader_row] / 1e6:.2f}M"
-                raw_rate = f"{1 / s[Raw.row] / 1e6:.2f}M"
-                r = s[Raw.row] / s[Raw.simloader_row]
-                ratio, held = f"{r:.3f}", ("yes" if r >= TARGET else "**no**")
-        elif st is not None:
-            rate = "failed"
-        rows.append([robot, engine, "accepts", pair("cold"), share("cold"), pair("warm"),
-                     share("warm"), rate, raw_rate, f"{ratio} ({held})" if ratio != "-"
-                     else ratio])
+                row["rate"], row["raw_rate"] = 1 / s[Raw.simloader_row], 1 / s[Raw.row]
+                row["ratio"] = s[Raw.row] / s[Raw.simloader_row]
+        out.append(row)
+    return out
+
+
+def table(lines: list[dict]) -> str:
+    """One row per (robot, engine) from the JSON lines."""
+    rows = []
+    for r in summaries(lines):
+        if r["refused"] is not None:
+            rows.append([r["robot"], r["engine"], r["refused"][:100], *["-"] * 7])
+            continue
+
+        def pair(kind: str) -> str:
+            sim, raw = r[kind]["simloader"], r[kind]["raw"]
+            return "failed" if sim is None or raw is None else f"{sim:.1f} / {raw:.1f}"
+
+        def share(kind: str) -> str:
+            x = r[f"share_{kind}"]
+            return "-" if x is None else f"{x:+.2f}"
+
+        rate = "failed" if r["steady_failed"] else (
+            "-" if r["rate"] is None else f"{r['rate'] / 1e6:.2f}M")
+        raw_rate = "-" if r["raw_rate"] is None else f"{r['raw_rate'] / 1e6:.2f}M"
+        ratio = "-" if r["ratio"] is None else (
+            f"{r['ratio']:.3f} ({'yes' if r['ratio'] >= TARGET else '**no**'})")
+        rows.append([r["robot"], r["engine"], "accepts", pair("cold"), share("cold"),
+                     pair("warm"), share("warm"), rate, raw_rate, ratio])
     headers = ["robot", "engine", "engine's verdict", "first batch cold, s: simloader / raw",
                "simloader's share cold, s", "first batch warm, s: simloader / raw",
                "simloader's share warm, s", "steps/s simloader", "steps/s raw",
                f"ratio (>= {TARGET})"]
     return common.markdown_table(headers, rows)
+
+
+def plot(lines: list[dict], title: str) -> Any:
+    """Three panels, one row per (robot, engine) the engine accepts: steps/s against the raw
+    engine (the target marked), and the first batch cold and warm, simloader beside raw."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    rows = [r for r in summaries(lines) if r["refused"] is None]
+    names = [f"{r['robot']} ({r['engine']})" for r in rows]
+    y = np.arange(len(rows))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 0.35 * len(rows) + 1.8), sharey=True)
+    ratios = [r["ratio"] if r["ratio"] is not None else 0.0 for r in rows]
+    axes[0].barh(y, ratios, color=["tab:blue" if x >= TARGET else "tab:red" for x in ratios])
+    axes[0].axvline(TARGET, color="black", lw=1.2)
+    for i, r in enumerate(rows):
+        axes[0].annotate(" not measured" if r["ratio"] is None else f" {r['ratio']:.3f}",
+                         (ratios[i], i), va="center", fontsize=7)
+    axes[0].set_xlim(0, 1.25)
+    axes[0].set_xlabel(f"steps/s, simloader / raw engine (line: {TARGET})")
+    for ax, kind in zip(axes[1:], ("cold", "warm")):
+        for offset, who, color in ((-0.2, "simloader", "tab:blue"), (0.2, "raw", "tab:gray")):
+            values = [r[kind][who] or 0.0 for r in rows]
+            ax.barh(y + offset, values, height=0.4, color=color, label=who)
+        ax.set_xlabel(f"first batch {kind}, s from the process start")
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0].set_yticks(y, names, fontsize=7)
+    axes[0].invert_yaxis()
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
 
 
 def main() -> None:
@@ -264,6 +313,9 @@ def main() -> None:
         "engine's, same work, in one process on warm caches. JSON lines: "
         f"`{lines_path.name}`.", *args.note]
     title = "Menagerie robots on the GPU engines"
+    if args.save and any(x["phase"] == "first" for x in lines):
+        png = common.save_figure(args, "robots", plot(lines, title))
+        sections.insert(3, f"![steps/s against the raw engine, first batches]({png.name})")
     if args.phase != "report":
         common.report(args, "robots", title, sections)
         return

@@ -71,7 +71,9 @@ def test_report_renders_the_lines_already_written_and_nothing_else(tmp_path):
     assert md.startswith("# Menagerie robots on the GPU engines")
     assert "GPU: NVIDIA H200" in md and "a note" in md and "8.5 / 8.0" in md
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "mine.txt", f"robots-t-{today}.jsonl", f"robots-t-{today}.md"]
+        "mine.txt", f"robots-t-{today}.jsonl", f"robots-t-{today}.md", f"robots-t-{today}.png"]
+    assert f"![steps/s against the raw engine, first batches](robots-t-{today}.png)" in md
+    assert (tmp_path / f"robots-t-{today}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert mine.read_text() == "the user's"
 
 
