@@ -58,9 +58,9 @@ import time
 
 import common
 
+from simloader.bench.ranks import NCCL_SAFE_ENV
+
 EXAMPLE = common.REPO / "examples" / "train_world_model_ddp.py"
-SAFE_ENV = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1",
-            "NVSHMEM_DISABLE_NVLS": "1"}
 ENGINES = {"cpu": {"backend": "cpu"}, "mjx": {"backend": "mjx"}, "warp": {"backend": "warp"}}
 MODES = ("open", "camera", "policy", "write", "ddp")
 WORKLOADS = {"cpu": "cartpole:1024x100", "mjx": "cartpole:8192x1000",
@@ -236,7 +236,7 @@ def launches(nproc: int, nodes: int) -> list[tuple[list[str], dict[str, str]]]:
     GPUs)."""
     # the ddp example imports simloader too: the checkout's, installed or not
     path = os.pathsep.join(filter(None, [str(common.REPO), os.environ.get("PYTHONPATH")]))
-    env = {**os.environ, **SAFE_ENV, "PYTHONPATH": path}
+    env = {**os.environ, **NCCL_SAFE_ENV, "PYTHONPATH": path}
     if nodes == 1:
         return [(["--standalone", f"--nproc_per_node={nproc}"], env)]
     per, port, gpus = nproc // nodes, _free_port(), _visible_gpus()

@@ -196,9 +196,12 @@ def test_ranks_side_splits_one_stream_over_torchrun_processes():
 
 
 def test_a_workload_needing_more_gpus_than_the_machine_has_is_skipped_not_failed(tmp_path):
-    needs = Benchmark("tiny-needs-gpus", "cpu", Method(W.RANKS, (TINY,), 2),
-                      Method(W.RANKS, (TINY,), 1), 0.9, "a test",
-                      gpus=torch.cuda.device_count() + 1)
+    gpus = torch.cuda.device_count() + 1
+    on_gpus = TINY.but(engine="warp")
+    needs = Benchmark("tiny-needs-gpus", "cpu", Method(W.RANKS, (on_gpus,), gpus),
+                      Method(W.RANKS, (on_gpus,), 1), 0.9, "a test")
+    assert needs.gpus == gpus and Method(W.SIM_DEVICES, (on_gpus,), 3).gpus == 4
+    assert Method(W.RANKS, (TINY,), 2).gpus == 0 and Method(W.SIMLOADER, (on_gpus,)).gpus == 0
     out, lines = run([needs], tmp_path)
     line, = lines
     assert line["passed"] is None and "needs" in line["skipped"]

@@ -26,10 +26,11 @@ from simloader.bench import startup
 from simloader.bench.workloads import Stream
 
 SPEC = "SIMLOADER_BENCH_RANKS"  # the job's spec (JSON) in each rank's environment
-# NVLink multicast off in NCCL: shared machines refuse it (the device notes); one OpenMP
-# thread a rank whatever the ranks (torchrun sets it only for more than one)
-SAFE_ENV = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1",
-            "NVSHMEM_DISABLE_NVLS": "1", "OMP_NUM_THREADS": "1"}
+# NVLink multicast off in NCCL: shared machines refuse it (the device notes)
+NCCL_SAFE_ENV = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1",
+                 "NVSHMEM_DISABLE_NVLS": "1"}
+# and one OpenMP thread a rank whatever the ranks (torchrun sets it only for more than one)
+SAFE_ENV = {**NCCL_SAFE_ENV, "OMP_NUM_THREADS": "1"}
 STOP_S = 30.0  # seconds torchrun gets to stop its ranks after a timeout
 
 
@@ -45,10 +46,7 @@ def job(stream: Stream, ranks: int, batches: int, seed: int, timeout: float) -> 
         env = dict(os.environ, **SAFE_ENV)
         env[SPEC] = json.dumps({"stream": dataclasses.asdict(stream), "batches": batches,
                                 "seed": seed, "out": str(out)})
-        # the checkout this package is in, first (as the start-up children)
-        paths = [str(startup.REPO)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
-                                      if p]
-        env["PYTHONPATH"] = os.pathsep.join(paths)
+        env["PYTHONPATH"] = startup.pythonpath(env.get("PYTHONPATH", ""))
         command = [sys.executable, "-m", "torch.distributed.run", "--standalone",
                    f"--nproc_per_node={ranks}", "-m", "simloader.bench.ranks"]
         proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,

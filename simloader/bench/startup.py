@@ -238,12 +238,17 @@ def child_env(root: pathlib.Path, spec: dict, simloader: bool,
     # for simloader's) while the raw scripts' libraries load theirs
     env.pop("PYTHONDONTWRITEBYTECODE", None)
     env["BENCH_STARTUP_SPEC"] = json.dumps(spec)
-    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
-             if p and pathlib.Path(p).resolve() != REPO]
-    if simloader:  # benchmark the checkout this script is in, installed or not
-        paths.insert(0, str(REPO))
-    env["PYTHONPATH"] = os.pathsep.join(paths)
+    env["PYTHONPATH"] = pythonpath(env.get("PYTHONPATH", ""), checkout_first=simloader)
     return env
+
+
+def pythonpath(given: str, checkout_first: bool = True) -> str:
+    """`given` (a PYTHONPATH) with the checkout this package is in first, so that a child
+    benchmarks this checkout, installed or not (`checkout_first=False`: taken out)."""
+    paths = [p for p in given.split(os.pathsep) if p and pathlib.Path(p).resolve() != REPO]
+    if checkout_first:
+        paths.insert(0, str(REPO))
+    return os.pathsep.join(paths)
 
 
 def run_child(script: str, root: pathlib.Path, spec: dict, simloader: bool,

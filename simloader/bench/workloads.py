@@ -87,6 +87,15 @@ class Method:
     streams: tuple[Stream, ...]
     count: int = 1  # RANKS: processes; SIM_DEVICES: simulation GPUs
 
+    @property
+    def gpus(self) -> int:
+        """The GPUs its machine must have for it to run at all: a GPU a rank; the simulation
+        GPUs and the one delivering (0: a stream of the CPU engine, or one GPU process,
+        which fails where it cannot run rather than being skipped)."""
+        if all(s.engine == "cpu" for s in self.streams):
+            return 0
+        return {RANKS: self.count, SIM_DEVICES: self.count + 1}.get(self.kind, 0)
+
     def __str__(self) -> str:
         kind = self.kind
         if kind in (RANKS, SIM_DEVICES):  # "2 ranks", "1 rank"
@@ -115,7 +124,10 @@ class Benchmark:
     unit: str = "steps"
     ceiling_s: Optional[float] = None
     min_calls: int = 2
-    gpus: int = 0
+
+    @property
+    def gpus(self) -> int:
+        return max(self.subject.gpus, self.baseline.gpus)
 
 
 def _m(kind: str, *streams: Stream) -> Method:
@@ -240,18 +252,18 @@ def _several_gpus() -> list[Benchmark]:
     ranks = "target 5 ({}x one GPU on {} GPUs, one process each under torchrun)"
     return [
         Benchmark("warp-2-ranks", "several-gpus", Method(RANKS, (human,), 2),
-                  Method(RANKS, (human,), 1), 1.95 / 2, ranks.format(1.95, 2), gpus=2),
+                  Method(RANKS, (human,), 1), 1.95 / 2, ranks.format(1.95, 2)),
         Benchmark("mjx-2-ranks", "several-gpus", Method(RANKS, (cart,), 2),
-                  Method(RANKS, (cart,), 1), 1.95 / 2, ranks.format(1.95, 2), gpus=2),
+                  Method(RANKS, (cart,), 1), 1.95 / 2, ranks.format(1.95, 2)),
         Benchmark("warp-4-ranks", "several-gpus", Method(RANKS, (human,), 4),
-                  Method(RANKS, (human,), 1), 3.9 / 4, ranks.format(3.9, 4), gpus=4),
+                  Method(RANKS, (human,), 1), 3.9 / 4, ranks.format(3.9, 4)),
         Benchmark("warp-sim-device", "several-gpus", Method(SIM_DEVICES, (split,), 1),
                   _m(SIMLOADER, split), None,
                   "measured only: simulated on cuda:1 and delivered on cuda:0, against the "
-                  "same stream simulated where it is delivered", gpus=2),
+                  "same stream simulated where it is delivered"),
         Benchmark("warp-3-sim-devices", "several-gpus", Method(SIM_DEVICES, (split,), 3),
                   Method(SIM_DEVICES, (split,), 1), 2.85 / 3,
-                  "target 5 (three simulation GPUs feed one trainer at 2.85x one's)", gpus=4),
+                  "target 5 (three simulation GPUs feed one trainer at 2.85x one's)"),
     ]
 
 
