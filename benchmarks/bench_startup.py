@@ -34,6 +34,8 @@ Run on the GPU machine from the repository root:
   python benchmarks/bench_startup.py --model-dir .models/dm_control --save --results-dir $OUT
 Smoke run on a laptop:
   python benchmarks/bench_startup.py --quick --engines cpu mjx
+Where a warm first batch spends its seconds, both sides (sampled stacks of every thread):
+  python benchmarks/bench_startup.py --workloads warp:humanoid:8192x200 --profile $OUT/prof
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from typing import Optional
 
 import common
 from simloader.bench.startup import (CPU_AFTER_TORCH_S, PHASES, RAW_SCRIPT, SIM_OPTIONS,
-                                     SIMLOADER, run_child)
+                                     SIMLOADER, profile_table, run_child)
 
 ENGINES = ("cpu", "mjx", "warp")
 DEFAULT = ["mjx:cartpole:4096x200", "mjx:humanoid:4096x200", "warp:humanoid:8192x200",
@@ -210,6 +212,21 @@ def save(args: argparse.Namespace, sections: list[str]) -> None:
     print(f"saved {path}", file=sys.stderr)
 
 
+def write_profiles(path: pathlib.Path, profiles: list[tuple[str, pathlib.Path, dict]]) -> None:
+    """profiles.md: per profiled child, its seconds after torch and where they went."""
+    parts = ["# Where the warm first batches spend their seconds", (
+        "Each child's threads sampled every few milliseconds from the end of `import torch` "
+        "to the first batch (`simloader.bench.startup.PRELUDE`); inclusive: samples with the "
+        "frame on the stack. The sampling slows the children: compare the sides, not these "
+        "seconds with the benchmark's.")]
+    for title, folded, line in profiles:
+        every = line["extra"]["profile"]["every_s"]
+        parts += [f"## {title}: {line['after_torch']:.2f} s after torch",
+                  profile_table(folded, every)]
+    path.write_text("\n\n".join(parts) + "\n")
+    print(f"profiles: {path}", file=sys.stderr)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -231,6 +248,11 @@ def main() -> None:
                    help="folder for the children's caches (default: a fresh temporary folder, "
                         "removed at the end)")
     p.add_argument("--keep-caches", action="store_true", help="leave the caches in place")
+    p.add_argument("--profile", type=pathlib.Path,
+                   help="a folder for each warm child's sampled stacks (every thread's, from "
+                        "the end of `import torch` to the first batch; folded, one file a "
+                        "child) and profiles.md, the frames where each spent its seconds "
+                        "(sampling slows the children: their times are not the benchmark's)")
     common.add_output_options(p)
     args = p.parse_args()
 
@@ -265,15 +287,26 @@ def main() -> None:
             plan.append((engine, w, who, kind, roots[who], script, s))
 
     results: dict[tuple[str, str], dict] = {}
+    profiles: list[tuple[str, pathlib.Path, dict]] = []  # (title, folded file, its line)
+    if args.profile is not None:
+        args.profile.mkdir(parents=True, exist_ok=True)
     try:
-        for engine, w, who, kind, croot, script, spec in common.progress(plan, desc="children"):
-            r = run_child(script, croot, spec, who == "simloader", args.timeout)
+        for i, (engine, w, who, kind, croot, script, spec) in enumerate(
+                common.progress(plan, desc="children")):
+            folded = (args.profile / f"{engine}-{w.name}-{w.nbatch}x{w.nstep}-{who}-{i}.folded"
+                      if args.profile is not None and kind == "warm" else None)
+            r = run_child(script, croot, spec, who == "simloader", args.timeout,
+                          profile=folded)
+            if folded is not None and "error" not in r:
+                profiles.append((f"{engine} {w} {who}, child {i}", folded, r))
             results.setdefault((engine, str(w)), {"engine": engine, "w": w, "runs": {}})[
                 "runs"].setdefault((who, kind), []).append(r)
     finally:
         if not args.keep_caches:
             shutil.rmtree(root, ignore_errors=True)
 
+    if profiles:
+        write_profiles(args.profile / "profiles.md", profiles)
     sections, errors = [], []
     for entry in results.values():
         sections.append(table(entry["engine"], entry["w"], entry["runs"]))

@@ -17,7 +17,7 @@ import pathlib
 import subprocess
 import sys
 import time
-from typing import Any
+from typing import Any, Optional
 
 # the checkout (or site-packages folder) this package is in: the simloader children import
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -49,9 +49,44 @@ def handed_over(first):
     """The first batch ({key: tensor}) is in torch's hands: its device and shape, the line."""
     X["device"] = str(next(iter(first.values())).device)
     X["shape"] = list(first["state"].shape) if "state" in first else None
+    if _PROFILE:
+        _profiled()
     finish()
+_PROFILE = os.environ.get("BENCH_STARTUP_PROFILE")
+if _PROFILE:
+    # where the seconds after `import torch` go, every thread's (simloader's first batch is
+    # made on its prefetch thread, which a cProfile of the main thread would not see): a
+    # thread samples every other thread's Python stack every _EVERY seconds; written as
+    # folded stacks ("thread;file:function;... count") for a flame graph or a summary
+    import collections, threading
+    _EVERY = 0.002
+    _STACKS = collections.Counter()
+    _STOP = threading.Event()
+    def _label(code):
+        parts = code.co_filename.replace(os.sep, "/").split("/")
+        return "/".join(parts[-2:]) + ":" + code.co_name
+    def _sampler():
+        me = threading.get_ident()
+        while not _STOP.wait(_EVERY):
+            names = {t.ident: t.name for t in threading.enumerate()}
+            for tid, frame in sys._current_frames().items():
+                if tid == me:
+                    continue
+                stack = []
+                while frame is not None:
+                    stack.append(_label(frame.f_code))
+                    frame = frame.f_back
+                _STACKS[";".join([names.get(tid, "thread"), *reversed(stack)])] += 1
+    def _profiled():
+        _STOP.set()
+        with open(_PROFILE, "w") as f:
+            f.writelines(f"{k} {v}\n" for k, v in _STACKS.most_common())
+        X["profile"] = {"file": os.path.basename(_PROFILE), "every_s": _EVERY,
+                        "samples": sum(_STACKS.values())}
 import torch  # first, as a torch user has it
 t_torch = mark("import_torch")
+if _PROFILE:
+    threading.Thread(target=_sampler, name="bench-sampler", daemon=True).start()
 '''
 
 RAW_JAX = PRELUDE + r'''
@@ -223,6 +258,26 @@ SIM_OPTIONS = {"mjx": {"backend": "mjx"}, "warp": {"backend": "warp"},
                "cpu": {"backend": "cpu"}}
 
 
+def profile_table(path: pathlib.Path, every_s: float, top: int = 25) -> str:
+    """A Markdown table of a child's sampled stacks (`run_child(profile=)`): the `top` frames
+    by inclusive seconds (samples in which the frame is on the stack, times the interval),
+    each with its thread and self seconds (samples in which it is the innermost frame)."""
+    inclusive: dict[tuple[str, str], int] = {}
+    own: dict[tuple[str, str], int] = {}
+    for line in path.read_text().splitlines():
+        stack, _, count = line.rpartition(" ")
+        thread, *frames = stack.split(";")
+        for frame in dict.fromkeys(frames):  # a recursive frame counts once per sample
+            inclusive[thread, frame] = inclusive.get((thread, frame), 0) + int(count)
+        if frames:
+            own[thread, frames[-1]] = own.get((thread, frames[-1]), 0) + int(count)
+    rows = sorted(inclusive.items(), key=lambda kv: -kv[1])[:top]
+    lines = ["| thread | frame | inclusive s | self s |", "| --- | --- | --- | --- |"]
+    lines += [f"| {t} | `{f}` | {n * every_s:.3f} | {own.get((t, f), 0) * every_s:.3f} |"
+              for (t, f), n in rows]
+    return "\n".join(lines)
+
+
 def child_env(root: pathlib.Path, spec: dict, simloader: bool,
               isolate: bool = True) -> dict[str, str]:
     """The child's environment: its cache folders under `root` (`isolate`), else the user's."""
@@ -252,9 +307,14 @@ def pythonpath(given: str, checkout_first: bool = True) -> str:
 
 
 def run_child(script: str, root: pathlib.Path, spec: dict, simloader: bool,
-              timeout: float, isolate: bool = True) -> dict[str, Any]:
-    """One fresh process in `root`; its JSON line, plus `wall`, or `{"error": ...}`."""
+              timeout: float, isolate: bool = True,
+              profile: Optional[pathlib.Path] = None) -> dict[str, Any]:
+    """One fresh process in `root`; its JSON line, plus `wall`, or `{"error": ...}`.
+    `profile`: a file the child writes its sampled stacks to (`PRELUDE`), from the end of
+    `import torch` to the first batch."""
     env = child_env(root, spec, simloader, isolate)
+    if profile is not None:
+        env["BENCH_STARTUP_PROFILE"] = str(profile)
     env["BENCH_STARTUP_T0"] = repr(time.time())
     start = time.perf_counter()
     try:
