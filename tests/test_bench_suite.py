@@ -6,6 +6,7 @@ The figures themselves come from running the suite (benchmarks/results/), never 
 
 import json
 import math
+import statistics
 
 import pytest
 import torch
@@ -78,6 +79,10 @@ def test_a_run_writes_lines_and_check_names_the_workload_below_target(tmp_path, 
     for line in lines:
         if "error" not in line:
             assert line["units_per_s"] > 0 and math.isfinite(line["first_s"])
+            # every repetition kept, the median of them the line's rate
+            reps = line["repetitions_s"]
+            assert len(reps) == line["repeats"] and all(r > 0 for r in reps)
+            assert line["units_per_s"] == pytest.approx(1 / statistics.median(reps))
             assert line["machine"]["cpus"] >= 1 and line["versions"]["mujoco"]
             assert line["date"] and "commit" in line
     missed = results.failures(results.read_lines([out]))

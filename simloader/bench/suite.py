@@ -415,8 +415,10 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
         # start-up: `min_calls` fresh processes per repetition (their median)
         n = b.min_calls if startup_kind else timing.batches_for(
             max(subject.call_s, baseline.call_s), b.min_calls, min_seconds)
+        each: dict[str, list[float]] = {}
         s = timing.interleave({"subject": lambda: subject.measure(n),
-                               "baseline": lambda: baseline.measure(n)}, repeats, desc=b.name)
+                               "baseline": lambda: baseline.measure(n)}, repeats, desc=b.name,
+                              each=each)
         if startup_kind and b.baseline.kind == W.RAW_STARTUP:
             s = startup_seconds(s, subject, baseline)
     finally:
@@ -438,6 +440,9 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
                                ("baseline", baseline, b.baseline)):
         lines.append({**common, "role": role, "method": str(method),
                       "units_per_s": rate[role], "first_s": side.first_s,
+                      # each repetition's seconds per unit (start-up: per first batch, after
+                      # `import torch`), in the order run: how much the machine moved
+                      "repetitions_s": each[role],
                       "ratio": ratio if role == "subject" else None,
                       "passed": ok if role == "subject" else None,
                       "extra": {k: (statistics.median(v) if isinstance(v, list) and v else v)

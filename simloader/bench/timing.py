@@ -68,19 +68,22 @@ def progress(iterable: Iterable, desc: str = "", total: Optional[int] = None) ->
 
 
 def interleave(measures: dict[str, Callable[[], float]], repeats: int,
-               desc: str = "") -> dict[str, float]:
+               desc: str = "",
+               each: Optional[dict[str, list[float]]] = None) -> dict[str, float]:
     """The median of each measure's result, the measures run alternately `repeats` times.
 
     Each measure times its own steady part (warm-up excluded) and returns seconds per
     simulated step. The order is reversed every repetition, so that drift in the machine
-    (clocks, caches, other load) touches every measure alike.
+    (clocks, caches, other load) touches every measure alike. `each`: filled with every
+    repetition's result per measure, in the order run (how much the machine moved).
     """
-    times: dict[str, list[float]] = {name: [] for name in measures}
+    times: dict[str, list[float]] = {name: [] for name in measures} if each is None else each
+    times.update({name: [] for name in measures})
     order = list(measures)
     for rep in progress(range(repeats), desc=desc):
         for name in order if rep % 2 == 0 else reversed(order):
             times[name].append(measures[name]())
-    return {name: statistics.median(t) for name, t in times.items()}
+    return {name: statistics.median(times[name]) for name in measures}
 
 
 def batches_for(batch_s: float, min_batches: int, min_seconds: float) -> int:
