@@ -252,3 +252,13 @@ def test_a_ranks_job_past_its_time_leaves_no_rank_running():
     while running() and time.monotonic() < deadline:
         time.sleep(0.2)
     assert running() == []
+
+
+def test_a_ratio_just_below_its_target_does_not_read_as_the_target():
+    assert results.ratio_text({"ratio": 0.9497, "target": 0.95}) == "0.9497"
+    assert results.ratio_text({"ratio": 0.95, "target": 0.95}) == "0.950"
+    assert results.ratio_text({"ratio": 0.863, "target": 0.9}) == "0.863"
+    assert results.ratio_text({"ratio": 1.2, "target": None}) == "1.200"
+    line = {"workload": "w", "ratio": 0.9497, "target": 0.95, "passed": False}
+    assert results.failures([dict(line, role="subject")]) == [
+        "w: 0.9497x its baseline, target 0.950x"]
