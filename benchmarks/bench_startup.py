@@ -215,14 +215,14 @@ def save(args: argparse.Namespace, sections: list[str]) -> None:
 def write_profiles(path: pathlib.Path, profiles: list[tuple[str, pathlib.Path, dict]]) -> None:
     """profiles.md: per profiled child, its seconds after torch and where they went."""
     parts = ["# Where the warm first batches spend their seconds", (
-        "Each child's threads sampled every few milliseconds from the end of `import torch` "
-        "to the first batch (`simloader.bench.startup.PRELUDE`); inclusive: samples with the "
-        "frame on the stack. The sampling slows the children: compare the sides, not these "
-        "seconds with the benchmark's.")]
+        "Children of their own, after the timed ones and kept out of their figures (the "
+        "sampling slows them): each child's threads sampled every few milliseconds from the "
+        "end of `import torch` to the first batch (`simloader.bench.startup.PRELUDE`), each "
+        "sample weighted by the time since the last; inclusive: the seconds of the stacks "
+        "the frame is on; threads blocked in a wait count too. Compare the sides' frames.")]
     for title, folded, line in profiles:
-        every = line["extra"]["profile"]["every_s"]
         parts += [f"## {title}: {line['after_torch']:.2f} s after torch",
-                  profile_table(folded, every)]
+                  profile_table(folded, line["extra"]["profile"]["unit_s"])]
     path.write_text("\n\n".join(parts) + "\n")
     print(f"profiles: {path}", file=sys.stderr)
 
@@ -249,12 +249,15 @@ def main() -> None:
                         "removed at the end)")
     p.add_argument("--keep-caches", action="store_true", help="leave the caches in place")
     p.add_argument("--profile", type=pathlib.Path,
-                   help="a folder for each warm child's sampled stacks (every thread's, from "
-                        "the end of `import torch` to the first batch; folded, one file a "
-                        "child) and profiles.md, the frames where each spent its seconds "
-                        "(sampling slows the children: their times are not the benchmark's)")
+                   help="also run --repeats profiled warm children per side, after the timed "
+                        "ones and kept out of their figures (sampling slows them), writing "
+                        "their sampled stacks here (every thread's, from the end of `import "
+                        "torch` to the first batch; folded, one file a child) and "
+                        "profiles.md, the frames where each spent its seconds")
     common.add_output_options(p)
     args = p.parse_args()
+    if args.profile is not None:  # the children run in their cache folders
+        args.profile = args.profile.resolve()
 
     chosen = args.workloads or [parse_workload(t) for t in (QUICK if args.quick else DEFAULT)]
     chosen = [(e, w) for e, w in chosen if e in args.engines]
@@ -278,9 +281,10 @@ def main() -> None:
             shutil.rmtree(roots[who], ignore_errors=True)  # cold for real
             roots[who].mkdir(parents=True)
         order = [("raw", "cold"), ("simloader", "cold")]
-        for rep in range(args.repeats):
-            pair = [("raw", "warm"), ("simloader", "warm")]
-            order += pair if rep % 2 else pair[::-1]
+        for kind in ("warm", "profiled") if args.profile is not None else ("warm",):
+            for rep in range(args.repeats):
+                pair = [("raw", kind), ("simloader", kind)]
+                order += pair if rep % 2 else pair[::-1]
         for who, kind in order:
             s = dict(spec, jax_cache=str(roots[who] / "jax"))
             script = SIMLOADER if who == "simloader" else RAW_SCRIPT[engine]
@@ -294,11 +298,13 @@ def main() -> None:
         for i, (engine, w, who, kind, croot, script, spec) in enumerate(
                 common.progress(plan, desc="children")):
             folded = (args.profile / f"{engine}-{w.name}-{w.nbatch}x{w.nstep}-{who}-{i}.folded"
-                      if args.profile is not None and kind == "warm" else None)
+                      if kind == "profiled" else None)
             r = run_child(script, croot, spec, who == "simloader", args.timeout,
                           profile=folded)
-            if folded is not None and "error" not in r:
-                profiles.append((f"{engine} {w} {who}, child {i}", folded, r))
+            if folded is not None:  # not the benchmark's figures
+                if "error" not in r:
+                    profiles.append((f"{engine} {w} {who}, child {i}", folded, r))
+                continue
             results.setdefault((engine, str(w)), {"engine": engine, "w": w, "runs": {}})[
                 "runs"].setdefault((who, kind), []).append(r)
     finally:

@@ -389,7 +389,7 @@ def bench_run(args: argparse.Namespace) -> None:
             print(f"  {line['workload']}: skipped: {line['skipped']}")
         else:
             target = "" if line["target"] is None else f" (target {line['target']:.3f})"
-            print(f"  {line['workload']}: {line['ratio']:.3f}{target}")
+            print(f"  {line['workload']}: {results.ratio_text(line)}{target}")
 
     lines = suite.run(chosen, out, repeats=args.repeats, min_seconds=args.min_seconds,
                       seed=args.seed, folder=args.folder, on_line=said)

@@ -259,6 +259,8 @@ def test_a_ratio_just_below_its_target_does_not_read_as_the_target():
     assert results.ratio_text({"ratio": 0.95, "target": 0.95}) == "0.950"
     assert results.ratio_text({"ratio": 0.863, "target": 0.9}) == "0.863"
     assert results.ratio_text({"ratio": 1.2, "target": None}) == "1.200"
+    assert results.ratio_text({"ratio": 0.94996, "target": 0.95}) == "0.94996"
+    assert results.ratio_text({"ratio": 9.9996, "target": 10}) == "9.9996"  # numbers, not text
     line = {"workload": "w", "ratio": 0.9497, "target": 0.95, "passed": False}
     assert results.failures([dict(line, role="subject")]) == [
         "w: 0.9497x its baseline, target 0.950x"]

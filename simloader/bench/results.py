@@ -88,12 +88,14 @@ def failures(lines: Sequence[dict[str, Any]]) -> list[str]:
 
 
 def ratio_text(row: dict[str, Any]) -> str:
-    """A row's ratio to 3 decimals, or 4 where 3 would read as its target (0.9497 against
-    0.95 is below it, 0.950 would not say so)."""
+    """A row's ratio to 3 decimals, or more where 3 would read as its target or above it
+    (0.9497 against 0.95 is below it; "0.950" would not say so)."""
     ratio, target = row["ratio"], row.get("target")
-    if target is not None and ratio < target and f"{ratio:.3f}" >= f"{target:.3f}":
-        return f"{ratio:.4f}"
-    return f"{ratio:.3f}"
+    digits = 3
+    while (target is not None and ratio < target and digits < 8
+           and float(f"{ratio:.{digits}f}") >= target):
+        digits += 1
+    return f"{ratio:.{digits}f}"
 
 
 def _rate(x: Optional[float], unit: str) -> str:
@@ -176,7 +178,7 @@ def plot(lines: Sequence[dict[str, Any]], path: os.PathLike | str, title: str) -
     for y, r in enumerate(rows):
         if r.get("target") is not None:
             ax.plot([r["target"]] * 2, [y - 0.4, y + 0.4], color="black", lw=1.5)
-        ax.annotate(f" {r['ratio']:.3f}", (r["ratio"], y), va="center", fontsize=8)
+        ax.annotate(f" {ratio_text(r)}", (r["ratio"], y), va="center", fontsize=8)
     ax.axvline(1.0, color="gray", lw=0.8, ls=":")
     ax.invert_yaxis()
     ax.set_xlim(0, max([1.2] + [x * 1.15 for x in ratios]))

@@ -42,6 +42,8 @@ def mark(name):
 SPEC = json.loads(os.environ["BENCH_STARTUP_SPEC"])
 def finish():
     now = time.perf_counter()
+    if _PROFILE:  # after the clock: writing the stacks is not the child's time
+        _profiled()
     out = {"phases": P, "total": now - _PC0, "after_torch": now - t_torch, "extra": X}
     sys.stdout.flush()
     print("\n" + json.dumps(out), flush=True)
@@ -49,44 +51,49 @@ def handed_over(first):
     """The first batch ({key: tensor}) is in torch's hands: its device and shape, the line."""
     X["device"] = str(next(iter(first.values())).device)
     X["shape"] = list(first["state"].shape) if "state" in first else None
-    if _PROFILE:
-        _profiled()
     finish()
 _PROFILE = os.environ.get("BENCH_STARTUP_PROFILE")
 if _PROFILE:
     # where the seconds after `import torch` go, every thread's (simloader's first batch is
     # made on its prefetch thread, which a cProfile of the main thread would not see): a
-    # thread samples every other thread's Python stack every _EVERY seconds; written as
-    # folded stacks ("thread;file:function;... count") for a flame graph or a summary
+    # thread samples every other thread's Python stack about every _EVERY seconds, each
+    # sample weighted by the microseconds since the sampler's last pass (a pass waits for
+    # the GIL: counting passes would undercount); written as folded stacks
+    # ("thread;file:function;... microseconds") for a flame graph or a summary
     import collections, threading
     _EVERY = 0.002
     _STACKS = collections.Counter()
     _STOP = threading.Event()
     def _label(code):
         parts = code.co_filename.replace(os.sep, "/").split("/")
-        return "/".join(parts[-2:]) + ":" + code.co_name
+        return "/".join(parts[-2:]) + ":" + getattr(code, "co_qualname", code.co_name)
     def _sampler():
         me = threading.get_ident()
+        last = time.perf_counter()
         while not _STOP.wait(_EVERY):
-            names = {t.ident: t.name for t in threading.enumerate()}
+            now = time.perf_counter()
+            weight, last = round((now - last) * 1e6), now
+            names = {t.ident: t.name.replace(";", ":") for t in threading.enumerate()}
             for tid, frame in sys._current_frames().items():
                 if tid == me:
                     continue
                 stack = []
                 while frame is not None:
-                    stack.append(_label(frame.f_code))
+                    stack.append(_label(frame.f_code).replace(";", ":"))
                     frame = frame.f_back
-                _STACKS[";".join([names.get(tid, "thread"), *reversed(stack)])] += 1
+                _STACKS[";".join([names.get(tid, "thread"), *reversed(stack)])] += weight
     def _profiled():
         _STOP.set()
+        _SAMPLER.join()  # its last pass finished: nothing added after the file is written
         with open(_PROFILE, "w") as f:
             f.writelines(f"{k} {v}\n" for k, v in _STACKS.most_common())
-        X["profile"] = {"file": os.path.basename(_PROFILE), "every_s": _EVERY,
-                        "samples": sum(_STACKS.values())}
+        X["profile"] = {"file": os.path.basename(_PROFILE), "unit_s": 1e-6,
+                        "every_s": _EVERY}
 import torch  # first, as a torch user has it
 t_torch = mark("import_torch")
 if _PROFILE:
-    threading.Thread(target=_sampler, name="bench-sampler", daemon=True).start()
+    _SAMPLER = threading.Thread(target=_sampler, name="bench-sampler", daemon=True)
+    _SAMPLER.start()
 '''
 
 RAW_JAX = PRELUDE + r'''
@@ -258,22 +265,28 @@ SIM_OPTIONS = {"mjx": {"backend": "mjx"}, "warp": {"backend": "warp"},
                "cpu": {"backend": "cpu"}}
 
 
-def profile_table(path: pathlib.Path, every_s: float, top: int = 25) -> str:
-    """A Markdown table of a child's sampled stacks (`run_child(profile=)`): the `top` frames
-    by inclusive seconds (samples in which the frame is on the stack, times the interval),
-    each with its thread and self seconds (samples in which it is the innermost frame)."""
+def profile_table(path: pathlib.Path, unit_s: float = 1e-6, top: int = 25) -> str:
+    """A Markdown table of a child's sampled stacks (`run_child(profile=)`; folded lines,
+    each stack's weight in `unit_s`): the `top` frames by inclusive seconds (the weight of
+    the stacks the frame is on, once per stack where it recurses), each with its thread and
+    self seconds (where it is the innermost frame). Import machinery's own frames
+    (`<frozen importlib...>`) are left out of the table, not out of their callers' seconds."""
     inclusive: dict[tuple[str, str], int] = {}
     own: dict[tuple[str, str], int] = {}
     for line in path.read_text().splitlines():
-        stack, _, count = line.rpartition(" ")
+        stack, _, weight = line.rpartition(" ")
         thread, *frames = stack.split(";")
-        for frame in dict.fromkeys(frames):  # a recursive frame counts once per sample
-            inclusive[thread, frame] = inclusive.get((thread, frame), 0) + int(count)
+        for frame in dict.fromkeys(frames):
+            inclusive[thread, frame] = inclusive.get((thread, frame), 0) + int(weight)
         if frames:
-            own[thread, frames[-1]] = own.get((thread, frames[-1]), 0) + int(count)
-    rows = sorted(inclusive.items(), key=lambda kv: -kv[1])[:top]
+            own[thread, frames[-1]] = own.get((thread, frames[-1]), 0) + int(weight)
+    rows = sorted(((k, n) for k, n in inclusive.items() if not k[1].startswith("<frozen ")),
+                  key=lambda kv: -kv[1])[:top]
+
+    def cell(text: str) -> str:
+        return "`" + text.replace("|", "\\|") + "`"
     lines = ["| thread | frame | inclusive s | self s |", "| --- | --- | --- | --- |"]
-    lines += [f"| {t} | `{f}` | {n * every_s:.3f} | {own.get((t, f), 0) * every_s:.3f} |"
+    lines += [f"| {cell(t)} | {cell(f)} | {n * unit_s:.3f} | {own.get((t, f), 0) * unit_s:.3f} |"
               for (t, f), n in rows]
     return "\n".join(lines)
 
@@ -313,8 +326,9 @@ def run_child(script: str, root: pathlib.Path, spec: dict, simloader: bool,
     `profile`: a file the child writes its sampled stacks to (`PRELUDE`), from the end of
     `import torch` to the first batch."""
     env = child_env(root, spec, simloader, isolate)
-    if profile is not None:
-        env["BENCH_STARTUP_PROFILE"] = str(profile)
+    env.pop("BENCH_STARTUP_PROFILE", None)  # never the parent's: only a child asked samples
+    if profile is not None:  # absolute: the child runs in `root`
+        env["BENCH_STARTUP_PROFILE"] = str(pathlib.Path(profile).resolve())
     env["BENCH_STARTUP_T0"] = repr(time.time())
     start = time.perf_counter()
     try:

@@ -421,6 +421,8 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
                               each=each)
         if startup_kind and b.baseline.kind == W.RAW_STARTUP:
             s = startup_seconds(s, subject, baseline)
+            shared = subject.extra["before_torch_pooled_s"]  # as the medians got it
+            each = {k: [v + shared for v in values] for k, values in each.items()}
     finally:
         subject.close()
         baseline.close()
@@ -440,8 +442,8 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
                                ("baseline", baseline, b.baseline)):
         lines.append({**common, "role": role, "method": str(method),
                       "units_per_s": rate[role], "first_s": side.first_s,
-                      # each repetition's seconds per unit (start-up: per first batch, after
-                      # `import torch`), in the order run: how much the machine moved
+                      # each repetition's seconds per unit, in the order run: how much the
+                      # machine moved (their median is the line's rate)
                       "repetitions_s": each[role],
                       "ratio": ratio if role == "subject" else None,
                       "passed": ok if role == "subject" else None,
