@@ -77,7 +77,7 @@ def interleave(measures: dict[str, Callable[[], float]], repeats: int,
     (clocks, caches, other load) touches every measure alike. `each`: filled with every
     repetition's result per measure, in the order run (how much the machine moved).
     """
-    times: dict[str, list[float]] = {name: [] for name in measures} if each is None else each
+    times: dict[str, list[float]] = {} if each is None else each
     times.update({name: [] for name in measures})
     order = list(measures)
     for rep in progress(range(repeats), desc=desc):
