@@ -36,7 +36,7 @@ def test_quickstart_streams_and_reports_throughput(capsys):
 def test_bench_rollout_table_and_plot(capsys, tmp_path):
     plot = tmp_path / "bench.png"
     cli.main(["bench", "cartpole", "--backends", "cpu", "--nbatch", "16", "--nstep", "10",
-              "--repeats", "1", "--min-seconds", "0", "--python-steps", "100",
+              "--repeats", "1", "--min-seconds", "0.3", "--python-steps", "100",
               "--plot", str(plot)])
     out = capsys.readouterr().out
     rows = {line.split("|")[3].strip(): line for line in out.splitlines()
