@@ -438,7 +438,18 @@ class ControlPlan:
             generator.manual_seed(int(child.generate_state(1, np.uint64)[0] >> 1))
             draw = driver.generator.sample(draws.TorchDraws(generator), p,
                                            (*out.shape[:2], len(driver.columns)))
-            out[..., torch.as_tensor(driver.columns, device=out.device)] = draw
+            out[..., _torch_columns(driver.columns, out.device)] = draw
+
+
+def _torch_columns(columns: np.ndarray, device: Any) -> Any:
+    """`columns` as a torch index: a slice when they are one run (a whole component, the usual
+    case: the draw is copied into a view), else an index tensor on `device` (copied there
+    synchronously every batch, then an indexing kernel)."""
+    import torch
+    start = int(columns[0]) if len(columns) else 0
+    if np.array_equal(columns, np.arange(start, start + len(columns))):
+        return slice(start, start + len(columns))
+    return torch.as_tensor(columns, device=device)
 
 
 def sample_jax(drivers: Sequence[ColumnDriver], defaults: Any, key: Any,

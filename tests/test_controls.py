@@ -99,10 +99,20 @@ def test_sinusoid_and_chirp(rich_model, backend):
     assert crossings_late > 3 * crossings_early
 
 
-def test_named_objects_and_undriven_defaults(rich_model):
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_named_objects_and_undriven_defaults(rich_model, backend):
     spec = int(S.mjSTATE_XFRC_APPLIED | S.mjSTATE_MOCAP_POS | S.mjSTATE_EQ_ACTIVE)
-    x = draw(rich_model, {"xfrc_applied": controls.Normal(std=[10, 0, 0, 0, 0, 0], on="ball")},
-             spec, n=5, t=3)
+    if backend == "torch":  # sample_torch leaves undriven columns alone: the engine's defaults
+        plan = controls.ControlPlan(rich_model, spec, {"xfrc_applied": controls.Normal(
+            std=[10, 0, 0, 0, 0, 0], on="ball")}, 5, 3)
+        import torch
+        out = torch.as_tensor(np.broadcast_to(plan.default_rows[:, None], (5, 3, plan.ncontrol)),
+                              dtype=torch.float64).clone()
+        plan.sample_torch(np.random.SeedSequence(0), out, plan.torch_params(out))
+        x = out.numpy()
+    else:
+        x = draw(rich_model, {"xfrc_applied": controls.Normal(std=[10, 0, 0, 0, 0, 0],
+                                                               on="ball")}, spec, n=5, t=3)
     comps = {c.name: c for c in simloader.layout.control_layout(rich_model, spec)}
     xfrc = x[..., comps["xfrc_applied"].columns].reshape(5, 3, rich_model.nbody, 6)
     ball = rich_model.body("ball").id
@@ -111,6 +121,24 @@ def test_named_objects_and_undriven_defaults(rich_model):
     np.testing.assert_array_equal(x[..., comps["mocap_pos"].columns],
                                   np.broadcast_to(rich_model.body("target").pos, (5, 3, 3)))
     np.testing.assert_array_equal(x[..., comps["eq_active"].columns], 0)  # active="false"
+
+
+@pytest.mark.parametrize("on", [None, ["ball"], ["hand", "ball"]])
+def test_torch_draws_fill_exactly_the_driven_columns(rich_model, on):
+    """The Warp engine's draws land in the driven columns, whether they are one run (written
+    through a view) or not (through an index), and nowhere else."""
+    import torch
+    spec = int(S.mjSTATE_CTRL | S.mjSTATE_XFRC_APPLIED)
+    gen = controls.Uniform(low=1.0, high=2.0, on=on) if on else controls.Uniform(low=1.0,
+                                                                                 high=2.0)
+    plan = controls.ControlPlan(rich_model, spec, {"xfrc_applied": gen}, 3, 2)
+    (driver,) = plan.drivers
+    out = torch.full((3, 2, plan.ncontrol), -7.0)
+    plan.sample_torch(np.random.SeedSequence(1), out, plan.torch_params(out))
+    driven = np.zeros(plan.ncontrol, bool)
+    driven[driver.columns] = True
+    assert (out[..., driven] >= 1).all() and (out[..., driven] <= 2).all()
+    assert (out[..., ~driven] == -7).all()
 
 
 def test_from_array_and_constant(rich_model):

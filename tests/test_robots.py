@@ -10,7 +10,9 @@ they load with no asset and no network, each with its LICENSE. On every robot:
 - `backend="auto"` never picks an engine that refuses the robot, and says why it was passed
   over; `backend="mjx"` asked by name refuses it with a ValueError naming the engines that
   simulate it (never MJX's bare NotImplementedError);
-- `simloader info` prints each engine's verdict.
+- `simloader info` prints each engine's verdict;
+- the Warp engine's buffer calibration finds the most contacts and constraint rows any step
+  used, as a step-by-step loop of `mj_step` counts them.
 """
 
 import pathlib
@@ -65,6 +67,31 @@ def test_the_cpu_engine_equals_mujoco_rollout_bit_for_bit(robot):
                               control_spec=int(S.mjSTATE_CTRL))
     np.testing.assert_array_equal(batch["state"].numpy(), want)
     assert not batch["diverged"].any()
+
+
+@pytest.mark.parametrize("robot", list(ROBOTS))
+def test_warp_calibration_finds_the_most_any_step_used(robot):
+    pytest.importorskip("mujoco_warp")
+    from simloader.backends.warp import options
+    model = load(robot)
+    data = mujoco.MjData(model)
+    x = np.empty(mujoco.mj_stateSize(model, S.mjSTATE_FULLPHYSICS))
+    mujoco.mj_getState(model, data, x, S.mjSTATE_FULLPHYSICS)
+    x0 = np.tile(x, (5, 1))  # initial velocities apart, so that the trajectories differ
+    x0[:, 1 + model.nq:1 + model.nq + model.nv] += np.random.default_rng(1).normal(
+        0, 0.5, (5, model.nv))
+    low, high = np.where(model.actuator_ctrllimited[:, None].astype(bool),
+                         model.actuator_ctrlrange, [-1.0, 1.0]).T
+    controls_ = np.random.default_rng(0).uniform(low, high, (5, options._CALIBRATION_STEPS,
+                                                              model.nu))
+    most = [0, 0]
+    for x_i, u_i in zip(x0, controls_):
+        mujoco.mj_setState(model, data, x_i, S.mjSTATE_FULLPHYSICS)
+        for u in u_i:
+            data.ctrl[:] = u
+            mujoco.mj_step(model, data)
+            most = [max(most[0], data.ncon), max(most[1], data.nefc)]
+    assert options._calibrate(model, x0) == tuple(most)
 
 
 @pytest.mark.parametrize("robot", list(ROBOTS))

@@ -8,7 +8,6 @@ supports and which of its arrays differ between the models of a pool.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import warnings
 from typing import Any, Optional
@@ -16,6 +15,7 @@ from typing import Any, Optional
 import mujoco
 import numpy as np
 import torch
+from mujoco import rollout
 
 from simloader import layout, memory, observe, threads
 from simloader.backends import gpu_state
@@ -237,30 +237,22 @@ def buffer_sizes(model: mujoco.MjModel, nbatch: int, x0: np.ndarray,
 def _calibrate(model: mujoco.MjModel, x0: np.ndarray) -> tuple[int, int]:
     """The most contacts and constraint rows one trajectory of MuJoCo C used.
 
-    The trajectories run on threads (mj_step releases the GIL): at construction this was most
-    of simloader's own start-up on a GPU machine (4800 humanoid steps, 0.24 s on one core).
-    Their controls are drawn first, from one generator in trajectory order, as one thread drew
-    them step by step before: the sizes do not depend on the threads, and are those the suite
-    measured on an H200 (njmax 64 for the humanoid; draws of another order gave 70, and a run
-    of the cameras workload then the randomized one hit an illegal memory access there)."""
+    One `mujoco.rollout` call (all in C, on threads: a Python loop of `mj_step` on threads was
+    about 0.1 s of a warm first batch on a 16-core GPU host, its threads taking turns at the
+    GIL every step), read back from MuJoCo's own high-water marks: `maxuse_con` and
+    `maxuse_efc` of each thread's MjData, the most any of its steps used (the same sizes the
+    loop measured after every step, on 17 robot models). The controls are drawn from one
+    generator in trajectory order, as before: the sizes are those the suite measured on an
+    H200 (njmax 64 for the humanoid; draws of another order gave 70, and a run of the cameras
+    workload then the randomized one hit an illegal memory access there)."""
     low, high = np.where(model.actuator_ctrllimited[:, None].astype(bool), model.actuator_ctrlrange,
                          [-1.0, 1.0]).T
     n = min(_CALIBRATION_TRAJECTORIES, len(x0))
     controls = np.random.default_rng(0).uniform(low, high, (n, _CALIBRATION_STEPS, model.nu))
-
-    def trajectory(i: int) -> tuple[int, int]:
-        data = mujoco.MjData(model)
-        mujoco.mj_setState(model, data, x0[i], layout.FULLPHYSICS)
-        ncon = nefc = 0
-        for u in controls[i]:
-            data.ctrl[:] = u
-            mujoco.mj_step(model, data)
-            ncon, nefc = max(ncon, data.ncon), max(nefc, data.nefc)
-        return ncon, nefc
-
-    with concurrent.futures.ThreadPoolExecutor(min(n, threads.available_cpus())) as pool:
-        used = list(pool.map(trajectory, range(n)))
-    return max(c for c, _ in used), max(e for _, e in used)
+    datas = [mujoco.MjData(model) for _ in range(min(n, threads.available_cpus()))]
+    rollout.rollout(model, datas, np.asarray(x0[:n], dtype=np.float64), controls,
+                    nstep=_CALIBRATION_STEPS)
+    return max(d.maxuse_con for d in datas), max(d.maxuse_efc for d in datas)
 
 
 def overflow_message(bits: int, naconmax: int, njmax: int) -> str:
