@@ -389,7 +389,10 @@ def bench_run(args: argparse.Namespace) -> None:
             print(f"  {line['workload']}: skipped: {line['skipped']}")
         else:
             target = "" if line["target"] is None else f" (target {line['target']:.3f})"
-            print(f"  {line['workload']}: {results.ratio_text(line)}{target}")
+            again = line.get("repeated_below_target")
+            again = (f", {line['repeats']} repetitions: below its target after the first "
+                     f"{line['repeats'] - again}" if again else "")
+            print(f"  {line['workload']}: {results.ratio_text(line)}{target}{again}")
 
     lines = suite.run(chosen, out, repeats=args.repeats, min_seconds=args.min_seconds,
                       seed=args.seed, folder=args.folder, on_line=said)
@@ -651,7 +654,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, Any]:
                                   f"{DEFAULT_OUT}/bench-SUITE-DATE.jsonl)")
     br.add_argument("--repeats", type=positive_int, default=None,
                     help="alternating timed repetitions per workload (default: 5 on --suite "
-                         "cpu, where a shared 2-core machine drifts, else 3)")
+                         "cpu, where a shared 2-core machine drifts, else 3); a workload below "
+                         "its target runs as many again, pooled, before its verdict")
     br.add_argument("--min-seconds", type=float, default=1.5,
                     help="each timed repetition lasts at least this long")
     br.add_argument("--seed", type=int, default=0)

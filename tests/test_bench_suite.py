@@ -75,6 +75,12 @@ def test_a_run_writes_lines_and_check_names_the_workload_below_target(tmp_path, 
     subjects = {line["workload"]: line for line in lines if line["role"] == "subject"}
     assert subjects["tiny-raw"]["passed"] and subjects["tiny-raw"]["ratio"] > 0
     assert subjects["tiny-impossible"]["passed"] is False
+    # below its target, measured again with as many repetitions before the verdict; a
+    # workload at its target is not
+    assert subjects["tiny-impossible"]["repeated_below_target"] == 1
+    assert subjects["tiny-impossible"]["repeats"] == 2
+    assert subjects["tiny-raw"]["repeated_below_target"] == 0
+    assert subjects["tiny-raw"]["repeats"] == 1
     assert "nobody" in subjects["tiny-broken"]["error"]
     for line in lines:
         if "error" not in line:

