@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from mujoco import rollout
 
-from simloader import layout, memory, observe, threads
+from simloader import memory, observe, threads
 from simloader.backends import gpu_state
 from simloader.backends.warp import cameras, model_arrays, runtime
 from simloader.config import SimConfig
